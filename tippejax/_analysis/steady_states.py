@@ -1,0 +1,269 @@
+r"""Steady states for a given Jellet: vertical and intermediate, with their stability (Sec. 3-4).
+
+Intermediate states are the roots $x = \cos\theta_0 \in (-1, 1)$ of (eq. define_intstates)
+
+$$f(J^2, x) = \frac{J^2}{m g C R^2\epsilon}\,\tilde B(x) - P(x)^2,\qquad
+\tilde B = (a-1)x + e,\quad P = a(1 - x^2) + (x - e)^2,$$
+
+which need $\tilde B > 0$ (eq. Exist). Along the branch $J^2(x) = m g C R^2\epsilon P^2/\tilde B$
+and $dJ^2/dx = -g(x) J^2/\tilde B$ (ERRATA.md), so $J^2(x)$ is monotone between the ends of the
+branch and the bifurcation point $x_b$. Each monotone piece holds at most one root, which is
+bracketed and found by bisection (`optimistix.Bisection`): at most two intermediate states.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import optimistix as optx
+from jaxtyping import Array, Bool, Complex, Float
+
+from .._top import TippeTop
+from .groups import thresholds
+from .potential import effective_potential_d2_closed_form
+from .stability import (
+    polynomial_eigenvalues,
+    reduced_jacobian_eigenvalues,
+    vector_field_eigenvalues,
+)
+
+
+def intermediate_condition(top: TippeTop, J, x) -> Array:
+    r"""$f(J^2, x)$ of eq. define_intstates; zero at an intermediate state $x = \cos\theta_0$."""
+    a, e = top.A / top.C, top.eps / top.R
+    b = (a - 1.0) * x + e
+    p = a * (1.0 - x**2) + (x - e) ** 2
+    return J**2 / (top.m * top.g * top.C * top.R**2 * top.eps) * b - p**2
+
+
+def stability_function(top: TippeTop, x) -> Array:
+    r"""$g(x) = (a - 1) + 4\tilde B(x)^2/(a(1-x^2) + (x-e)^2)$ (eq. eq:defg).
+
+    An intermediate state at $x = \cos\theta_0$ is stable iff $g(x) > 0$.
+    """
+    a, e = top.A / top.C, top.eps / top.R
+    b = (a - 1.0) * x + e
+    return (a - 1.0) + 4 * b**2 / (a * (1.0 - x**2) + (x - e) ** 2)
+
+
+def branch_jellet(top: TippeTop, theta) -> Array:
+    r"""$J(\theta) \ge 0$ on the branch of intermediate states, $J^2 = m g C R^2\epsilon P^2/\tilde B$.
+
+    nan where no intermediate state exists ($\tilde B \le 0$).
+    """
+    a, e = top.A / top.C, top.eps / top.R
+    x = jnp.cos(theta)
+    b = (a - 1.0) * x + e
+    p = a * (1.0 - x**2) + (x - e) ** 2
+    j2 = top.m * top.g * top.C * top.R**2 * top.eps * p**2 / jnp.where(b > 0, b, 1.0)
+    return jnp.where(b > 0, jnp.sqrt(j2), jnp.nan)
+
+
+class SteadyStates(eqx.Module):
+    r"""Steady states of a top for one Jellet value (fields for one top; batch with `vmap`).
+
+    Vertical states, index 0 for $\theta = 0$ and 1 for $\theta = \pi$:
+
+    - `vertical_theta`: $(0, \pi)$; `vertical_spin`: $n_0 = J/(C(R-\epsilon))$,
+      $n_\pi = -J/(C(R+\epsilon))$.
+    - `vertical_stable`: $W'' > 0$ at the pole (eqs. cond_n1, stabpi_muniet0).
+    - `vertical_eigenvalues_so3` (4 each), `vertical_eigenvalues_full` (6 each): non-trivial
+      eigenvalues of the SO(3) and full vector fields linearised at the pole (a regular chart).
+
+    Intermediate states, up to two slots (`intermediate_valid` says which are filled; empty slots
+    hold nan):
+
+    - `intermediate_theta`, `intermediate_d2W` ($W''$), `intermediate_g` ($g(\cos\theta_0)$),
+      `intermediate_stable` ($W'' > 0$).
+    - `intermediate_eigenvalues_reduced` (3): autodiff Jacobian of the reduced system.
+    - `intermediate_eigenvalues_polynomial` (3): the corrected characteristic polynomial.
+    - `intermediate_eigenvalues_so3` (3), `intermediate_eigenvalues_full` (5): vector fields
+      linearised in the co-rotating frame.
+    """
+
+    jellet: Float[Array, ""]
+    vertical_theta: Float[Array, "2"]
+    vertical_spin: Float[Array, "2"]
+    vertical_stable: Bool[Array, "2"]
+    vertical_eigenvalues_so3: Complex[Array, "2 4"]
+    vertical_eigenvalues_full: Complex[Array, "2 6"]
+    intermediate_valid: Bool[Array, "2"]
+    intermediate_theta: Float[Array, "2"]
+    intermediate_d2W: Float[Array, "2"]
+    intermediate_g: Float[Array, "2"]
+    intermediate_stable: Bool[Array, "2"]
+    intermediate_eigenvalues_reduced: Complex[Array, "2 3"]
+    intermediate_eigenvalues_polynomial: Complex[Array, "2 3"]
+    intermediate_eigenvalues_so3: Complex[Array, "2 3"]
+    intermediate_eigenvalues_full: Complex[Array, "2 5"]
+
+    @property
+    def intermediate(self) -> list[tuple[float, bool]]:
+        """The filled intermediate states as a list of `(theta, stable)` (concrete values only)."""
+        import numpy as np
+
+        valid = np.asarray(self.intermediate_valid)
+        return [
+            (float(t), bool(s))
+            for t, s, v in zip(
+                np.asarray(self.intermediate_theta), np.asarray(self.intermediate_stable), valid
+            )
+            if v
+        ]
+
+
+def _branch_pieces(top: TippeTop):
+    """Theta-intervals of the branch on which J^2 is monotone: ((lo1, hi1), (lo2, hi2))."""
+    a, e = top.A / top.C, top.eps / top.R
+    th = thresholds(top)
+    group_i = a - 1.0 < -e
+    group_iii = a - 1.0 > e
+    theta_lo = jnp.where(group_iii, 0.0, jnp.where(group_i, th.theta_c, 0.0))
+    theta_hi = jnp.where(group_iii, th.theta_c, jnp.pi)
+    theta_lo = jnp.where(group_iii, 0.0, theta_lo)
+    split = jnp.where(
+        jnp.isfinite(th.theta_b) & (th.theta_b > theta_lo) & (th.theta_b < theta_hi),
+        th.theta_b,
+        theta_hi,
+    )
+    return (theta_lo, split), (split, theta_hi)
+
+
+def _find_root(top: TippeTop, J, lo, hi):
+    """Root of f(J^2, cos theta) in [lo, hi] by bisection, if the bracket changes sign."""
+    dtype = jnp.result_type(top.m)
+    tol = 1e-13 if dtype == jnp.float64 else 1e-6
+
+    def fn(theta, args):
+        return intermediate_condition(top, J, jnp.cos(theta))
+
+    # Nudge off the ends: at theta_c, f is finite; at a pole it is the vertical state.
+    width = hi - lo
+    lo_in, hi_in = lo + 1e-12 * width, hi - 1e-12 * width
+    f_lo, f_hi = fn(lo_in, None), fn(hi_in, None)
+    bracketed = (jnp.sign(f_lo) * jnp.sign(f_hi) < 0) & (width > 0)
+    # Without a sign change, solve a dummy problem on [0, 1] (Bisection requires a bracket).
+    lo_in = jnp.where(bracketed, lo_in, 0.0)
+    hi_in = jnp.where(bracketed, hi_in, 1.0)
+
+    def safe_fn(theta, args):
+        return jnp.where(bracketed, fn(theta, args), theta - 0.5)
+
+    solver = optx.Bisection(rtol=tol, atol=tol, flip="detect")
+    sol = optx.root_find(
+        safe_fn,
+        solver,
+        0.5 * (lo_in + hi_in),
+        options=dict(lower=lo_in, upper=hi_in),
+        throw=False,
+        max_steps=256,
+    )
+    ok = bracketed & (sol.result == optx.RESULTS.successful)
+    return jnp.where(ok, sol.value, jnp.nan), ok
+
+
+@eqx.filter_jit
+def steady_states(top: TippeTop, J) -> SteadyStates:
+    r"""All steady states of `top` at Jellet `J`, with their stability by every route.
+
+    **Arguments:**
+
+    - `top`: a single `TippeTop` (use `jax.vmap` for a batch).
+    - `J`: the Jellet value (kg m^2/s), e.g. `tj.jellet(top, y0)`.
+
+    **Returns:** a `SteadyStates`. Eigenvalues use `jnp.linalg.eigvals` (CPU).
+    """
+    J = jnp.asarray(J, dtype=jnp.result_type(J, top.m))
+    pieces = _branch_pieces(top)
+    thetas, valids = [], []
+    for lo, hi in pieces:
+        theta, ok = _find_root(top, J, lo, hi)
+        thetas.append(theta)
+        valids.append(ok)
+    theta_i = jnp.stack(thetas)
+    valid = jnp.stack(valids)
+    safe = jnp.where(valid, theta_i, 1.0)
+
+    def per_state(th):
+        return (
+            effective_potential_d2_closed_form(top, th, J),
+            stability_function(top, jnp.cos(th)),
+            reduced_jacobian_eigenvalues(top, th, J),
+            polynomial_eigenvalues(top, th, J),
+            vector_field_eigenvalues(top, th, J, model="so3"),
+            vector_field_eigenvalues(top, th, J, model="full"),
+        )
+
+    d2w, g, ev_red, ev_poly, ev_so3, ev_full = jax.vmap(per_state)(safe)
+
+    def mask(x):
+        shape = (2,) + (1,) * (x.ndim - 1)
+        return jnp.where(valid.reshape(shape), x, jnp.nan)
+
+    poles = jnp.array([0.0, jnp.pi], dtype=J.dtype)
+    vertical_d2w = effective_potential_d2_closed_form(top, poles, J)
+    vertical_so3 = jnp.stack(
+        [vector_field_eigenvalues(top, p, J, model="so3", pole=True) for p in (poles[0], poles[1])]
+    )
+    vertical_full = jnp.stack(
+        [vector_field_eigenvalues(top, p, J, model="full", pole=True) for p in (poles[0], poles[1])]
+    )
+    return SteadyStates(
+        jellet=J,
+        vertical_theta=poles,
+        vertical_spin=jnp.stack([J / (top.C * (top.R - top.eps)), -J / (top.C * (top.R + top.eps))]),
+        vertical_stable=vertical_d2w > 0,
+        vertical_eigenvalues_so3=vertical_so3,
+        vertical_eigenvalues_full=vertical_full,
+        intermediate_valid=valid,
+        intermediate_theta=theta_i,
+        intermediate_d2W=mask(d2w),
+        intermediate_g=mask(g),
+        intermediate_stable=valid & (d2w > 0),
+        intermediate_eigenvalues_reduced=mask(ev_red),
+        intermediate_eigenvalues_polynomial=mask(ev_poly),
+        intermediate_eigenvalues_so3=mask(ev_so3),
+        intermediate_eigenvalues_full=mask(ev_full),
+    )
+
+
+@eqx.filter_jit
+def pole_threshold(top: TippeTop, *, pole: str = "north", model: str = "so3") -> Array:
+    r"""The spin threshold at a pole, found from the linearised SO(3) or full vector field.
+
+    `pole="north"` ($\theta = 0$): the $|n_0|$ above which the largest real part of the non-trivial
+    eigenvalues becomes positive ($n_1$ of eq. n1). `pole="south"` ($\theta = \pi$): the $|n_\pi|$
+    above which it becomes negative ($n_2$ of eq. n2). Found by bisection on $\log|n|$ between
+    $10^{-2}$ and $10^{3}$ times $\sqrt{m g\epsilon/C}$; nan where the sign does not change
+    (Group I at the north pole, Group III at the south pole). Needs $\mu > 0$.
+    """
+    if pole not in ("north", "south"):
+        raise ValueError(f"pole must be 'north' or 'south', got {pole!r}.")
+    theta0 = 0.0 if pole == "north" else jnp.pi
+    lever = (top.R - top.eps) if pole == "north" else -(top.R + top.eps)
+    scale = jnp.sqrt(top.m * top.g * top.eps / top.C)
+
+    def growth(log_n, args):
+        J = top.C * lever * jnp.exp(log_n)
+        ev = vector_field_eigenvalues(top, theta0, J, model=model, pole=True)
+        return jnp.max(jnp.real(ev)) / scale
+
+    lo, hi = jnp.log(1e-2 * scale), jnp.log(1e3 * scale)
+    bracketed = jnp.sign(growth(lo, None)) * jnp.sign(growth(hi, None)) < 0
+    tol = 1e-14 if jnp.result_type(top.m) == jnp.float64 else 1e-6
+    mid = 0.5 * (lo + hi)
+
+    def safe_growth(log_n, args):
+        return jnp.where(bracketed, growth(log_n, args), log_n - mid)
+
+    sol = optx.root_find(
+        safe_growth,
+        optx.Bisection(rtol=tol, atol=tol, flip="detect"),
+        0.5 * (lo + hi),
+        options=dict(lower=lo, upper=hi),
+        throw=False,
+        max_steps=512,
+    )
+    ok = bracketed & (sol.result == optx.RESULTS.successful)
+    return jnp.where(ok, jnp.exp(sol.value), jnp.nan)

@@ -1,0 +1,103 @@
+r"""Jellet integral, energy, normal force and slip velocity of a state."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from ._models._rigid_body import (
+    centre_of_mass_velocity,
+    contact_vector,
+    contact_velocity,
+    rigid_body_dynamics,
+)
+from ._state import State
+from ._top import TippeTop
+
+_MODELS = ("full", "so3", "routhian")
+
+
+def _check_model(model: str) -> str:
+    if model not in _MODELS:
+        raise ValueError(f"model must be one of {_MODELS} here, got {model!r}.")
+    return model
+
+
+def _batched(fn, y: State):
+    for _ in y.axis.shape[:-1]:
+        fn = jax.vmap(fn)
+    return fn(y)
+
+
+def _friction_velocity(y: State, model: str):
+    return y.velocity if model == "full" else jnp.zeros_like(y.velocity)
+
+
+def jellet(top: TippeTop, y: State) -> Float[Array, "*batch"]:
+    r"""The Jellet integral $J = -L\cdot q$ (eqs. Jellet, jello).
+
+    $J = C n (R\cos\theta - \epsilon) + A\dot\varphi R\sin^2\theta$; exactly conserved by the full,
+    SO(3) and Routhian models whatever the friction law.
+    """
+
+    def one(y):
+        n = jnp.dot(y.omega, y.axis)
+        angular_momentum = top.A * y.omega + (top.C - top.A) * n * y.axis
+        return -jnp.dot(angular_momentum, contact_vector(top, y.axis))
+
+    return _batched(one, y)
+
+
+def energy(top: TippeTop, y: State, *, model: str = "full") -> Float[Array, "*batch"]:
+    r"""Total energy $E = \tfrac12 m |v_O|^2 + \tfrac12\omega\cdot I\omega + m g h$ (Sec. 2.1).
+
+    $v_O = (\dot x, \dot y, \dot h)$, $h = R - \epsilon\cos\theta$. For `model="so3"` or
+    `"routhian"` the horizontal velocity is dropped ($E'$ of the Lagrangian $L'$). Along every
+    model's flow $\dot E = R_f\cdot v_Q = -\mu R_n |v_Q|^2 \le 0$ (eq. derE) while $R_n \ge 0$.
+    """
+    _check_model(model)
+
+    def one(y):
+        v_o = centre_of_mass_velocity(top, y.axis, y.omega, _friction_velocity(y, model))
+        n = jnp.dot(y.omega, y.axis)
+        rotational = 0.5 * (top.A * jnp.dot(y.omega, y.omega) + (top.C - top.A) * n**2)
+        height = top.R - top.eps * y.axis[2]
+        return 0.5 * top.m * jnp.dot(v_o, v_o) + rotational + top.m * top.g * height
+
+    return _batched(one, y)
+
+
+def normal_force(top: TippeTop, y: State, *, model: str = "full") -> Float[Array, "*batch"]:
+    r"""Normal force $R_n$ of the table, from $m\ddot h = R_n - m g$ and the equations of motion.
+
+    Agrees with the paper's closed form (eq. reactie). With `model="so3"` or `"routhian"` the
+    horizontal velocity is dropped ($R'_n$). $R_n \le 0$ means the top has left the table and the
+    model no longer applies (ERRATA.md, 6).
+    """
+    _check_model(model)
+    return _batched(
+        lambda y: rigid_body_dynamics(top, y.axis, y.omega, _friction_velocity(y, model))[0], y
+    )
+
+
+def normal_force_denominator(
+    top: TippeTop, y: State, *, model: str = "full"
+) -> Float[Array, "*batch"]:
+    r"""The denominator $1/m + h'(h' + \mu h^2\dot\theta)/A + \dots$ of $R_n$ (eq. reactie).
+
+    Its zero is a Painleve-type singularity of friction proportional to $R_n$ (ERRATA.md, 5);
+    it is positive in every regular state.
+    """
+    _check_model(model)
+    return _batched(
+        lambda y: rigid_body_dynamics(top, y.axis, y.omega, _friction_velocity(y, model))[3], y
+    )
+
+
+def slip_velocity(top: TippeTop, y: State, *, model: str = "full") -> Float[Array, "*batch 3"]:
+    r"""Velocity of the contact point, $v_Q = v_O + \omega\times q$ (horizontal)."""
+    _check_model(model)
+    return _batched(
+        lambda y: contact_velocity(top, y.axis, y.omega, _friction_velocity(y, model)), y
+    )
