@@ -163,7 +163,6 @@ def _find_root(top: TippeTop, J, lo, hi):
     return jnp.where(ok, sol.value, jnp.nan), ok
 
 
-@eqx.filter_jit
 def steady_states(top: TippeTop, J) -> SteadyStates:
     r"""All steady states of `top` at Jellet `J`, with their stability by every route.
 
@@ -174,6 +173,11 @@ def steady_states(top: TippeTop, J) -> SteadyStates:
 
     **Returns:** a `SteadyStates`. Eigenvalues use `jnp.linalg.eigvals` (CPU).
     """
+    return _steady_states(top, jnp.asarray(J, dtype=jnp.result_type(J, top.m)))
+
+
+@eqx.filter_jit
+def _steady_states(top: TippeTop, J) -> SteadyStates:
     J = jnp.asarray(J, dtype=jnp.result_type(J, top.m))
     pieces = _branch_pieces(top)
     thetas, valids = [], []
