@@ -73,3 +73,11 @@ try:
     __version__ = importlib.metadata.version("tippejax")
 except importlib.metadata.PackageNotFoundError:  # running from a source tree
     __version__ = "0.0.0"
+
+from ._simulate import (
+    CHART_SIN_MIN as CHART_SIN_MIN,
+    default_solver as default_solver,
+    friction_rate as friction_rate,
+    simulate as simulate,
+)
+from ._solution import RESULTS as RESULTS, Solution as Solution

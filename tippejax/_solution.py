@@ -1,0 +1,84 @@
+"""The result of `tippejax.simulate`: a solution at the save times, with failure codes."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import equinox.internal as eqxi
+from jaxtyping import Array, Float, Int
+
+
+class RESULTS(eqxi.Enumeration):
+    """Outcome of a simulation. `successful` is the empty message."""
+
+    successful = ""
+    max_steps_reached = (
+        "The maximum number of solver steps was reached before t1. Increase `max_steps`, loosen "
+        "the tolerances, or pass an implicit solver (e.g. diffrax.Kvaerno5()) for stiff friction."
+    )
+    contact_lost = (
+        "The normal force R_n reached 0: the top leaves the table and the contact model no "
+        "longer applies (ERRATA.md, point 6). Values after `t_contact_loss` are not physical."
+    )
+    normal_force_singular = (
+        "The denominator of R_n vanished: a Painleve-type singularity of friction proportional "
+        "to R_n (ERRATA.md, point 5). The model has no solution beyond this time."
+    )
+    nonfinite = "The solution became NaN or infinite."
+    solver_failed = (
+        "The ODE solver failed (step size underflow or an internal diffrax error)."
+    )
+
+
+class Solution(eqx.Module):
+    r"""A simulated trajectory, sampled at the save times `ts`.
+
+    Entries at save times after the run stopped (contact loss with `on_contact_loss="stop"`, the
+    $R_n$ singularity, a solver failure) are nan; `result` says why it stopped.
+
+    **Fields** (shape `(n_save,)` unless said; leading batch axes under `vmap`):
+
+    - `ts`: save times (s).
+    - `theta`, `phi`, `psi`: ZXZ Euler angles (rad); `phi`, `psi` unwrapped. `phi`, `psi` and
+      their rates are singular where $\sin\theta = 0$.
+    - `theta_dot`, `phi_dot`, `psi_dot`: Euler rates (rad/s); `spin`: $n = \omega\cdot a$.
+    - `position`, `velocity`: horizontal centre-of-mass position and velocity, `(n_save, 2)`
+      (constant zero for the SO(3) and Routhian levels, which drop translation).
+    - `jellet`: $J$; `energy`: $E$; `normal_force`: $R_n$; `slip_speed`: $|v_Q|$.
+    - `states`: the `State`s at `ts`.
+    - `model`: the level used (str); "routhian->so3" when a Routhian run left its chart.
+    - `result`: a `RESULTS` code (`sol.result == tj.RESULTS.successful`).
+    - `t_invert`: first upward crossing of $\theta = \pi/2$ (nan if none).
+    - `t_contact_loss`: first time $R_n = 0$ (nan if never).
+    - `t_chart_switch`: time a Routhian run left its chart near a pole (nan otherwise).
+    - `t_final`: the time the integration reached (t1 unless it stopped early).
+    - `num_steps`, `num_rejected_steps`: solver statistics (all segments together).
+    """
+
+    ts: Float[Array, "*batch n"]
+    theta: Float[Array, "*batch n"]
+    phi: Float[Array, "*batch n"]
+    psi: Float[Array, "*batch n"]
+    theta_dot: Float[Array, "*batch n"]
+    phi_dot: Float[Array, "*batch n"]
+    psi_dot: Float[Array, "*batch n"]
+    spin: Float[Array, "*batch n"]
+    position: Float[Array, "*batch n 2"]
+    velocity: Float[Array, "*batch n 2"]
+    jellet: Float[Array, "*batch n"]
+    energy: Float[Array, "*batch n"]
+    normal_force: Float[Array, "*batch n"]
+    slip_speed: Float[Array, "*batch n"]
+    states: object
+    result: RESULTS
+    t_invert: Float[Array, "*batch"]
+    t_contact_loss: Float[Array, "*batch"]
+    t_chart_switch: Float[Array, "*batch"]
+    t_final: Float[Array, "*batch"]
+    num_steps: Int[Array, "*batch"]
+    num_rejected_steps: Int[Array, "*batch"]
+    model: str = eqx.field(static=True)
+
+    @property
+    def succeeded(self):
+        """Boolean array: True where the run reached t1 without a reported failure."""
+        return self.result == RESULTS.successful
