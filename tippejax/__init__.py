@@ -81,3 +81,4 @@ from ._simulate import (
     simulate as simulate,
 )
 from ._solution import RESULTS as RESULTS, Solution as Solution
+from ._batch import simulate_batch as simulate_batch

@@ -169,8 +169,8 @@ def _code(sol, index_singular, index_contact, stop_on_contact):
 
 
 def _merge(ts, states, new_states, t_start):
-    """Take `new_states` at the save times after `t_start`."""
-    later = ts > t_start
+    """Take `new_states` at the save times from `t_start` on (both agree at `t_start`)."""
+    later = ts >= t_start
     return jax.tree_util.tree_map(
         lambda a, b: jnp.where(later.reshape((-1,) + (1,) * (a.ndim - 1)), b, a),
         states,
