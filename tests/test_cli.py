@@ -65,5 +65,11 @@ def test_demo_slow_spin_has_intermediate_state(tmp_path, capsys):
     assert len(intermediate) == 1 and intermediate[0].rstrip().endswith(" stable")
 
 
-def test_demo_simulation_placeholder(tmp_path):
-    assert _demo_simulation(tj.default_top(), 0.1, 99.0, str(tmp_path)) is None
+def test_demo_simulation_inverts_and_writes_figure(tmp_path, capsys):
+    path = _demo_simulation(tj.default_top(), 0.1, 99.0, str(tmp_path))
+    assert (tmp_path / "demo.png").is_file() and path.endswith("demo.png")
+    out = capsys.readouterr().out
+    line = next(s for s in out.splitlines() if "inversion time" in s)
+    # ERRATA.md: the standard top launched at theta0 = 0.1 with n0 = 100 inverts at t = 5.70 s.
+    assert 5.5 < float(line.split(":")[1].split()[0]) < 5.9
+    assert "result:            success" in out

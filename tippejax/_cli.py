@@ -181,13 +181,13 @@ def _demo_analysis(top, theta0: float, spin: float):
 
 
 def _demo_simulation(top, theta0: float, spin: float, out: str):
-    """Simulate the demo launch and write its plots to the folder `out`.
+    """Simulate the demo launch (full model), print a summary and write `out/demo.png`.
 
-    ==== PLACEHOLDER: the simulation of the launch is added here by another developer. ====
-    Keep the signature (`_cmd_demo` calls it after `_demo_analysis`; tests call it too).
-    For now it does nothing and returns None.
+    **Returns:** the path of the figure.
     """
-    return None
+    from ._demo import run_demo_simulation
+
+    return run_demo_simulation(top, theta0, spin, out)
 
 
 def _cmd_classify(args) -> int:
@@ -221,7 +221,7 @@ def _cmd_demo(args) -> int:
     top = tj.default_top()
     spin = args.spin if args.spin is not None else default_spin(top)
     _demo_analysis(top, args.theta0, spin)
-    # Simulation of the same launch (to be filled in; see `_demo_simulation`).
+    # Simulation of the same launch.
     _demo_simulation(top, args.theta0, spin, args.out)
     return 0
 
