@@ -1,0 +1,189 @@
+"""Vector state <-> ZXZ Euler angles, and initial_state."""
+
+import re
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import tippejax as tj
+
+N_SAMPLES = 50
+
+
+def _wrap(x):
+    """Angle difference mapped to (-pi, pi]."""
+    return np.angle(np.exp(1j * np.asarray(x)))
+
+
+def _rot_z(a):
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _rot_x(a):
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def _d_rot_z(a):
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[-s, -c, 0.0], [c, -s, 0.0], [0.0, 0.0, 0.0]])
+
+
+def _d_rot_x(a):
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[0.0, 0.0, 0.0], [0.0, -s, -c], [0.0, c, -s]])
+
+
+def _reference_state(theta, phi, psi, thd, phid, psid):
+    """Axis, body vector and angular velocity from the ZXZ rotation matrix Rz(phi) Rx(theta) Rz(psi).
+
+    Independent of the package: omega is read off the skew matrix dR/dt R^T.
+    """
+    rot = _rot_z(phi) @ _rot_x(theta) @ _rot_z(psi)
+    rot_dot = (
+        _d_rot_z(phi) @ _rot_x(theta) @ _rot_z(psi) * phid
+        + _rot_z(phi) @ _d_rot_x(theta) @ _rot_z(psi) * thd
+        + _rot_z(phi) @ _rot_x(theta) @ _d_rot_z(psi) * psid
+    )
+    skew = rot_dot @ rot.T
+    omega = np.array([skew[2, 1], skew[0, 2], skew[1, 0]])
+    return rot[:, 2], rot[:, 0], omega
+
+
+@pytest.fixture(scope="module")
+def samples():
+    rng = np.random.default_rng(1234)
+    theta = rng.uniform(0.05, np.pi - 0.05, N_SAMPLES)
+    phi = rng.uniform(-np.pi + 1e-3, np.pi - 1e-3, N_SAMPLES)
+    psi = rng.uniform(-np.pi + 1e-3, np.pi - 1e-3, N_SAMPLES)
+    rates = rng.normal(scale=[5.0, 20.0, 60.0], size=(N_SAMPLES, 3))
+    return theta, phi, psi, rates[:, 0], rates[:, 1], rates[:, 2]
+
+
+def test_state_from_euler_matches_rotation_matrix(samples):
+    y = tj.state_from_euler(*samples)
+    for i in range(N_SAMPLES):
+        axis, body, omega = _reference_state(*(s[i] for s in samples))
+        np.testing.assert_allclose(np.asarray(y.axis[i]), axis, rtol=0, atol=1e-14)
+        np.testing.assert_allclose(np.asarray(y.body[i]), body, rtol=0, atol=1e-14)
+        scale = np.linalg.norm(omega)
+        np.testing.assert_allclose(np.asarray(y.omega[i]), omega, rtol=0, atol=1e-13 * scale)
+
+
+def test_unit_axis_and_perpendicular_body(samples):
+    y = tj.state_from_euler(*samples)
+    np.testing.assert_allclose(np.linalg.norm(np.asarray(y.axis), axis=-1), 1.0, atol=1e-15)
+    np.testing.assert_allclose(np.linalg.norm(np.asarray(y.body), axis=-1), 1.0, atol=1e-15)
+    np.testing.assert_allclose(np.sum(np.asarray(y.axis * y.body), -1), 0.0, atol=1e-15)
+    np.testing.assert_array_equal(np.asarray(y.position), 0.0)
+    np.testing.assert_array_equal(np.asarray(y.velocity), 0.0)
+
+
+def test_angles_round_trip(samples):
+    theta, phi, psi = samples[:3]
+    y = tj.state_from_euler(*samples)
+    theta2, phi2, psi2 = tj.euler_angles(y)
+    np.testing.assert_allclose(np.asarray(theta2), theta, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(_wrap(np.asarray(phi2) - phi), 0.0, atol=1e-12)
+    np.testing.assert_allclose(_wrap(np.asarray(psi2) - psi), 0.0, atol=1e-12)
+    # Angles outside (-pi, pi] come back wrapped.
+    y = tj.state_from_euler(theta, phi + 4 * np.pi, psi - 2 * np.pi, *samples[3:])
+    _, phi3, psi3 = tj.euler_angles(y)
+    np.testing.assert_allclose(_wrap(np.asarray(phi3) - phi), 0.0, atol=1e-11)
+    np.testing.assert_allclose(_wrap(np.asarray(psi3) - psi), 0.0, atol=1e-11)
+    assert np.all(np.abs(np.asarray(phi3)) <= np.pi)
+
+
+def test_rates_round_trip(samples):
+    theta, _, _, thd, phid, psid = samples
+    y = tj.state_from_euler(*samples)
+    thd2, phid2, psid2 = tj.euler_rates(y)
+    scale = np.abs(thd) + np.abs(phid) + np.abs(psid)
+    # phid is omega.M / sin(theta): its round-off grows like 1/sin(theta).
+    tol = 1e-13 * scale / np.sin(theta)
+    assert np.all(np.abs(np.asarray(thd2) - thd) <= tol)
+    assert np.all(np.abs(np.asarray(phid2) - phid) <= tol)
+    assert np.all(np.abs(np.asarray(psid2) - psid) <= tol)
+    n = psid + phid * np.cos(theta)
+    np.testing.assert_allclose(np.asarray(tj.spin(y)), n, rtol=0, atol=1e-13 * scale.max())
+
+
+def test_vector_to_euler_to_vector(samples):
+    """Starting from the vector form: a random rotation and angular velocity."""
+    rng = np.random.default_rng(7)
+    y = tj.state_from_euler(*samples)
+    omega = rng.normal(scale=30.0, size=(N_SAMPLES, 3))
+    y = eqx.tree_at(lambda s: s.omega, y, jnp.asarray(omega))
+    angles = tj.euler_angles(y)
+    rates = tj.euler_rates(y)
+    y2 = tj.state_from_euler(*angles, *rates)
+    np.testing.assert_allclose(np.asarray(y2.axis), np.asarray(y.axis), atol=1e-14)
+    np.testing.assert_allclose(np.asarray(y2.body), np.asarray(y.body), atol=1e-14)
+    np.testing.assert_allclose(np.asarray(y2.omega), omega, rtol=0, atol=1e-12 * 30)
+
+
+def test_initial_state():
+    top = tj.default_top()
+    y = tj.initial_state(top, 0.4, 75.0, theta_dot=1.5, phi_dot=-3.0, phi=0.7, psi=-1.1, vx=0.2, vy=-0.05)
+    np.testing.assert_allclose(float(tj.spin(y)), 75.0, rtol=1e-15)
+    np.testing.assert_allclose(float(jnp.dot(y.omega, y.axis)), 75.0, rtol=1e-15)
+    np.testing.assert_array_equal(np.asarray(y.position), [0.0, 0.0])
+    np.testing.assert_array_equal(np.asarray(y.velocity), [0.2, -0.05])
+    theta, phi, psi = tj.euler_angles(y)
+    np.testing.assert_allclose([float(theta), float(phi), float(psi)], [0.4, 0.7, -1.1], atol=1e-14)
+    thd, phid, psid = tj.euler_rates(y)
+    np.testing.assert_allclose(
+        [float(thd), float(phid), float(psid)], [1.5, -3.0, 75.0 + 3.0 * np.cos(0.4)], rtol=1e-13
+    )
+    # Independent: omega from the rotation matrix.
+    axis, body, omega = _reference_state(0.4, 0.7, -1.1, 1.5, -3.0, 75.0 + 3.0 * np.cos(0.4))
+    np.testing.assert_allclose(np.asarray(y.axis), axis, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(y.omega), omega, atol=1e-12)
+
+
+def test_initial_state_defaults_and_poles():
+    top = tj.default_top()
+    y = tj.initial_state(top, 0.0, 50.0)
+    np.testing.assert_allclose(np.asarray(y.axis), [0.0, 0.0, 1.0], atol=0)
+    np.testing.assert_allclose(np.asarray(y.omega), [0.0, 0.0, 50.0], atol=1e-14)
+    np.testing.assert_array_equal(np.asarray(y.velocity), [0.0, 0.0])
+    y = tj.initial_state(top, np.pi, 50.0)
+    np.testing.assert_allclose(np.asarray(y.axis), [0.0, 0.0, -1.0], atol=1e-15)
+    np.testing.assert_allclose(float(tj.spin(y)), 50.0, rtol=1e-15)
+
+
+def test_initial_state_broadcasts():
+    top = tj.default_top()
+    theta = jnp.array([0.1, 0.5, 2.0])
+    y = tj.initial_state(top, theta, 30.0, vx=jnp.array([0.0, 0.1, 0.2]))
+    assert y.axis.shape == (3, 3) and y.velocity.shape == (3, 2)
+    np.testing.assert_allclose(np.asarray(tj.spin(y)), 30.0, rtol=1e-15)
+    np.testing.assert_allclose(np.asarray(y.velocity[:, 0]), [0.0, 0.1, 0.2], rtol=0)
+    np.testing.assert_allclose(np.asarray(tj.euler_angles(y)[0]), np.asarray(theta), atol=1e-14)
+
+
+_initial_state_jit = eqx.filter_jit(tj.initial_state)
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        (dict(theta=0.1, spin=float("nan")), "spin must be finite"),
+        (dict(theta=0.1, spin=float("inf")), "spin must be finite"),
+        (dict(theta=float("nan"), spin=10.0), "theta must be finite"),
+        (dict(theta=-0.1, spin=10.0), "theta must lie in [0, pi]"),
+        (dict(theta=3.2, spin=10.0), "theta must lie in [0, pi]"),
+    ],
+)
+def test_initial_state_rejects(kwargs, message):
+    top = tj.default_top()
+    with pytest.raises(Exception, match=re.escape(message)):
+        jax.block_until_ready(tj.initial_state(top, **kwargs))
+    with pytest.raises(Exception, match=re.escape(message)):
+        jax.block_until_ready(
+            _initial_state_jit(top, jnp.asarray(kwargs["theta"]), jnp.asarray(kwargs["spin"]))
+        )
