@@ -487,15 +487,8 @@ def test_stability_routes_agree(group):
     assert best_literal > 1e-2, best_literal
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason=(
-        "package bug: steady_states drops intermediate states at large J. optimistix.Bisection "
-        "terminates only when |f| < atol = 1e-13 as well as the bracket is small; f(J^2, cos th) "
-        "scales with J^2/(m g C R^2 eps) and cannot get that small at float64 resolution in theta, "
-        "so the solve hits max_steps and the root is masked out (steady_states.py, _find_root)."
-    ),
-)
+# Regression: steady_states once dropped states at large J (Bisection's |f| < atol test
+# could not be met for f ~ J^2); it now bisects the normalised f / (k + P^2).
 def test_steady_states_large_jellet_near_theta_c():
     top = tj.TippeTop.from_ratios(1.5, 0.3)  # Group III: exactly one state for every J > J1
     p = _params(top)

@@ -135,8 +135,15 @@ def _find_root(top: TippeTop, J, lo, hi):
     dtype = jnp.result_type(top.m)
     tol = 1e-13 if dtype == jnp.float64 else 1e-6
 
+    a, e = top.A / top.C, top.eps / top.R
+    k = J**2 / (top.m * top.g * top.C * top.R**2 * top.eps)
+
     def fn(theta, args):
-        return intermediate_condition(top, J, jnp.cos(theta))
+        # f / (k + P^2): the same roots, but O(1), so that Bisection's |f| < atol test can be
+        # met in floating point however large J is.
+        x = jnp.cos(theta)
+        p = a * (1.0 - x**2) + (x - e) ** 2
+        return intermediate_condition(top, J, x) / (k + p**2)
 
     # Nudge off the ends: at theta_c, f is finite; at a pole it is the vertical state.
     width = hi - lo
