@@ -335,9 +335,6 @@ def test_vmap_over_spins_matches_loop(top):
     assert np.max(np.abs(_np(theta_b[0]) - _np(theta_b[31]))) > 1e-2
 
 
-@pytest.mark.xfail(strict=True, raises=jax.errors.TracerArrayConversionError,
-                   reason="package bug: under jax.jit every array is traced, and default_solver "
-                   "only catches ConcretizationTypeError, not TracerArrayConversionError")
 def test_jit_with_default_solver(top):
     def one(n):
         y0 = tj.initial_state(top, 0.1, n)
@@ -377,9 +374,6 @@ def test_vmap_over_tops_explicit_solver():
     assert worst < 1e-8
 
 
-@pytest.mark.xfail(strict=True, raises=jax.errors.TracerArrayConversionError,
-                   reason="package bug: default_solver(top) calls np.asarray on a traced top and "
-                   "only catches ConcretizationTypeError, not TracerArrayConversionError")
 def test_vmap_over_tops_default_solver():
     tops = _stack(_four_tops()[:2])
 
@@ -416,9 +410,6 @@ def test_float32_with_x64_disabled(full_ref):
     assert err < 1e-3
 
 
-@pytest.mark.xfail(strict=True, raises=TypeError,
-                   reason="package bug: a float32 top in an x64 process crashes inside diffrax's "
-                   "event root find (cond branches float32 vs float64)")
 def test_float32_with_x64_enabled(full_ref):
     assert jax.config.jax_enable_x64
     sol = _float32_run()
@@ -530,10 +521,6 @@ def test_state_beyond_singularity_is_not_a_success():
         tj.simulate(top, y0, 1.0, model="so3", saveat=grid(1.0), **VECTOR)
 
 
-@pytest.mark.xfail(strict=True,
-                   reason="package bug: a state with R_n's denominator < 0 at t0 is reported as "
-                   "max_steps_reached, not normal_force_singular (no t0 check like the one for "
-                   "R_n <= 0 at t0)")
 def test_state_beyond_singularity_reported_as_singular():
     top, _, bound = _singular_setup()
     y0 = tj.initial_state(top, THETA_SING, 50.0, theta_dot=1.05 * bound)

@@ -60,23 +60,29 @@ def default_solver(top: TippeTop) -> diffrax.AbstractSolver:
 
     Needs concrete parameters; for traced tops it returns Tsit5.
     """
-    try:
-        rate = float(np.max(np.asarray(friction_rate(top))))
-    except jax.errors.ConcretizationTypeError:
+    rate = friction_rate(top)
+    if isinstance(rate, jax.core.Tracer):
         return diffrax.Tsit5()
+    rate = float(np.max(np.asarray(rate)))
     return diffrax.Kvaerno5() if rate > STIFF_RATE else diffrax.Tsit5()
+
+
+def _event_dtype(x):
+    # diffrax compares an event condition with a Python 0.0 in `lax.cond`: both branches must
+    # have the default float dtype, also for a float32 top in a float64 process.
+    return jnp.asarray(x, dtype=jnp.result_type(float))
 
 
 def _vector_rn_parts(top, y: State, model):
     velocity = y.velocity if model == "full" else jnp.zeros_like(y.velocity)
     rn, _, _, den = rigid_body_dynamics(top, y.axis, y.omega, velocity)
-    return rn * den, den
+    return _event_dtype(rn * den), _event_dtype(den)
 
 
 def _routhian_rn_parts(top, r: RouthianState, J):
     _, phi_dot, _, n = routhian_rates(top, r.theta, r.phibar_dot, J)
     rn, den = routhian_normal_force(top, r.theta, r.theta_dot, phi_dot, n)
-    return rn * den, den
+    return _event_dtype(rn * den), _event_dtype(den)
 
 
 def _vector_field(model):
@@ -126,7 +132,9 @@ def _refine_crossing(model, top, ts, states, valid, cond, direction, rtol, atol,
     y_a = jax.tree_util.tree_map(lambda x: x[k], states)
     t_a = ts[k]
     t_b = jnp.where(has, ts[k + 1], ts[k] + 1.0)
-    event = diffrax.Event(lambda t, y, args, **kw: cond(t, y, args), _root_finder(ts.dtype))
+    event = diffrax.Event(
+        lambda t, y, args, **kw: _event_dtype(cond(t, y, args)), _root_finder(ts.dtype)
+    )
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(_vector_field(model)),
         solver,
@@ -191,6 +199,12 @@ def _simulate(top, y0, ts, t0, t1, *, model, solver, rtol, atol, max_steps, on_c
     t_contact_loss = nan
     t_chart_switch = nan
     vector_model = "full" if model == "full" else "so3"
+    # R_n <= 0, or its denominator <= 0, already at t0: no sign change for an event to see,
+    # and nothing to integrate.
+    numerator0, denominator0 = _vector_rn_parts(top, y0, vector_model)
+    singular0 = denominator0 <= 0
+    lost0 = (numerator0 <= 0) & ~singular0
+    dead0 = singular0 | (lost0 & stop_on_contact)
 
     # --- Routhian segment: from t0 until the chart ends (or t1, or a failure). ---------------
     if model == "routhian":
@@ -199,7 +213,7 @@ def _simulate(top, y0, ts, t0, t1, *, model, solver, rtol, atol, max_steps, on_c
         start_in_chart = jnp.abs(jnp.sin(r0.theta)) > CHART_SIN_MIN
 
         def cond_chart(t, y, args, **kw):
-            return jnp.abs(jnp.sin(y.theta)) - CHART_SIN_MIN
+            return _event_dtype(jnp.abs(jnp.sin(y.theta)) - CHART_SIN_MIN)
 
         def cond_singular(t, y, args, **kw):
             return _routhian_rn_parts(args[0], y, args[1])[1]
@@ -209,7 +223,7 @@ def _simulate(top, y0, ts, t0, t1, *, model, solver, rtol, atol, max_steps, on_c
 
         event = diffrax.Event([cond_chart, cond_singular, cond_contact], finder)
         # Outside the chart at t0: a zero-length first segment; the SO(3) form does the rest.
-        t1_first = jnp.where(start_in_chart, t1, t0)
+        t1_first = jnp.where(start_in_chart & ~dead0, t1, t0)
         r0 = jax.tree_util.tree_map(lambda x: jnp.where(start_in_chart, x, jnp.ones_like(x)), r0)
         sol = _solve(
             diffrax.ODETerm(routhian_vector_field), solver, t0, t1_first, r0, (top, J),
@@ -229,6 +243,7 @@ def _simulate(top, y0, ts, t0, t1, *, model, solver, rtol, atol, max_steps, on_c
     else:
         states = None
         y_end, t_start = y0, jnp.asarray(t0, dtype)
+    t_start = jnp.where(dead0, t1, t_start)
 
     # --- Vector-form segments: until contact loss, then (if asked) on to t1 without it. -------
     def cond_singular_v(t, y, args, **kw):
@@ -273,11 +288,10 @@ def _simulate(top, y0, ts, t0, t1, *, model, solver, rtol, atol, max_steps, on_c
             RESULTS.contact_lost._value,
             result_value,
         )
-    # R_n <= 0 already at t0: no sign change for the event to see.
-    numerator0, _ = _vector_rn_parts(top, y0, vector_model)
-    lost0 = numerator0 <= 0
+    result_value = jnp.where(singular0, RESULTS.normal_force_singular._value, result_value)
     result_value = jnp.where((result_value == 0) & lost0, RESULTS.contact_lost._value, result_value)
     t_contact_loss = jnp.where(lost0, jnp.asarray(t0, dtype), t_contact_loss)
+    t_final = jnp.where(singular0, jnp.asarray(t0, dtype), t_final)
     if stop_on_contact:
         t_final = jnp.where(lost0, jnp.asarray(t0, dtype), t_final)
 
