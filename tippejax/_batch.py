@@ -15,6 +15,15 @@ from ._state import initial_state
 from ._top import TippeTop
 
 
+@eqx.filter_jit
+def _batch_run(top, thetas, spins, t1, kwargs):
+    # Module-level and jitted once per (shapes, static options): repeated calls reuse it.
+    def one(theta, s):
+        return simulate(top, initial_state(top, theta, s), t1, throw=False, **kwargs)
+
+    return jax.vmap(one)(thetas, spins)
+
+
 def simulate_batch(
     top: TippeTop,
     theta0: ArrayLike,
@@ -59,10 +68,7 @@ def simulate_batch(
         thetas = jax.device_put(thetas, sharding)
         spins = jax.device_put(spins, sharding)
 
-    def one(theta, s):
-        return simulate(top, initial_state(top, theta, s), t1, throw=False, **kwargs)
-
-    sol = eqx.filter_jit(jax.vmap(one))(thetas, spins)
+    sol = _batch_run(top, thetas, spins, jnp.asarray(t1, dtype), kwargs)
     shape = grid_theta.shape
 
     def unflatten(x):

@@ -47,6 +47,9 @@ CHART_SIN_MIN = 0.05
 """A Routhian run leaves its chart (for the SO(3) vector form) when $\\sin\\theta$ falls below this."""
 
 STIFF_RATE = 1000.0
+"""Friction damping rate (1/s) above which the explicit solver is Tsit5 rather than Dopri8."""
+
+IMPLICIT_RATE = 5.0e5
 """Friction damping rate (1/s) above which the default solver is implicit (Kvaerno5)."""
 
 
@@ -56,15 +59,24 @@ def friction_rate(top: TippeTop):
 
 
 def default_solver(top: TippeTop) -> diffrax.AbstractSolver:
-    """Tsit5 unless the friction is stiff (`friction_rate` > `STIFF_RATE`), then Kvaerno5.
+    """The solver measured fastest at equal accuracy for this top's friction (benchmarks/RESULTS.md).
 
-    Needs concrete parameters; for traced tops it returns Tsit5.
+    - `friction_rate` < `STIFF_RATE` (e.g. mu = 0.3 s/m): Dopri8, 2-3x faster than Tsit5 at
+      rtol 1e-6..1e-10.
+    - up to `IMPLICIT_RATE` (mu ~ 300-3000 s/m for the standard top): Tsit5; the spin must be
+      resolved anyway, and Kvaerno5 was 8-40x slower there.
+    - above (mu ~ 3e4 s/m): Kvaerno5, where explicit solvers hit their stability limit.
+
+    Needs concrete parameters; for traced tops (e.g. `vmap` over tops) it returns Tsit5, which
+    works in every regime up to `IMPLICIT_RATE`.
     """
     rate = friction_rate(top)
     if isinstance(rate, jax.core.Tracer):
         return diffrax.Tsit5()
     rate = float(np.max(np.asarray(rate)))
-    return diffrax.Kvaerno5() if rate > STIFF_RATE else diffrax.Tsit5()
+    if rate > IMPLICIT_RATE:
+        return diffrax.Kvaerno5()
+    return diffrax.Tsit5() if rate > STIFF_RATE else diffrax.Dopri8()
 
 
 def _event_dtype(x):
@@ -367,7 +379,7 @@ def simulate(
     - `rtol`, `atol`: tolerances of the PID step-size controller. In float32 `rtol` is raised
       to at least `1e-5` and `atol` to `1e-7`.
     - `solver`: any diffrax solver with an error estimate; default `default_solver(top)`:
-      Tsit5, or Kvaerno5 when the friction is stiff.
+      Dopri8, Tsit5 under strong friction, Kvaerno5 under very stiff friction.
     - `max_steps`: maximum number of steps per segment.
     - `throw`: raise on failure (contact loss with `on_contact_loss="stop"`, the $R_n$
       singularity, max steps, NaN). With `False` the failure is in `sol.result`.
