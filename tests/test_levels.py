@@ -62,3 +62,12 @@ def test_auto_reports_level_used():
     y0 = tj.initial_state(top, 0.1, 100.0)
     sol = tj.simulate(top, y0, 0.2, model="auto", tolerance=1e-3, saveat=jnp.linspace(0, 0.2, 11))
     assert sol.model == "full"
+
+
+def test_auto_with_loose_tolerance_uses_cheaper_level_and_says_so():
+    top = tj.default_top()
+    y0 = tj.initial_state(top, 0.8, 60.0)
+    expected = choose_model(top, y0, tolerance=1.0)
+    assert expected != "full"  # some level is measured cheaper than full in this regime
+    sol = tj.simulate(top, y0, 0.2, model="auto", tolerance=1.0, saveat=jnp.linspace(0, 0.2, 11))
+    assert sol.model.startswith(expected)
