@@ -47,7 +47,7 @@ CHART_SIN_MIN = 0.05
 """A Routhian run leaves its chart (for the SO(3) vector form) when $\\sin\\theta$ falls below this."""
 
 STIFF_RATE = 1000.0
-"""Friction damping rate (1/s) above which the explicit solver is Tsit5 rather than Dopri8."""
+"""Friction damping rate (1/s) that separates the "stiff" regime of the level table."""
 
 IMPLICIT_RATE = 5.0e5
 """Friction damping rate (1/s) above which the default solver is implicit (Kvaerno5)."""
@@ -59,24 +59,20 @@ def friction_rate(top: TippeTop):
 
 
 def default_solver(top: TippeTop) -> diffrax.AbstractSolver:
-    """The solver measured fastest at equal accuracy for this top's friction (benchmarks/RESULTS.md).
+    """Tsit5, or Kvaerno5 when the friction is very stiff (`friction_rate` > `IMPLICIT_RATE`).
 
-    - `friction_rate` < `STIFF_RATE` (e.g. mu = 0.3 s/m): Dopri8, 2-3x faster than Tsit5 at
-      rtol 1e-6..1e-10.
-    - up to `IMPLICIT_RATE` (mu ~ 300-3000 s/m for the standard top): Tsit5; the spin must be
-      resolved anyway, and Kvaerno5 was 8-40x slower there.
-    - above (mu ~ 3e4 s/m): Kvaerno5, where explicit solvers hit their stability limit.
+    From benchmarks/RESULTS.md: at mu = 300 s/m Tsit5 was 8-40x faster than Kvaerno5 (the spin must
+    be resolved anyway); Kvaerno5 only wins near mu ~ 3e4 s/m for the standard top. Dopri8 is
+    2-3x faster than Tsit5 at rtol <= 1e-6 without events, but its runs failed in event location
+    (contact loss), so it is not the default: pass `solver=diffrax.Dopri8()` for tight tolerances.
 
-    Needs concrete parameters; for traced tops (e.g. `vmap` over tops) it returns Tsit5, which
-    works in every regime up to `IMPLICIT_RATE`.
+    Needs concrete parameters; for traced tops (e.g. `vmap` over tops) it returns Tsit5.
     """
     rate = friction_rate(top)
     if isinstance(rate, jax.core.Tracer):
         return diffrax.Tsit5()
     rate = float(np.max(np.asarray(rate)))
-    if rate > IMPLICIT_RATE:
-        return diffrax.Kvaerno5()
-    return diffrax.Tsit5() if rate > STIFF_RATE else diffrax.Dopri8()
+    return diffrax.Kvaerno5() if rate > IMPLICIT_RATE else diffrax.Tsit5()
 
 
 def _event_dtype(x):
@@ -379,7 +375,7 @@ def simulate(
     - `rtol`, `atol`: tolerances of the PID step-size controller. In float32 `rtol` is raised
       to at least `1e-5` and `atol` to `1e-7`.
     - `solver`: any diffrax solver with an error estimate; default `default_solver(top)`:
-      Dopri8, Tsit5 under strong friction, Kvaerno5 under very stiff friction.
+      Tsit5, or Kvaerno5 under very stiff friction.
     - `max_steps`: maximum number of steps per segment.
     - `throw`: raise on failure (contact loss with `on_contact_loss="stop"`, the $R_n$
       singularity, max steps, NaN). With `False` the failure is in `sol.result`.
