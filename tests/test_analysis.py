@@ -170,6 +170,7 @@ def test_d2W_autodiff_equals_closed_form(group):
         rel = np.abs(ad - cf) / scale
         worst = max(worst, float(rel.max()))
         assert np.all(np.isfinite(ad)) and np.all(np.isfinite(cf))
+    print(f"W'' autodiff vs closed form [{group}]: max rel diff = {worst:.2e}")
     assert worst < 1e-10, worst
 
 
@@ -265,6 +266,8 @@ def test_pole_threshold_from_vector_fields(group):
         for model in ("so3", "full"):
             got = float(tj.pole_threshold(top, pole=pole, model=model))
             if np.isfinite(value):
+                print(f"[{group}] {pole} threshold from the {model} field: rel diff "
+                      f"{abs(got - value) / value:.2e}")
                 assert abs(got - value) <= 1e-8 * value, (pole, model, got, value)
             else:
                 assert np.isnan(got), (pole, model, got)
@@ -482,6 +485,8 @@ def test_stability_routes_agree(group):
         # The printed polynomial is wrong, but its stability verdict is the same (Hurwitz).
         assert (np.max(np.real(r["literal"][k])) < 0) == stable_g
         assert stable_g == paper_stable(group, theta, float(th.theta_b))
+    print(f"[{group}] reduced Jacobian vs corrected cubic: {worst_poly:.2e}; vs SO(3) co-rotating: "
+          f"{worst_so3:.2e}; vs printed cubic (closest): {best_literal:.2e}")
     assert worst_poly < 1e-8, worst_poly
     assert worst_so3 < 1e-8, worst_so3
     assert best_literal > 1e-2, best_literal

@@ -48,6 +48,8 @@ def test_grad_d2w_wrt_eps(d2w_of_eps, theta, j_ratio):
     fd_closed = _central_difference(
         lambda e: float(tj.effective_potential_d2_closed_form(_build(eps=e), theta, J)), eps0
     )
+    print(f"d W''/d eps at theta={theta}, J/J1={j_ratio}: grad vs FD rel diff "
+          f"{abs(got - fd) / abs(fd):.2e} (autodiff W''), {abs(got - fd_closed) / abs(fd_closed):.2e} (closed form)")
     np.testing.assert_allclose(got, fd, rtol=1e-6)
     np.testing.assert_allclose(got, fd_closed, rtol=1e-6)
     assert abs(got) > 0

@@ -188,6 +188,7 @@ def test_normal_force_matches_reactie(top):
     expected, scale = _reactie(p, theta, phi, thd, phid, psid, xd, yd)
     got = np.asarray(tj.normal_force(top, y))
     err = np.abs(got - expected) / scale
+    print(f"R_n vs eq. reactie: max rel diff = {err.max():.2e}")
     assert err.max() < 1e-12, err.max()
     # so3 (and routhian): reactie with xd = yd = 0.
     expected0, scale0 = _reactie(p, theta, phi, thd, phid, psid, 0 * xd, 0 * yd)

@@ -101,6 +101,7 @@ def test_jellet_conserved(top, model):
         1 + top.mu * v_q
     )
     rel = np.abs(rate) / np.asarray(scale)
+    print(f"dJ/dt [{model}]: max relative = {rel.max():.2e}")
     assert rel.max() < 1e-13, rel.max()
 
 
