@@ -14,31 +14,9 @@ import numpy as np
 import pytest
 import scipy.optimize
 import sympy as sp
+from helpers import GROUP_RATIOS, match_max_rel
 
 import tippejax as tj
-
-# One (A/C, eps/R) point per group. tests/helpers.py may provide shared points; the tests below
-# re-derive the group of every point independently, so either source is checked.
-try:  # pragma: no cover - depends on the other test files present
-    from helpers import GROUP_RATIOS as _SHARED_RATIOS  # type: ignore
-except Exception:  # noqa: BLE001
-    try:
-        from tests.helpers import GROUP_RATIOS as _SHARED_RATIOS  # type: ignore
-    except Exception:  # noqa: BLE001
-        _SHARED_RATIOS = None
-
-_OWN_RATIOS = {
-    "Ia": (0.9, 0.03),
-    "Ib": (0.6, 0.3),
-    "IIa": (0.8, 0.3),
-    "IIb": (0.9, 0.3),
-    "IIc": (0.97, 0.05),
-    "III": (1.5, 0.3),
-}
-if _SHARED_RATIOS is not None and set(_SHARED_RATIOS) >= set(tj.GROUPS):
-    GROUP_RATIOS = {g: tuple(float(v) for v in _SHARED_RATIOS[g]) for g in tj.GROUPS}
-else:
-    GROUP_RATIOS = _OWN_RATIOS
 
 
 def _top(group):
@@ -120,15 +98,6 @@ def branch_thetas(top):
         close = np.abs(th - theta_b) < 0.03
         th = np.where(close, theta_b + np.where(th > theta_b, 0.03, -0.03), th)
     return th
-
-
-def match_max_rel(ev_a, ev_b):
-    """Largest |a_i - b_pi(i)| / max|a| over the optimal pairing of two eigenvalue sets."""
-    ev_a = np.asarray(ev_a, dtype=complex)
-    ev_b = np.asarray(ev_b, dtype=complex)
-    cost = np.abs(ev_a[:, None] - ev_b[None, :])
-    rows, cols = scipy.optimize.linear_sum_assignment(cost)
-    return float(np.max(cost[rows, cols]) / np.max(np.abs(ev_a)))
 
 
 # --------------------------------------------------------------------------------------------

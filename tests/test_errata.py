@@ -9,9 +9,8 @@ import diffrax
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
-import scipy.optimize
 import sympy as sp
+from helpers import match_max_rel
 
 import tippejax as tj
 
@@ -44,14 +43,6 @@ def _branch_thetas(top):
         close = np.abs(th - theta_b) < 0.03
         th = np.where(close, theta_b + np.where(th > theta_b, 0.03, -0.03), th)
     return th
-
-
-def _match_max_rel(ev_a, ev_b):
-    ev_a = np.asarray(ev_a, dtype=complex)
-    ev_b = np.asarray(ev_b, dtype=complex)
-    cost = np.abs(ev_a[:, None] - ev_b[None, :])
-    rows, cols = scipy.optimize.linear_sum_assignment(cost)
-    return float(np.max(cost[rows, cols]) / np.max(np.abs(ev_a)))
 
 
 # --------------------------------------------------------------------------------------------
@@ -125,10 +116,10 @@ def test_1_factor_two_in_linearised_equations():
                 ref = printed(top, theta, Jk, factor)
                 worst_coeff = max(worst_coeff, float(np.max(np.abs(ours - ref) / np.abs(ref))))
             # True eigenvalues: the reduced Jacobian and the SO(3) model agree with each other...
-            assert _match_max_rel(red[k], so3[k]) < 1e-8
+            assert match_max_rel(red[k], so3[k]) < 1e-8
             # ... and with the corrected polynomial, never with the printed one.
-            worst_corrected = max(worst_corrected, _match_max_rel(red[k], corr[k]))
-            best_literal = min(best_literal, _match_max_rel(red[k], lit[k]))
+            worst_corrected = max(worst_corrected, match_max_rel(red[k], corr[k]))
+            best_literal = min(best_literal, match_max_rel(red[k], lit[k]))
             # The stability criterion W'' > 0 is the same for both (Hurwitz, App. B).
             stable = d2w[k] > 0
             assert (np.max(np.real(lit[k])) < 0) == stable
@@ -293,7 +284,7 @@ def test_4_pole_eigenvalues_need_a_regular_chart():
     np.testing.assert_allclose(np.abs(limit.imag), np.abs(printed_limit.imag), atol=0.05)
     # ... which is not the true spectrum at the pole (3 roots + the removed 0 versus 4 values).
     full_limit = np.concatenate([limit, [0.0]])
-    assert _match_max_rel(true, full_limit) > 0.2
+    assert match_max_rel(true, full_limit) > 0.2
     # The full model with translation, also in a regular chart, agrees with SO(3) on the unstable
     # pair and has an extra stable pair.
     full = np.asarray(tj.vector_field_eigenvalues(top, 0.0, J, model="full", pole=True))

@@ -1,7 +1,6 @@
 """model="auto": the level chooser and its table, checked against benchmarks/LEVELS.md."""
 
 import pathlib
-import re
 
 import jax.numpy as jnp
 import numpy as np

@@ -6,27 +6,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import sympy as sp
-from helpers import GROUP_RATIOS
+from helpers import MIXED_TOP_IDS, mixed_tops
 
 import tippejax as tj
 
 N_STATES = 20
 
 
-def _tops():
-    C = 0.4 * 0.3 * 0.05**2
-    a_iia, e_iia = GROUP_RATIOS["IIa"]
-    return [
-        tj.TippeTop.from_ratios(*GROUP_RATIOS["IIb"]),  # the standard top
-        tj.TippeTop.from_ratios(*GROUP_RATIOS["Ib"], m=0.05, R=0.03, mu=0.8),
-        tj.TippeTop.from_ratios(*GROUP_RATIOS["III"], m=0.01, R=0.02, mu=0.1),
-        # Not a homogeneous sphere (C != 0.4 m R^2), other g.
-        tj.TippeTop(m=0.3, R=0.05, eps=e_iia * 0.05, A=a_iia * 0.9 * C, C=0.9 * C, g=9.7, mu=1.5),
-    ]
-
-
-TOPS = _tops()
-TOP_IDS = ["IIb-standard", "Ib", "III", "IIa-custom"]
+TOPS = mixed_tops()
+TOP_IDS = MIXED_TOP_IDS
 
 
 def _random_state(seed, n=N_STATES, translation=True, margin=0.1):
