@@ -74,6 +74,7 @@ try:
 except importlib.metadata.PackageNotFoundError:  # running from a source tree
     __version__ = "0.0.0"
 
+from ._batch import simulate_batch as simulate_batch
 from ._simulate import (
     CHART_SIN_MIN as CHART_SIN_MIN,
     default_solver as default_solver,
@@ -81,4 +82,3 @@ from ._simulate import (
     simulate as simulate,
 )
 from ._solution import RESULTS as RESULTS, Solution as Solution
-from ._batch import simulate_batch as simulate_batch

@@ -45,9 +45,9 @@ def _fmt(value: float, spec: str = ".6g") -> str:
 
 
 def _print_top(top) -> str:
-    import tippejax as tj
-
     import jax
+
+    import tippejax as tj
 
     th = jax.jit(tj.thresholds)(top)  # one compilation instead of one per elementwise op
     group = tj.GROUPS[int(jax.jit(tj.group_index)(top))]
