@@ -289,6 +289,19 @@ def test_contact_loss_continue(top, contact_stop):
     assert np.max(np.abs(_np(sol.theta)[before] - _np(contact_stop.theta)[before])) < 1e-12
 
 
+def test_contact_loss_located_with_dopri8(contact_stop):
+    """Event location does not depend on the solver's dense output being Newton-friendly: with
+    Dopri8 (steps ~10x longer than Tsit5's here) the loss is found, at the same time."""
+    y0 = tj.initial_state(tj.default_top(), 0.1, 200.0)
+    sol = tj.simulate(tj.default_top(), y0, 7.0, model="full", saveat=grid(7.0), throw=False,
+                      solver=diffrax.Dopri8(), **DEFAULT)
+    assert same_result(sol, tj.RESULTS.contact_lost)
+    d = abs(float(sol.t_contact_loss) - float(contact_stop.t_contact_loss))
+    print(f"t_contact_loss Dopri8 - Tsit5 = {d:.1e} s ({int(sol.num_steps)} vs "
+          f"{int(contact_stop.num_steps)} steps)")
+    assert d < 1e-5
+
+
 # ------------------------------------------------------------------------------------------------
 # Stiff friction
 

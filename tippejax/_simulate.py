@@ -2,7 +2,7 @@ r"""Integration of the models with diffrax: solver choice, events, chart switchi
 
 The physics lives in `tippejax._models`; this module only wires it to `diffrax.diffeqsolve`.
 
-Events (diffrax `Event`s with real-valued conditions, located by a root finder):
+Events (one diffrax `Event` per segment, located by bisection on the step's dense output):
 
 - contact loss: the numerator of $R_n$ reaches 0 while its denominator is positive;
 - the $R_n$ singularity: the denominator of $R_n$ reaches 0 (ERRATA.md, 5);
@@ -12,9 +12,16 @@ Events (diffrax `Event`s with real-valued conditions, located by a root finder):
 The first upward crossing of $\theta = \pi/2$ and, when the run goes on after contact loss, the first
 zero of $R_n$, are bracketed on the save grid and then located by re-integrating that one save
 interval with a terminating event.
+
+Every condition is positive before its event and decreases through zero. The conditions of a
+segment are combined into one scalar, their minimum, so that the event time can be found by
+bisection inside the step where the sign changed (Newton's method, the usual choice, failed to
+converge on some Dopri8 steps near contact loss); which condition fired is read off at the event.
 """
 
 from __future__ import annotations
+
+import functools
 
 from typing import Literal
 
@@ -115,14 +122,51 @@ def _solve(term, solver, t0, t1, y0, args, ts, rtol, atol, max_steps, event, met
     )
 
 
+class _EventBisection(optx.Bisection):
+    """Bisection for event times, which stops on the width of the bracket alone.
+
+    `optx.Bisection` also asks for |condition| < atol, which a condition of size O(10) with a
+    steep slope cannot meet in floating point. The bracket is the step in which the sign changed,
+    so it always holds a root; `flip=True` because every condition here decreases through zero.
+    """
+
+    def terminate(self, fn, y, args, options, state, tags):
+        del fn, args, options, tags
+        width = jnp.abs(state.lower - state.upper)
+        return width < self.atol + self.rtol * jnp.abs(y), optx.RESULTS.successful
+
+
 def _root_finder(dtype):
     tol = 1e-12 if dtype == jnp.float64 else 1e-5
-    return optx.Newton(rtol=tol, atol=tol)
+    return _EventBisection(rtol=tol, atol=tol, flip=True)
 
 
-def _event_time(sol, index, dtype):
-    """Time of event `index` if it fired (else nan)."""
-    fired = sol.event_mask[index] if sol.event_mask is not None else jnp.array(False)
+def _first_of(conds):
+    """One condition that reaches zero when the first of `conds` does: their minimum."""
+
+    def cond(t, y, args, **kwargs):
+        return functools.reduce(jnp.minimum, [c(t, y, args, **kwargs) for c in conds])
+
+    return cond
+
+
+def _fired(sol, conds, args):
+    """For each condition combined by `_first_of`: did the run stop on it?
+
+    At the located event the condition that fired is (to the root finder's tolerance) zero and
+    the others are positive, so it is the smallest.
+    """
+    if sol.event_mask is None:
+        return [jnp.array(False)] * len(conds)
+    t_end = sol.ts[1][-1]
+    y_end = jax.tree_util.tree_map(lambda x: x[-1], sol.ys[1])
+    values = jnp.stack([c(t_end, y_end, args) for c in conds])
+    first = jnp.argmin(values)
+    return [sol.event_mask & (first == i) for i in range(len(conds))]
+
+
+def _event_time(sol, fired, dtype):
+    """Time at which the run stopped if `fired` (else nan)."""
     return jnp.where(fired, sol.ts[1][-1], jnp.nan).astype(dtype), fired
 
 
@@ -166,15 +210,12 @@ def _where_valid(valid, x):
     return jnp.where(valid.reshape(shape), x, jnp.nan)
 
 
-def _code(sol, index_singular, index_contact, stop_on_contact):
-    """Our RESULTS value for one diffrax segment."""
+def _code(sol, fired_singular, fired_contact, stop_on_contact):
+    """Our RESULTS value for one diffrax segment (`fired_*` from `_fired`, or None)."""
     res = jnp.array(RESULTS.successful._value)
-    if sol.event_mask is not None:
-        if stop_on_contact and index_contact is not None:
-            res = jnp.where(sol.event_mask[index_contact], RESULTS.contact_lost._value, res)
-        res = jnp.where(
-            sol.event_mask[index_singular], RESULTS.normal_force_singular._value, res
-        )
+    if stop_on_contact and fired_contact is not None:
+        res = jnp.where(fired_contact, RESULTS.contact_lost._value, res)
+    res = jnp.where(fired_singular, RESULTS.normal_force_singular._value, res)
     ok = (sol.result == diffrax.RESULTS.successful) | (
         sol.result == diffrax.RESULTS.event_occurred
     )
@@ -229,7 +270,8 @@ def _simulate(top, y0, ts, t0, t1, *, model, solver, rtol, atol, max_steps, on_c
         def cond_contact(t, y, args, **kw):
             return _routhian_rn_parts(args[0], y, args[1])[0]
 
-        event = diffrax.Event([cond_chart, cond_singular, cond_contact], finder)
+        conds = [cond_chart, cond_singular, cond_contact]
+        event = diffrax.Event(_first_of(conds), finder)
         # Outside the chart at t0: a zero-length first segment; the SO(3) form does the rest.
         t1_first = jnp.where(start_in_chart & ~dead0, t1, t0)
         r0 = jax.tree_util.tree_map(lambda x: jnp.where(start_in_chart, x, jnp.ones_like(x)), r0)
@@ -238,10 +280,11 @@ def _simulate(top, y0, ts, t0, t1, *, model, solver, rtol, atol, max_steps, on_c
             jnp.clip(ts, t0, t1_first), rtol, atol, max_steps, event, meter,
         )
         steps, rejected = steps + sol.stats["num_steps"], rejected + sol.stats["num_rejected_steps"]
-        result_value = _code(sol, 1, 2, stop_on_contact)
-        t_contact, contact_fired = _event_time(sol, 2, dtype)
+        fired = _fired(sol, conds, (top, J))
+        result_value = _code(sol, fired[1], fired[2], stop_on_contact)
+        t_contact, contact_fired = _event_time(sol, fired[2], dtype)
         t_contact_loss = t_contact
-        left_chart = sol.event_mask[0] | contact_fired | ~start_in_chart
+        left_chart = fired[0] | contact_fired | ~start_in_chart
         t_end = sol.ts[1][-1]
         t_chart_switch = jnp.where(left_chart & (result_value == 0), t_end, nan)
         states = jax.vmap(lambda r: state_from_routhian(top, r, J))(sol.ys[0])
@@ -267,16 +310,17 @@ def _simulate(top, y0, ts, t0, t1, *, model, solver, rtol, atol, max_steps, on_c
     ]
     sol = _solve(
         term, solver, t_start, t1, y_end, top, jnp.clip(ts, t_start, t1), rtol, atol,
-        max_steps, diffrax.Event(with_contact, finder), meter,
+        max_steps, diffrax.Event(_first_of(with_contact), finder), meter,
     )
     steps, rejected = steps + sol.stats["num_steps"], rejected + sol.stats["num_rejected_steps"]
     has_contact_event = len(with_contact) == 2
-    code = _code(sol, 0, 1 if has_contact_event else None, stop_on_contact)
+    fired = _fired(sol, with_contact, top)
+    code = _code(sol, fired[0], fired[1] if has_contact_event else None, stop_on_contact)
     result_value = jnp.where(result_value != 0, result_value, code)
     states = sol.ys[0] if states is None else _merge(ts, states, sol.ys[0], t_start)
     t_final = sol.ts[1][-1]
     if has_contact_event:
-        t_contact, contact_fired = _event_time(sol, 1, dtype)
+        t_contact, contact_fired = _event_time(sol, fired[1], dtype)
         t_contact_loss = jnp.where(already_lost, t_contact_loss, t_contact)
     if not stop_on_contact and has_contact_event:
         # Go on past the contact loss, flagged, without the contact event.
@@ -284,10 +328,11 @@ def _simulate(top, y0, ts, t0, t1, *, model, solver, rtol, atol, max_steps, on_c
         y_start2 = jax.tree_util.tree_map(lambda x: x[-1], sol.ys[1])
         sol = _solve(
             term, solver, t_start2, t1, y_start2, top, jnp.clip(ts, t_start2, t1), rtol, atol,
-            max_steps, diffrax.Event([cond_singular_v], finder), meter,
+            max_steps, diffrax.Event(cond_singular_v, finder), meter,
         )
         steps, rejected = steps + sol.stats["num_steps"], rejected + sol.stats["num_rejected_steps"]
-        result_value = jnp.where(result_value != 0, result_value, _code(sol, 0, None, False))
+        fired = _fired(sol, [cond_singular_v], top)
+        result_value = jnp.where(result_value != 0, result_value, _code(sol, fired[0], None, False))
         states = _merge(ts, states, sol.ys[0], t_start2)
         t_final = jnp.where(t_start2 < t1, sol.ts[1][-1], t_final)
     if not stop_on_contact:

@@ -43,6 +43,21 @@ class Thresholds(eqx.Module):
     x_b: Float[Array, "*batch"]
     theta_b: Float[Array, "*batch"]
 
+    def __repr__(self) -> str:
+        # Show the numbers (equinox's default shows only dtypes and shapes); traced values
+        # cannot be shown, so fall back to the default there.
+        try:
+            values = {name: np.asarray(getattr(self, name)) for name in _THRESHOLD_FIELDS}
+        except Exception:  # noqa: BLE001 - tracers
+            return super().__repr__()
+        body = ", ".join(
+            f"{name}={v.item():.6g}" if v.ndim == 0 else f"{name}={v!r}" for name, v in values.items()
+        )
+        return f"Thresholds({body})"
+
+
+_THRESHOLD_FIELDS = ("n1", "n2", "J1", "J2", "theta_c", "x_b", "theta_b")
+
 
 def thresholds(top: TippeTop) -> Thresholds:
     r"""The thresholds $n_1, n_2, J_1, J_2, \theta_c, x_b, \theta_b$ of a top (closed forms).
