@@ -22,7 +22,6 @@ converge on some Dopri8 steps near contact loss); which condition fired is read 
 from __future__ import annotations
 
 import functools
-
 from typing import Literal
 
 import diffrax
@@ -69,9 +68,11 @@ def default_solver(top: TippeTop) -> diffrax.AbstractSolver:
     """Tsit5, or Kvaerno5 when the friction is very stiff (`friction_rate` > `IMPLICIT_RATE`).
 
     From benchmarks/RESULTS.md: at mu = 300 s/m Tsit5 was 8-40x faster than Kvaerno5 (the spin must
-    be resolved anyway); Kvaerno5 only wins near mu ~ 3e4 s/m for the standard top. Dopri8 is
-    2-3x faster than Tsit5 at rtol <= 1e-6 without events, but its runs failed in event location
-    (contact loss), so it is not the default: pass `solver=diffrax.Dopri8()` for tight tolerances.
+    be resolved anyway); Kvaerno5 only wins near mu ~ 3e4 s/m for the standard top. Dopri8 takes
+    0.3-0.5x Tsit5's time at rtol 1e-8..1e-10 and finds the same events there
+    (`benchmarks/dopri8_events.py`), but its long steps at rtol 1e-6 stepped over the first zero
+    of $R_n$ (events are seen from the signs at step ends), so it is not the default: pass
+    `solver=diffrax.Dopri8()` with rtol <= 1e-8 for speed.
 
     Needs concrete parameters; for traced tops (e.g. `vmap` over tops) it returns Tsit5.
     """
@@ -415,8 +416,12 @@ def simulate(
       $\sin\theta <$ `CHART_SIN_MIN`, reported as `"routhian->so3"`), `"auto"` (the cheapest
       level whose measured error is below `tolerance`, see `choose_model`), or `"gyroscopic"`
       (not yet available).
-    - `saveat`: save times (default: 1001 points from `t0` to `t1`). Inversion and contact-loss
-      times are bracketed on this grid, so it should resolve the nutation.
+    - `saveat`: save times (default: 1001 points from `t0` to `t1`). The inversion time is
+      bracketed on this grid, so it should resolve the nutation.
+      Events (contact loss, the $R_n$ singularity, the chart edge) are seen from the sign of
+      their condition at the ends of each solver step and then located inside that step: a zero
+      crossed and recrossed within one step is missed, which loose tolerances make likely
+      (keep rtol <= 1e-8 when contact loss matters).
     - `rtol`, `atol`: tolerances of the PID step-size controller. In float32 `rtol` is raised
       to at least `1e-5` and `atol` to `1e-7`.
     - `solver`: any diffrax solver with an error estimate; default `default_solver(top)`:
