@@ -66,8 +66,8 @@ def run_demo_simulation(top, theta0: float, spin: float, out: str, *, t1: float 
         if np.isfinite(t_inv):
             ax.axvline(t_inv, color="grey", ls=":", lw=0.8)
     ax = fig.add_subplot(grid[:, 2])
-    ax.plot(axis[ok, 0], axis[ok, 1], lw=0.3, color="0.6")
-    sc = ax.scatter(axis[ok, 0], axis[ok, 1], c=ts[ok], s=1, cmap="viridis")
+    # Points only: the axis precesses ~0.5 rad between save times, so joining them draws chords.
+    sc = ax.scatter(axis[ok, 0], axis[ok, 1], c=ts[ok], s=2, cmap="viridis")
     ax.set_aspect("equal")
     ax.set_xlabel("$a_x$")
     ax.set_ylabel("$a_y$")
