@@ -118,7 +118,9 @@ def main():
         f"so3 {worst_no_v['so3']:.3g} rad, routhian {worst_no_v['routhian']:.3g} rad.",
         "",
         "`model=\"auto\"` (tippejax/_levels.py) uses these worst-case numbers: it picks the cheapest "
-        "level whose worst error here is below the caller's `tolerance`.",
+        "level whose worst error here is below the caller's `tolerance`, counting a level as "
+        "cheaper only if its median cost is below 0.9 (`COST_MARGIN`: these ratios move by "
+        "~0.1-0.2 between runs on a shared machine).",
     ]
     (HERE / "LEVELS.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import tippejax as tj
-from tippejax._levels import MEASURED, choose_model
+from tippejax._levels import COST_MARGIN, MEASURED, choose_model
 
 LEVELS_MD = pathlib.Path(__file__).parents[1] / "benchmarks" / "LEVELS.md"
 
@@ -52,6 +52,10 @@ def test_choose_model():
     assert cost < 1.0
     assert choose_model(stiff, y0, tolerance=0.5 * err) == "full"
     assert choose_model(stiff, y0, tolerance=2 * err) == "routhian"
+    # A level whose measured cost is within the timing noise of the full model is not "cheaper".
+    for level, (err, cost) in MEASURED["non-stiff"].items():
+        if cost >= COST_MARGIN:
+            assert choose_model(top, y0, tolerance=10 * err) != level
     with pytest.raises(ValueError, match="tolerance"):
         choose_model(top, y0, tolerance=-1.0)
 
