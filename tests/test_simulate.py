@@ -302,6 +302,28 @@ def test_contact_loss_located_with_dopri8(contact_stop):
     assert d < 1e-5
 
 
+def test_contact_loss_stepped_over_is_reported():
+    """At rtol 1e-6 Dopri8's ~9 ms steps go over the first brief dip of R_n below 0 (seen on a
+    1.3 ms save grid): the run must say so, not report the later loss as the first."""
+    top = tj.default_top()
+    y0 = tj.initial_state(top, 0.1, 200.0)
+    ts = jnp.linspace(4.9, 5.3, N)
+    sol = tj.simulate(top, y0, 5.3, model="full", saveat=ts, throw=False, rtol=1e-6, atol=1e-8,
+                      solver=diffrax.Dopri8())
+    assert same_result(sol, tj.RESULTS.contact_loss_missed)
+    assert np.isnan(float(sol.t_contact_loss))
+    theta = _np(sol.theta)
+    # nothing is returned from the first save time with R_n < 0 on; before it, all is finite
+    first_nan = np.argmax(np.isnan(theta))
+    assert 0 < first_nan and np.all(np.isnan(theta[first_nan:]))
+    assert np.all(np.isfinite(theta[:first_nan])) and np.all(_np(sol.normal_force)[:first_nan] >= 0)
+    # the true first loss (Tsit5, rtol 1e-8: 5.1865 s) lies before the first nan
+    assert float(sol.ts[first_nan]) > 5.1865
+    with pytest.raises(RuntimeError, match="brief dip"):
+        tj.simulate(top, y0, 5.3, model="full", saveat=ts, rtol=1e-6, atol=1e-8,
+                    solver=diffrax.Dopri8())
+
+
 # ------------------------------------------------------------------------------------------------
 # Stiff friction
 

@@ -371,6 +371,20 @@ def _simulate(top, y0, ts, t0, t1, *, model, solver, rtol, atol, max_steps, on_c
         )
     )
     result_value = jnp.where((result_value == 0) & nonfinite, RESULTS.nonfinite._value, result_value)
+    # A contact loss the event did not see: R_n < 0 at a save time before any located loss means
+    # the solver stepped over a brief dip (events are seen from signs at step ends). Report it,
+    # and return nothing from that save time on, nor a later loss time as if it were the first.
+    missed_at = valid & (fields["normal_force"] < 0) & ~(ts >= t_contact_loss)
+    missed = jnp.any(missed_at)
+    t_missed = jnp.min(jnp.where(missed_at, ts, jnp.inf))
+    result_value = jnp.where(
+        missed & ((result_value == 0) | (result_value == RESULTS.contact_lost._value)),
+        RESULTS.contact_loss_missed._value,
+        result_value,
+    )
+    t_contact_loss = jnp.where(missed, nan, t_contact_loss)
+    valid = valid & (ts < t_missed)
+    fields = {k: _where_valid(valid, v) for k, v in fields.items()}
     states = jax.tree_util.tree_map(lambda x: _where_valid(valid, x), states)
     t_invert = _refine_crossing(
         vector_model, top, ts, states, valid, lambda t, y, args: y.axis[2], False, rtol, atol,

@@ -27,6 +27,11 @@ class RESULTS(eqxi.Enumeration):
     solver_failed = (
         "The ODE solver failed (step size underflow or an internal diffrax error)."
     )
+    contact_loss_missed = (
+        "R_n was negative at a save time before any contact loss the solver located: a step went "
+        "over a brief dip of R_n below 0, so the first loss of contact is somewhere before that "
+        "save time. Tighten rtol (<= 1e-8) or use smaller steps; values from there on are nan."
+    )
 
 
 class Solution(eqx.Module):
