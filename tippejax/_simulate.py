@@ -364,7 +364,6 @@ def _simulate(top, y0, ts, t0, t1, *, model, solver, rtol, atol, max_steps, on_c
         normal_force=normal_force(top, states, model=vector_model),
         slip_speed=jnp.linalg.norm(slip_velocity(top, states, model=vector_model), axis=-1),
     )
-    fields = {k: _where_valid(valid, v) for k, v in fields.items()}
     nonfinite = jnp.any(
         jnp.stack(
             [jnp.any(valid & ~jnp.isfinite(fields[k])) for k in ("theta", "jellet", "energy")]
@@ -384,7 +383,7 @@ def _simulate(top, y0, ts, t0, t1, *, model, solver, rtol, atol, max_steps, on_c
     )
     t_contact_loss = jnp.where(missed, nan, t_contact_loss)
     valid = valid & (ts < t_missed)
-    fields = {k: _where_valid(valid, v) for k, v in fields.items()}
+    fields = {k: _where_valid(valid, v) for k, v in fields.items()}  # the one masking of fields
     states = jax.tree_util.tree_map(lambda x: _where_valid(valid, x), states)
     t_invert = _refine_crossing(
         vector_model, top, ts, states, valid, lambda t, y, args: y.axis[2], False, rtol, atol,
