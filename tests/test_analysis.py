@@ -16,6 +16,8 @@ import scipy.optimize
 import sympy as sp
 from helpers import GROUP_RATIOS, match_max_rel
 
+import internal as ti
+
 import tippejax as tj
 
 
@@ -111,7 +113,7 @@ def test_group_points_classified(group):
     top = _top(group)
     assert paper_group(a, e) == group
     assert tj.classify(top) == group
-    assert tj.GROUPS[int(tj.group_index(top))] == group
+    assert tj.GROUPS[int(ti.group_index(top))] == group
 
 
 # --------------------------------------------------------------------------------------------
@@ -131,7 +133,7 @@ def test_d2W_autodiff_equals_closed_form(group):
     for j in (0.0, 0.3, 1.0, 2.0, 7.0):
         J = j * j_scale
         ad = np.asarray(tj.effective_potential_derivative(top, theta, J, order=2))
-        cf = np.asarray(tj.effective_potential_d2_closed_form(top, theta, J))
+        cf = np.asarray(ti.effective_potential_d2_closed_form(top, theta, J))
         # Scale of the individual terms (W'' itself crosses zero on the grid).
         d = np_d(p, _THETA_GRID)
         scale = p["m"] * p["g"] * p["eps"] + J**2 * p["R"] ** 2 * p["C"] / d**2
@@ -170,7 +172,7 @@ def test_d2W_sympy_matches_closed_form():
         j0 = p["C"] * p["R"] * np.sqrt(p["m"] * p["g"] * p["eps"] / p["C"])
         for J_ in (0.5 * j0, 3.0 * j0):
             ref = fn(_THETA_GRID, J_, p["m"], p["g"], p["eps"], p["A"], p["C"], p["R"])
-            got = np.asarray(tj.effective_potential_d2_closed_form(top, jnp.asarray(_THETA_GRID), J_))
+            got = np.asarray(ti.effective_potential_d2_closed_form(top, jnp.asarray(_THETA_GRID), J_))
             scale = p["m"] * p["g"] * p["eps"] + J_**2 * p["R"] ** 2 * p["C"] / np_d(p, _THETA_GRID) ** 2
             worst = max(worst, float(np.max(np.abs(ref - got) / scale)))
     assert worst < 1e-12, worst
@@ -233,7 +235,7 @@ def test_pole_threshold_from_vector_fields(group):
     th = tj.thresholds(top)
     for pole, value in (("north", float(th.n1)), ("south", float(th.n2))):
         for model in ("so3", "full"):
-            got = float(tj.pole_threshold(top, pole=pole, model=model))
+            got = float(ti.pole_threshold(top, pole=pole, model=model))
             if np.isfinite(value):
                 print(f"[{group}] {pole} threshold from the {model} field: rel diff "
                       f"{abs(got - value) / value:.2e}")
@@ -251,7 +253,7 @@ def test_jellet_thresholds_are_branch_ends(group):
     J2 = p["C"] * (p["R"] + p["eps"]) * float(th.n2)
     np.testing.assert_allclose(float(th.J1), J1, rtol=1e-14)
     np.testing.assert_allclose(float(th.J2), J2, rtol=1e-14)
-    ends = np.asarray(tj.branch_jellet(top, jnp.array([1e-6, np.pi - 1e-6])))
+    ends = np.asarray(ti.branch_jellet(top, jnp.array([1e-6, np.pi - 1e-6])))
     for end, ref in zip(ends, (J1, J2)):
         if np.isfinite(ref):
             assert abs(end - ref) <= 1e-9 * ref, (end, ref)
@@ -292,7 +294,7 @@ def test_group_index_matches_paper_inequalities_on_grid():
     e = np.linspace(0.0, 1.0, 62)[1:-1]
     A, E = np.meshgrid(a, e, indexing="ij")
     ref = paper_group(A, E)
-    got = np.array(tj.GROUPS)[np.asarray(tj.group_index(tj.TippeTop.from_ratios(A, E)))]
+    got = np.array(tj.GROUPS)[np.asarray(ti.group_index(tj.TippeTop.from_ratios(A, E)))]
     assert got.shape == (60, 60)
     mismatch = np.argwhere(got != ref)
     assert len(mismatch) == 0, [(A[i, j], E[i, j], got[i, j], ref[i, j]) for i, j in mismatch[:5]]
@@ -306,7 +308,7 @@ def test_group_index_matches_paper_inequalities_on_grid():
     e2 = np.linspace(0.0, 0.08, 62)[1:-1]
     A2, E2 = np.meshgrid(a2, e2, indexing="ij")
     ref2 = paper_group(A2, E2)
-    got2 = np.array(tj.GROUPS)[np.asarray(tj.group_index(tj.TippeTop.from_ratios(A2, E2)))]
+    got2 = np.array(tj.GROUPS)[np.asarray(ti.group_index(tj.TippeTop.from_ratios(A2, E2)))]
     np.testing.assert_array_equal(got2, ref2)
     assert {"Ia", "IIc"} <= set(ref2.ravel())
 
@@ -322,7 +324,7 @@ def _fine_root_count(top, J, n=20011):
 
 def _j_values(top):
     th = tj.thresholds(top)
-    js = list(np.asarray(tj.branch_jellet(top, jnp.asarray(branch_thetas(top)))))
+    js = list(np.asarray(ti.branch_jellet(top, jnp.asarray(branch_thetas(top)))))
     for ref in (float(th.J1), float(th.J2)):
         if np.isfinite(ref):
             js += [ref * (1 - 1e-3), ref * (1 + 1e-3)]
@@ -339,7 +341,7 @@ def test_steady_states_agree_with_group(group):
     theta_b = float(th.theta_b)
     lo, hi = branch_domain(top)
     branch_th = branch_thetas(top)
-    branch_j = np.asarray(tj.branch_jellet(top, jnp.asarray(branch_th)))
+    branch_j = np.asarray(ti.branch_jellet(top, jnp.asarray(branch_th)))
     n_two = 0
     mixed = 0
     for J in _j_values(top):
@@ -360,7 +362,7 @@ def test_steady_states_agree_with_group(group):
             w1 = float(tj.effective_potential_derivative(top, theta, J, order=1))
             assert abs(w1) <= 1e-9 * p["m"] * p["g"] * p["eps"], w1
             x = np.cos(theta)
-            f = float(tj.intermediate_condition(top, J, x))
+            f = float(ti.intermediate_condition(top, J, x))
             a, e = p["A"] / p["C"], p["eps"] / p["R"]
             assert abs(f) <= 1e-10 * (a * (1 - x**2) + (x - e) ** 2) ** 2, f
             assert abs(f - np_f(p, J, x)) <= 1e-12 * (a * (1 - x**2) + (x - e) ** 2) ** 2
@@ -368,7 +370,7 @@ def test_steady_states_agree_with_group(group):
             k = int(np.nanargmin(np.abs(np.asarray(ss.intermediate_theta) - theta)))
             assert bool(ss.intermediate_valid[k])
             np.testing.assert_allclose(
-                float(ss.intermediate_g[k]), float(tj.stability_function(top, x)), rtol=1e-12
+                float(ss.intermediate_g[k]), float(ti.stability_function(top, x)), rtol=1e-12
             )
             assert (float(ss.intermediate_d2W[k]) > 0) == stable
         # If J is a branch value, its state is found.
@@ -399,7 +401,7 @@ def test_two_states_in_bifurcating_groups():
         theta_b = float(tj.thresholds(top).theta_b)
         lo, hi = branch_domain(top)
         # J on the stable piece, close enough to J(theta_b) to be below both branch ends.
-        J = float(tj.branch_jellet(top, theta_b + 0.3 * (hi - theta_b)))
+        J = float(ti.branch_jellet(top, theta_b + 0.3 * (hi - theta_b)))
         states = tj.steady_states(top, J).intermediate
         assert len(states) == 2, (group, states)
         (t0, s0), (t1, s1) = sorted(states)
@@ -415,13 +417,13 @@ def test_two_states_in_bifurcating_groups():
 def _routes(top, theta, J):
     def one(th, j):
         return dict(
-            reduced=tj.reduced_jacobian_eigenvalues(top, th, j),
-            poly=tj.polynomial_eigenvalues(top, th, j, corrected=True),
-            literal=tj.polynomial_eigenvalues(top, th, j, corrected=False),
-            so3=tj.vector_field_eigenvalues(top, th, j, model="so3"),
-            full=tj.vector_field_eigenvalues(top, th, j, model="full"),
-            d2W=tj.effective_potential_d2_closed_form(top, th, j),
-            g=tj.stability_function(top, jnp.cos(th)),
+            reduced=ti.reduced_jacobian_eigenvalues(top, th, j),
+            poly=ti.polynomial_eigenvalues(top, th, j, corrected=True),
+            literal=ti.polynomial_eigenvalues(top, th, j, corrected=False),
+            so3=ti.vector_field_eigenvalues(top, th, j, model="so3"),
+            full=ti.vector_field_eigenvalues(top, th, j, model="full"),
+            d2W=ti.effective_potential_d2_closed_form(top, th, j),
+            g=ti.stability_function(top, jnp.cos(th)),
         )
 
     return jax.vmap(one)(theta, J)
@@ -430,7 +432,7 @@ def _routes(top, theta, J):
 def _route_data(group):
     top = _top(group)
     thetas = branch_thetas(top)
-    J = tj.branch_jellet(top, jnp.asarray(thetas))
+    J = ti.branch_jellet(top, jnp.asarray(thetas))
     out = jax.tree_util.tree_map(np.asarray, _routes(top, jnp.asarray(thetas), J))
     return top, thetas, out
 

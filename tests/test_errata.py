@@ -12,6 +12,8 @@ import numpy as np
 import sympy as sp
 from helpers import match_max_rel
 
+import internal as ti
+
 import tippejax as tj
 
 GROUP_RATIOS = {
@@ -84,13 +86,13 @@ def _printed_polynomial():
 def _eigen_routes(top, theta, J):
     def one(th, j):
         return (
-            tj.reduced_jacobian_eigenvalues(top, th, j),
-            tj.vector_field_eigenvalues(top, th, j, model="so3"),
-            tj.polynomial_eigenvalues(top, th, j, corrected=True),
-            tj.polynomial_eigenvalues(top, th, j, corrected=False),
-            tj.characteristic_polynomial(top, th, j, corrected=True),
-            tj.characteristic_polynomial(top, th, j, corrected=False),
-            tj.effective_potential_d2_closed_form(top, th, j),
+            ti.reduced_jacobian_eigenvalues(top, th, j),
+            ti.vector_field_eigenvalues(top, th, j, model="so3"),
+            ti.polynomial_eigenvalues(top, th, j, corrected=True),
+            ti.polynomial_eigenvalues(top, th, j, corrected=False),
+            ti.characteristic_polynomial(top, th, j, corrected=True),
+            ti.characteristic_polynomial(top, th, j, corrected=False),
+            ti.effective_potential_d2_closed_form(top, th, j),
         )
 
     return jax.vmap(one)(theta, J)
@@ -104,7 +106,7 @@ def test_1_factor_two_in_linearised_equations():
     for group, (a, e) in GROUP_RATIOS.items():
         top = tj.TippeTop.from_ratios(a, e)
         thetas = _branch_thetas(top)
-        J = tj.branch_jellet(top, jnp.asarray(thetas))
+        J = ti.branch_jellet(top, jnp.asarray(thetas))
         red, so3, corr, lit, c_corr, c_lit, d2w = map(
             np.asarray, _eigen_routes(top, jnp.asarray(thetas), J)
         )
@@ -150,7 +152,7 @@ def test_2_g_is_not_monotone_in_general():
     for a in np.linspace(0.5, 2.0, 31):
         for e in np.linspace(0.02, 0.98, 25):
             top = tj.TippeTop.from_ratios(a, e)
-            gx = np.asarray(tj.stability_function(top, jnp.asarray(x)))
+            gx = np.asarray(ti.stability_function(top, jnp.asarray(x)))
             np.testing.assert_allclose(gx, _np_g(a, e, x), rtol=1e-12, atol=1e-12)
             d_all = np.diff(gx)
             if (d_all > 0).any() and (d_all < 0).any():
@@ -172,12 +174,12 @@ def test_2_g_is_not_monotone_in_general():
     # A concrete point: up and down along its branch.
     a, e = non_monotone[0]
     top = tj.TippeTop.from_ratios(a, e)
-    gx = np.asarray(tj.stability_function(top, jnp.asarray(x)))[(a - 1) * x + e > 0]
+    gx = np.asarray(ti.stability_function(top, jnp.asarray(x)))[(a - 1) * x + e > 0]
     assert np.max(np.diff(gx)) > 0 > np.min(np.diff(gx))
 
 
 def test_2_partial2_f_on_branch_is_g_J2_over_K_and_decreasing():
-    d2f = jax.vmap(jax.grad(lambda top, J, x: tj.intermediate_condition(top, J, x), argnums=2),
+    d2f = jax.vmap(jax.grad(lambda top, J, x: ti.intermediate_condition(top, J, x), argnums=2),
                    in_axes=(None, 0, 0))
     tops = [tj.TippeTop.from_ratios(a, e) for a, e in GROUP_RATIOS.values()]
     tops += [tj.TippeTop.from_ratios(a, e) for a, e in ((0.55, 0.5), (1.2, 0.4), (0.7, 0.2), (1.0, 0.6))]
@@ -193,7 +195,7 @@ def test_2_partial2_f_on_branch_is_g_J2_over_K_and_decreasing():
             hi = np.arccos(e / (1 - a))
         theta = np.linspace(lo, hi, 402)[1:-1]
         x = np.cos(theta)
-        J = np.asarray(tj.branch_jellet(top, jnp.asarray(theta)))
+        J = np.asarray(ti.branch_jellet(top, jnp.asarray(theta)))
         assert np.all(np.isfinite(J))
         ad = np.asarray(d2f(top, jnp.asarray(J), jnp.asarray(x)))
         # Independent: the paper's formula for partial_2 f (numpy).
@@ -201,7 +203,7 @@ def test_2_partial2_f_on_branch_is_g_J2_over_K_and_decreasing():
         P = a * (1 - x**2) + (x - e) ** 2
         formula = J**2 / K * (a - 1) + 4 * b * P  # as printed in Sec. 4
         np.testing.assert_allclose(ad, formula, rtol=1e-9, atol=1e-12 * np.max(np.abs(formula)))
-        g_branch = np.asarray(tj.stability_function(top, jnp.asarray(x)))
+        g_branch = np.asarray(ti.stability_function(top, jnp.asarray(x)))
         target = g_branch * J**2 / K
         scale = np.max(np.abs(target))
         worst = max(worst, float(np.max(np.abs(ad - target)) / scale))
@@ -215,7 +217,7 @@ def test_2_g_for_A_equal_C():
     theta = np.linspace(0.0, np.pi, 201)
     for e in (0.1, 0.3, 0.6, 0.9):
         top = tj.TippeTop.from_ratios(1.0, e)
-        g = np.asarray(tj.stability_function(top, jnp.asarray(np.cos(theta))))
+        g = np.asarray(ti.stability_function(top, jnp.asarray(np.cos(theta))))
         ref = 4 * e**2 / (1 + e**2 - 2 * e * np.cos(theta))
         np.testing.assert_allclose(g, ref, rtol=1e-13)
         assert np.all(np.diff(g) < 0)  # strictly decreasing in theta, contrary to the paper
@@ -231,7 +233,7 @@ def test_3_footnote_n2_over_n1_and_jellet_thresholds():
     e = np.linspace(0.0, 1.0, 302)[1:-1]
     A, E = np.meshgrid(a, e, indexing="ij")
     tops = tj.TippeTop.from_ratios(A, E)
-    group = np.array(tj.GROUPS)[np.asarray(tj.group_index(tops))]
+    group = np.array(tj.GROUPS)[np.asarray(ti.group_index(tops))]
     th = tj.thresholds(tops)
     n1, n2, J1, J2 = (np.asarray(v) for v in (th.n1, th.n2, th.J1, th.J2))
     iib = group == "IIb"
@@ -251,7 +253,7 @@ def test_3_footnote_n2_over_n1_and_jellet_thresholds():
     assert np.all(J2[iic] < J1[iic])
     assert np.all(n2[iic] < n1[iic])  # the IIc half of the footnote holds
     # J1, J2 are the branch ends, independently of the threshold formulas.
-    ends = np.asarray(tj.branch_jellet(tops, jnp.asarray([[[1e-8]], [[np.pi - 1e-8]]])))
+    ends = np.asarray(ti.branch_jellet(tops, jnp.asarray([[[1e-8]], [[np.pi - 1e-8]]])))
     ii = iib | iic
     np.testing.assert_allclose(ends[0][ii], J1[ii], rtol=1e-10)
     np.testing.assert_allclose(ends[1][ii], J2[ii], rtol=1e-10)
@@ -268,7 +270,7 @@ def test_4_pole_eigenvalues_need_a_regular_chart():
     p = _params(top)
     n0 = 60.0
     J = p["C"] * (p["R"] - p["eps"]) * n0
-    true = np.sort_complex(np.asarray(tj.vector_field_eigenvalues(top, 0.0, J, model="so3", pole=True)))
+    true = np.sort_complex(np.asarray(ti.vector_field_eigenvalues(top, 0.0, J, model="so3", pole=True)))
     printed_true = np.sort_complex(np.array([-4.77 - 4.64j, -4.77 + 4.64j, 0.76 - 71.3j, 0.76 + 71.3j]))
     assert true.shape == (4,)
     # To the printed precision (2 decimals, 3 significant digits for 71.3).
@@ -276,7 +278,7 @@ def test_4_pole_eigenvalues_need_a_regular_chart():
     np.testing.assert_allclose(true.imag, printed_true.imag, atol=0.05)
     np.testing.assert_allclose(np.abs(true.imag[:2]), 4.64, atol=0.005)
     # The paper's (corrected) polynomial as theta0 -> 0 has a finite limit ...
-    limits = [np.sort_complex(np.asarray(tj.polynomial_eigenvalues(top, t, J))) for t in (1e-4, 1e-5, 1e-6)]
+    limits = [np.sort_complex(np.asarray(ti.polynomial_eigenvalues(top, t, J))) for t in (1e-4, 1e-5, 1e-6)]
     np.testing.assert_allclose(limits[1], limits[2], rtol=1e-8)
     limit = limits[2]
     printed_limit = np.sort_complex(np.array([-4.28 - 98.3j, -4.28 + 98.3j, 0.54]))
@@ -287,7 +289,7 @@ def test_4_pole_eigenvalues_need_a_regular_chart():
     assert match_max_rel(true, full_limit) > 0.2
     # The full model with translation, also in a regular chart, agrees with SO(3) on the unstable
     # pair and has an extra stable pair.
-    full = np.asarray(tj.vector_field_eigenvalues(top, 0.0, J, model="full", pole=True))
+    full = np.asarray(ti.vector_field_eigenvalues(top, 0.0, J, model="full", pole=True))
     assert full.shape == (6,)
     unstable = full[np.real(full) > 0]
     assert len(unstable) == 2 and np.allclose(np.abs(unstable.imag), 71.3, atol=0.1)
@@ -295,8 +297,8 @@ def test_4_pole_eigenvalues_need_a_regular_chart():
     n1 = float(tj.thresholds(top).n1)
     for factor, expect_stable in ((0.999, True), (1.001, False)):
         Jn = p["C"] * (p["R"] - p["eps"]) * n1 * factor
-        poly = np.asarray(tj.polynomial_eigenvalues(top, 1e-6, Jn))
-        so3 = np.asarray(tj.vector_field_eigenvalues(top, 0.0, Jn, model="so3", pole=True))
+        poly = np.asarray(ti.polynomial_eigenvalues(top, 1e-6, Jn))
+        so3 = np.asarray(ti.vector_field_eigenvalues(top, 0.0, Jn, model="so3", pole=True))
         assert (np.max(poly.real) < 0) == expect_stable
         assert (np.max(so3.real) < 0) == expect_stable
 
@@ -351,7 +353,7 @@ def test_6_normal_force_becomes_negative_during_the_rise():
     y0 = tj.initial_state(top, theta=0.1, spin=200.0)
     ts = jnp.linspace(0.0, 6.0, 12001)
     sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(tj.full_vector_field),
+        diffrax.ODETerm(ti.full_vector_field),
         diffrax.Tsit5(),
         t0=0.0,
         t1=6.0,

@@ -7,6 +7,8 @@ import numpy as np
 import pytest
 from helpers import GROUP_RATIOS
 
+import internal as ti
+
 import tippejax as tj
 
 FIELDS = ("m", "R", "eps", "A", "C", "g", "mu")
@@ -46,7 +48,7 @@ def test_grad_d2w_wrt_eps(d2w_of_eps, theta, j_ratio):
     # Finite differences of the autodiff W'' and of the closed form (eq. stabilityba).
     fd = _central_difference(lambda e: float(value(e, theta, J)), eps0)
     fd_closed = _central_difference(
-        lambda e: float(tj.effective_potential_d2_closed_form(_build(eps=e), theta, J)), eps0
+        lambda e: float(ti.effective_potential_d2_closed_form(_build(eps=e), theta, J)), eps0
     )
     print(f"d W''/d eps at theta={theta}, J/J1={j_ratio}: grad vs FD rel diff "
           f"{abs(got - fd) / abs(fd):.2e} (autodiff W''), {abs(got - fd_closed) / abs(fd_closed):.2e} (closed form)")

@@ -12,6 +12,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
+import internal as ti  # noqa: E402
 import tippejax as tj  # noqa: E402
 from tippejax._cli import REPRESENTATIVES  # noqa: E402
 from tippejax._plot import (  # noqa: E402
@@ -41,7 +42,7 @@ _PAD = 4096
 
 @jax.jit
 def _on_branch(top, theta):
-    return tj.stability_function(top, jnp.cos(theta)), tj.branch_jellet(top, theta) ** 2
+    return ti.stability_function(top, jnp.cos(theta)), ti.branch_jellet(top, theta) ** 2
 
 
 def _stability_and_j2(top, theta):
@@ -52,7 +53,7 @@ def _stability_and_j2(top, theta):
     return np.asarray(g)[: len(theta)], np.asarray(j2)[: len(theta)]
 
 
-_d2w_at_pole = jax.jit(tj.effective_potential_d2_closed_form)
+_d2w_at_pole = jax.jit(ti.effective_potential_d2_closed_form)
 
 
 def _lines(ax, prefix):
@@ -132,7 +133,7 @@ def test_group_map_colours_match_group_index():
     e = np.linspace(0.0, 1.0, 62)[1:-1]
     for i, j in [(5, 5), (30, 10), (50, 55), (10, 40)]:
         top = tj.TippeTop.from_ratios(a[j], e[i])
-        assert index[i, j] == int(tj.group_index(top))
+        assert index[i, j] == int(ti.group_index(top))
     assert len(set(index.ravel().tolist())) >= 5  # IIc may be too thin for a 60-point grid
     labels = [t.get_text() for t in ax.get_legend().get_texts()]
     assert [f"Group {g}" for g in tj.GROUPS] == labels[:6]

@@ -13,6 +13,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import internal as ti
+
 import tippejax as tj
 
 N = 301  # one save-grid length for every run (the save-grid shape is static under jit)
@@ -55,7 +57,7 @@ def releq_launch(top, theta_eq):
     """Rates of the relative equilibrium on the intermediate branch at `theta_eq` (ERRATA,
     'Useful facts'): phid = R J / D, psid = -eps J / D; returns (spin n, phi_dot)."""
     m, R, eps, A, C = (float(getattr(top, k)) for k in ("m", "R", "eps", "A", "C"))
-    J = float(tj.branch_jellet(top, theta_eq))
+    J = float(ti.branch_jellet(top, theta_eq))
     D = R**2 * A * np.sin(theta_eq) ** 2 + C * (R * np.cos(theta_eq) - eps) ** 2
     phid, psid = R * J / D, -eps * J / D
     return psid + phid * np.cos(theta_eq), phid

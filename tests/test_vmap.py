@@ -7,6 +7,8 @@ import numpy as np
 import pytest
 from helpers import GROUP_RATIOS
 
+import internal as ti
+
 import tippejax as tj
 
 N_STATES = 8
@@ -64,7 +66,7 @@ def tops():
 
 @pytest.mark.parametrize("name", ["full", "so3"])
 def test_vmap_vector_fields_over_states(top, states, name):
-    field = {"full": tj.full_vector_field, "so3": tj.so3_vector_field}[name]
+    field = {"full": ti.full_vector_field, "so3": ti.so3_vector_field}[name]
     looped = _stack([field(0.0, _index(states, i), top) for i in range(N_STATES)])
     vmapped = jax.vmap(lambda y: field(0.0, y, top))(states)
     _assert_trees_close(vmapped, looped)
@@ -73,13 +75,13 @@ def test_vmap_vector_fields_over_states(top, states, name):
 
 
 def test_vmap_routhian_field_over_states(top, states):
-    r, J = tj.routhian_from_state(top, eqx.tree_at(lambda s: s.velocity, states, 0 * states.velocity))
+    r, J = ti.routhian_from_state(top, eqx.tree_at(lambda s: s.velocity, states, 0 * states.velocity))
     looped = _stack(
-        [tj.routhian_vector_field(0.0, _index(r, i), (top, J[i])) for i in range(N_STATES)]
+        [ti.routhian_vector_field(0.0, _index(r, i), (top, J[i])) for i in range(N_STATES)]
     )
-    vmapped = jax.vmap(lambda ri, Ji: tj.routhian_vector_field(0.0, ri, (top, Ji)))(r, J)
+    vmapped = jax.vmap(lambda ri, Ji: ti.routhian_vector_field(0.0, ri, (top, Ji)))(r, J)
     _assert_trees_close(vmapped, looped)
-    _assert_trees_close(tj.routhian_vector_field(0.0, r, (top, J)), looped)
+    _assert_trees_close(ti.routhian_vector_field(0.0, r, (top, J)), looped)
 
 
 def test_vmap_over_tops_effective_potential(tops):
@@ -110,7 +112,7 @@ def test_vmap_over_tops_thresholds(tops):
     assert np.isnan(n1[0]) and np.all(np.isfinite(n1[1:]))
     assert np.all(np.isfinite(n2[:3])) and np.isnan(n2[3])
     np.testing.assert_array_equal(
-        np.asarray(jax.vmap(tj.group_index)(batch)), [tj.group_index(t) for t in singles]
+        np.asarray(jax.vmap(ti.group_index)(batch)), [ti.group_index(t) for t in singles]
     )
 
 
@@ -143,7 +145,7 @@ def test_steady_states_vmap_over_J(top):
 def public_calls(top, states):
     y = _index(states, 1)
     y0 = eqx.tree_at(lambda s: s.velocity, y, jnp.zeros(2))
-    r, J = tj.routhian_from_state(top, y0)
+    r, J = ti.routhian_from_state(top, y0)
     th = jnp.asarray(1.1)
     Jr = jnp.asarray(2.0 * float(tj.thresholds(top).J1))
     return {
@@ -153,7 +155,7 @@ def public_calls(top, states):
         "initial_state": (tj.initial_state, (top, jnp.asarray(0.1), jnp.asarray(50.0))),
         "euler_angles": (tj.euler_angles, (y,)),
         "euler_rates": (tj.euler_rates, (y,)),
-        "spin": (tj.spin, (y,)),
+        "spin": (ti.spin, (y,)),
         "jellet": (tj.jellet, (top, y)),
         "energy": (tj.energy, (top, y)),
         "energy_so3": (lambda t, s: tj.energy(t, s, model="so3"), (top, y)),
@@ -161,31 +163,31 @@ def public_calls(top, states):
         "normal_force_so3": (lambda t, s: tj.normal_force(t, s, model="so3"), (top, y)),
         "normal_force_denominator": (tj.normal_force_denominator, (top, y)),
         "slip_velocity": (tj.slip_velocity, (top, y)),
-        "full_vector_field": (tj.full_vector_field, (0.0, y, top)),
-        "so3_vector_field": (tj.so3_vector_field, (0.0, y, top)),
-        "routhian_vector_field": (tj.routhian_vector_field, (0.0, r, (top, J))),
-        "routhian_from_state": (tj.routhian_from_state, (top, y0)),
-        "state_from_routhian": (tj.state_from_routhian, (top, r, J)),
-        "routhian_rates": (tj.routhian_rates, (top, r.theta, r.phibar_dot, J)),
+        "full_vector_field": (ti.full_vector_field, (0.0, y, top)),
+        "so3_vector_field": (ti.so3_vector_field, (0.0, y, top)),
+        "routhian_vector_field": (ti.routhian_vector_field, (0.0, r, (top, J))),
+        "routhian_from_state": (ti.routhian_from_state, (top, y0)),
+        "state_from_routhian": (ti.state_from_routhian, (top, r, J)),
+        "routhian_rates": (ti.routhian_rates, (top, r.theta, r.phibar_dot, J)),
         "routhian_normal_force": (
-            tj.routhian_normal_force,
+            ti.routhian_normal_force,
             (top, th, jnp.asarray(1.0), jnp.asarray(3.0), jnp.asarray(40.0)),
         ),
         "effective_potential": (tj.effective_potential, (top, th, Jr)),
         "effective_potential_derivative": (
             lambda t, a, b: tj.effective_potential_derivative(t, a, b, order=2), (top, th, Jr)
         ),
-        "effective_potential_d2_closed_form": (tj.effective_potential_d2_closed_form, (top, th, Jr)),
-        "routhian_terms": (tj.routhian_terms, (top, th, Jr)),
+        "effective_potential_d2_closed_form": (ti.effective_potential_d2_closed_form, (top, th, Jr)),
+        "routhian_terms": (ti.routhian_terms, (top, th, Jr)),
         "thresholds": (tj.thresholds, (top,)),
-        "group_index": (tj.group_index, (top,)),
-        "intermediate_condition": (tj.intermediate_condition, (top, Jr, jnp.cos(th))),
-        "stability_function": (tj.stability_function, (top, jnp.cos(th))),
-        "branch_jellet": (tj.branch_jellet, (top, th)),
-        "relative_equilibrium": (tj.relative_equilibrium, (top, th, Jr)),
-        "characteristic_polynomial": (tj.characteristic_polynomial, (top, th, Jr)),
-        "polynomial_eigenvalues": (tj.polynomial_eigenvalues, (top, th, Jr)),
-        "max_real_part": (tj.max_real_part, (jnp.array([1.0 + 2.0j, -3.0 + 0.0j]),)),
+        "group_index": (ti.group_index, (top,)),
+        "intermediate_condition": (ti.intermediate_condition, (top, Jr, jnp.cos(th))),
+        "stability_function": (ti.stability_function, (top, jnp.cos(th))),
+        "branch_jellet": (ti.branch_jellet, (top, th)),
+        "relative_equilibrium": (ti.relative_equilibrium, (top, th, Jr)),
+        "characteristic_polynomial": (ti.characteristic_polynomial, (top, th, Jr)),
+        "polynomial_eigenvalues": (ti.polynomial_eigenvalues, (top, th, Jr)),
+        "max_real_part": (ti.max_real_part, (jnp.array([1.0 + 2.0j, -3.0 + 0.0j]),)),
     }
 
 
@@ -237,10 +239,10 @@ def test_jit_eigenvalue_functions(top):
     """At a relative equilibrium (J on the branch at theta0), the jitted reduced-Jacobian and
     SO(3) eigenvalues equal the roots of the characteristic polynomial."""
     theta0 = jnp.asarray(1.1)
-    J = tj.branch_jellet(top, theta0)
-    reduced = np.sort_complex(np.asarray(jax.jit(tj.reduced_jacobian_eigenvalues)(top, theta0, J)))
-    so3 = np.sort_complex(np.asarray(jax.jit(tj.vector_field_eigenvalues)(top, theta0, J)))
-    poly = np.sort_complex(np.asarray(tj.polynomial_eigenvalues(top, theta0, J)))
+    J = ti.branch_jellet(top, theta0)
+    reduced = np.sort_complex(np.asarray(jax.jit(ti.reduced_jacobian_eigenvalues)(top, theta0, J)))
+    so3 = np.sort_complex(np.asarray(jax.jit(ti.vector_field_eigenvalues)(top, theta0, J)))
+    poly = np.sort_complex(np.asarray(ti.polynomial_eigenvalues(top, theta0, J)))
     scale = np.abs(poly).max()
     np.testing.assert_allclose(reduced, poly, rtol=0, atol=1e-8 * scale)
     np.testing.assert_allclose(so3, poly, rtol=0, atol=1e-8 * scale)
@@ -249,5 +251,5 @@ def test_jit_eigenvalue_functions(top):
 def test_jit_pole_threshold(top):
     """jax.jit around pole_threshold: equals the closed form n1 (eq. n1)."""
     n1 = float(tj.thresholds(top).n1)
-    got = float(jax.jit(tj.pole_threshold)(top))
+    got = float(jax.jit(ti.pole_threshold)(top))
     np.testing.assert_allclose(got, n1, rtol=1e-6)

@@ -9,7 +9,8 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import ArrayLike
 
-from ._simulate import default_solver, simulate
+from ._engine.solver_choice import default_solver
+from ._simulate import simulate
 from ._solution import Solution
 from ._state import initial_state
 from ._top import TippeTop
@@ -50,6 +51,14 @@ def simulate_batch(
     kwargs.pop("throw", None)
     theta0 = np.atleast_1d(np.asarray(theta0, dtype=float))
     spin = np.atleast_1d(np.asarray(spin, dtype=float))
+    for name, values in (("theta0", theta0), ("spin", spin)):
+        if values.ndim != 1 or values.size == 0:
+            raise ValueError(
+                f"simulate_batch: {name} must be a non-empty 1-d list of values, got shape "
+                f"{values.shape}."
+            )
+        if not np.all(np.isfinite(values)):
+            raise ValueError(f"simulate_batch: {name} must be finite (got NaN or inf).")
     grid_theta, grid_spin = np.meshgrid(theta0, spin, indexing="ij")
     flat_theta, flat_spin = grid_theta.ravel(), grid_spin.ravel()
     size = flat_theta.size

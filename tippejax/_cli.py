@@ -48,9 +48,10 @@ def _print_top(top) -> str:
     import jax
 
     import tippejax as tj
+    from tippejax._analysis.groups import group_index
 
     th = jax.jit(tj.thresholds)(top)  # one compilation instead of one per elementwise op
-    group = tj.GROUPS[int(jax.jit(tj.group_index)(top))]
+    group = tj.GROUPS[int(jax.jit(group_index)(top))]
     print(
         f"top: m = {float(top.m):.4g} kg, R = {float(top.R):.4g} m, eps = {float(top.eps):.4g} m, "
         f"A = {float(top.A):.4g} kg m^2, C = {float(top.C):.4g} kg m^2, mu = {float(top.mu):.4g} s/m"

@@ -28,9 +28,16 @@ class RESULTS(eqxi.Enumeration):
         "The ODE solver failed (step size underflow or an internal diffrax error)."
     )
     contact_loss_missed = (
-        "R_n was negative at a save time before any contact loss the solver located: a step went "
-        "over a brief dip of R_n below 0, so the first loss of contact is somewhere before that "
-        "save time. Tighten rtol (<= 1e-8) or use smaller steps; values from there on are nan."
+        "R_n was negative at a save time before any contact loss the solver located: a dip of "
+        "R_n below 0 shorter than 1/event_samples of a step went unseen, so the first loss of "
+        "contact is somewhere before that save time. Raise event_samples or tighten rtol; "
+        "values from there on are nan."
+    )
+    stiff_under_trace = (
+        "This top's friction is very stiff (friction_rate > 5e5/s) and simulate ran under "
+        "jit/vmap with a traced top, where the default solver must be explicit (Dopri8) and "
+        "would not finish. Pass solver=diffrax.Kvaerno5(), or call simulate with a concrete "
+        "top so that the default can be chosen per top. The member was not integrated."
     )
 
 

@@ -23,8 +23,13 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from .._analysis.potential import routhian_terms
+from .._invariants import jellet
 from .._state import State, euler_angles, euler_rates, state_from_euler
 from .._top import TippeTop
+from .base import AbstractLevel, Conditions
+
+CHART_SIN_MIN = 0.05
+"""A Routhian run leaves its chart (for the SO(3) level) when $|\\sin\\theta|$ falls below this."""
 
 
 class RouthianState(eqx.Module):
@@ -116,8 +121,6 @@ def routhian_vector_field(t, y: RouthianState, args) -> RouthianState:
 
 def routhian_from_state(top: TippeTop, y: State) -> tuple[RouthianState, Array]:
     r"""Reduced coordinates of a vector state and its Jellet $J$. Singular at the poles."""
-    from .._invariants import jellet
-
     theta, phi, psi = euler_angles(y)
     theta_dot, phi_dot, psi_dot = euler_rates(y)
     r = RouthianState(
@@ -141,3 +144,62 @@ def state_from_routhian(top: TippeTop, r: RouthianState, J) -> State:
     psi = (top.R * r.phibar - top.eps * r.c) / big_s
     _, phi_dot, psi_dot, _ = routhian_rates(top, r.theta, r.phibar_dot, J)
     return state_from_euler(r.theta, phi, psi, r.theta_dot, phi_dot, psi_dot)
+
+
+class RouthianLevelState(eqx.Module):
+    r"""State of the Routhian level: the reduced state and the (constant) Jellet $J$."""
+
+    reduced: RouthianState
+    jellet: Float[Array, ""]
+
+
+class RouthianLevel(AbstractLevel):
+    r"""The Routhian reduced system in $(\theta, \bar\varphi)$ with $J$ fixed.
+
+    The step size is controlled on $(\theta, \dot\theta, \dot{\bar\varphi})$ only: the cyclic
+    angles $\bar\varphi$ and $c$ do not feed back into the motion (they only serve to report
+    $\varphi, \psi$), so the solver need not resolve the phase of the spin. Near the poles
+    ($|\sin\theta| <$ `CHART_SIN_MIN`) the chart ends and the run continues at the SO(3)
+    level, which is the same physics in a form regular there.
+    """
+
+    name = "routhian"
+    friction_model = "so3"
+    has_chart = True
+
+    def from_state(self, top, state):
+        reduced, J = routhian_from_state(top, state)
+        return RouthianLevelState(reduced=reduced, jellet=J)
+
+    def to_state(self, top, y):
+        return state_from_routhian(top, y.reduced, y.jellet)
+
+    def vector_field(self, t, y, top):
+        return RouthianLevelState(
+            reduced=_single(top, y.reduced, y.jellet), jellet=jnp.zeros_like(y.jellet)
+        )
+
+    def conditions(self, top, y):
+        r = y.reduced
+        _, phi_dot, _, n = routhian_rates(top, r.theta, r.phibar_dot, y.jellet)
+        normal_force, denominator = routhian_normal_force(top, r.theta, r.theta_dot, phi_dot, n)
+        return Conditions(
+            contact=normal_force * denominator,
+            singular=denominator,
+            upright=jnp.cos(r.theta),
+            chart=jnp.abs(jnp.sin(r.theta)) - CHART_SIN_MIN,
+        )
+
+    def in_chart(self, top, state):
+        horizontal = jnp.sqrt(state.axis[0] ** 2 + state.axis[1] ** 2)
+        return horizontal > CHART_SIN_MIN
+
+    def fallback(self):
+        from .so3 import SO3Level
+
+        return SO3Level()
+
+    def error_norm(self, scaled_error):
+        r = scaled_error.reduced
+        dynamic = jnp.stack([r.theta, r.theta_dot, r.phibar_dot])
+        return jnp.sqrt(jnp.mean(dynamic**2))

@@ -3,18 +3,23 @@ r"""The SO(3) model: the paper's approximation with translation dropped in the f
 As in Sec. 2.2 (Routhian reduction), the horizontal velocity of the centre of mass is neglected in
 the friction force and in $R_n$ ($R'_n$); the vertical motion of the centre of mass (the
 $m\epsilon^2\sin^2\theta\,\dot\theta^2$ term of $L'$) is kept. In vector form this is the full model
-with $v_O = (0, 0, \dot h)$: state $(a, \omega)$, regular at the poles. Position and horizontal
-velocity are frozen (their derivatives are zero).
+with $v_O = (0, 0, \dot h)$: state $(a, \omega)$ (+ the body vector for $\psi$), regular at the
+poles. The Jellet $J$ is conserved exactly and the energy
+$E' = T_{\rm rot} + \tfrac12 m\dot h^2 + m g h$ never increases: $\dot E' = -\mu R_n |v_Q|^2$.
 """
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jaxtyping import Array, Float
 
 from .._state import State
 from .._top import TippeTop
 from ._rigid_body import rigid_body_dynamics
+from .base import AbstractLevel
+from .full import vector_conditions
 
 
 def _single(top: TippeTop, y: State) -> State:
@@ -30,15 +35,47 @@ def _single(top: TippeTop, y: State) -> State:
 
 
 def so3_vector_field(t, y: State, top: TippeTop) -> State:
-    r"""Time derivative of the state under the SO(3) model (diffrax signature `f(t, y, args)`).
+    r"""Time derivative of a common `State` under the SO(3) model (diffrax signature).
 
     Same as `full_vector_field` with the horizontal velocity set to zero in
-    $v_Q = v_O + \omega\times q$ and in $R'_n$. The Jellet $J$ is conserved exactly and the
-    energy $E' = T_{\rm rot} + \tfrac12 m\dot h^2 + m g h$ never increases:
-    $\dot E' = R_f\cdot v_Q = -\mu R_n |v_Q|^2$.
+    $v_Q = v_O + \omega\times q$ and in $R'_n$; position and velocity are frozen.
     """
     del t
     fn = _single
     for _ in y.axis.shape[:-1]:
         fn = jax.vmap(fn, in_axes=(None, 0))
     return fn(top, y)
+
+
+class RigidState(eqx.Module):
+    """State of the SO(3) level: axis, angular velocity and body vector (no translation)."""
+
+    axis: Float[Array, "3"]
+    omega: Float[Array, "3"]
+    body: Float[Array, "3"]
+
+
+class SO3Level(AbstractLevel):
+    """The SO(3) model: rotation only (9 ODEs); position and velocity are reported as zero."""
+
+    name = "so3"
+    friction_model = "so3"
+
+    def from_state(self, top, state):
+        return RigidState(axis=state.axis, omega=state.omega, body=state.body)
+
+    def to_state(self, top, y):
+        zero = jnp.zeros(2, y.axis.dtype)
+        return State(position=zero, velocity=zero, axis=y.axis, omega=y.omega, body=y.body)
+
+    def vector_field(self, t, y, top):
+        zero = jnp.zeros(2, y.axis.dtype)
+        _, omega_dot, _, _ = rigid_body_dynamics(top, y.axis, y.omega, zero)
+        return RigidState(
+            axis=jnp.cross(y.omega, y.axis),
+            omega=omega_dot,
+            body=jnp.cross(y.omega, y.body),
+        )
+
+    def conditions(self, top, y):
+        return vector_conditions(top, y.axis, y.omega, jnp.zeros(2, y.axis.dtype))

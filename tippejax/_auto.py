@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ._engine.solver_choice import STIFF_RATE, friction_rate
 from ._state import State
 from ._top import TippeTop
 
@@ -37,8 +38,6 @@ def choose_model(top: TippeTop, y0: State, *, tolerance: float | None) -> str:
     with the lowest measured cost among those whose measured worst error is at most `tolerance`
     and whose cost is below `COST_MARGIN` (the full model, cost 1, always qualifies).
     """
-    from ._simulate import STIFF_RATE, friction_rate
-
     if tolerance is None:
         return "full"
     if not tolerance > 0:

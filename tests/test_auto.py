@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import tippejax as tj
-from tippejax._levels import COST_MARGIN, MEASURED, choose_model
+from tippejax._auto import COST_MARGIN, MEASURED, choose_model
 
 LEVELS_MD = pathlib.Path(__file__).parents[1] / "benchmarks" / "LEVELS.md"
 

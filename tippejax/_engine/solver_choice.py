@@ -1,0 +1,46 @@
+"""The default solver, chosen from measured work-precision (`benchmarks/engine.py`).
+
+Non-stiff friction: Dopri8 (8th order, 14 stages) takes 3-10x fewer steps than Tsit5 for the
+same error and is faster at every rtol from 1e-4 to 1e-10 (`benchmarks/RESULTS.md`). Its long
+steps no longer hide events: `WatchedSolver` checks the conditions on each step's dense output.
+Stiff friction: explicit steps are limited by stability, and Tsit5's cheaper steps win until
+the friction is very stiff; above `IMPLICIT_RATE` only an implicit solver (Kvaerno5) finishes.
+"""
+
+from __future__ import annotations
+
+import diffrax
+import jax
+import numpy as np
+
+from .._top import TippeTop
+
+STIFF_RATE = 1000.0
+"""Friction damping rate (1/s) above which Tsit5 is faster than Dopri8 (stability-limited steps)."""
+
+IMPLICIT_RATE = 5.0e5
+"""Friction damping rate (1/s) above which the default solver is implicit (Kvaerno5)."""
+
+
+def friction_rate(top: TippeTop):
+    r"""Damping rate of sliding, $\mu g\, m (R+\epsilon)^2/A$ (1/s): the stiffness of the friction."""
+    return top.mu * top.g * top.m * (top.R + top.eps) ** 2 / top.A
+
+
+def is_traced(x) -> bool:
+    return isinstance(x, jax.core.Tracer)
+
+
+def default_solver(top: TippeTop) -> diffrax.AbstractSolver:
+    """Dopri8; Tsit5 above a friction rate of `STIFF_RATE`; Kvaerno5 above `IMPLICIT_RATE`.
+
+    Needs a concrete top. For a traced top (under `jit` or `vmap`) the stiffness cannot be read:
+    `simulate` then uses Dopri8 and reports members whose friction is too stiff for an explicit
+    solver (`RESULTS.stiff_under_trace`) at once instead of running them into `max_steps`.
+    """
+    if is_traced(top.mu):
+        return diffrax.Dopri8()
+    rate = float(np.max(np.asarray(friction_rate(top))))
+    if rate > IMPLICIT_RATE:
+        return diffrax.Kvaerno5()
+    return diffrax.Tsit5() if rate > STIFF_RATE else diffrax.Dopri8()

@@ -1,0 +1,184 @@
+r"""Events that no step can hide: a solver wrapper that watches conditions on the dense output.
+
+diffrax sees an event from the signs of its condition at the ends of each step. A condition that
+falls through zero and rises again inside one step (the brief first dip of $R_n$ below zero
+before a top leaves the table, ERRATA.md 6; a nutation that carries $\theta$ across $\pi/2$ and
+back) is then missed, and high-order solvers at loose tolerances take steps long enough for that.
+
+`WatchedSolver` wraps any diffrax solver. After each step it evaluates the watched conditions
+on the step's dense output at `samples - 1` interior points. If one condition changes sign more
+than once along those points, the step is rejected (its error estimate is set to infinity, so
+the step-size controller shrinks it) until no step holds more than one crossing. Then
+
+- a *terminating* event (contact loss, the $R_n$ singularity, the end of a chart) is seen by
+  diffrax's own event machinery at the end of the step that holds it, and located inside it by
+  `EventBisection`;
+- an *observed* event, which does not stop the run (the inversion, contact loss when the run
+  goes on past it), is recorded in the solver state: the first accepted step in which its
+  condition fell through zero. After the solve, `locate_observed` repeats that one step to get
+  its dense output and finds the crossing by a root find, which is differentiable through the
+  implicit function theorem (as diffrax's events are).
+
+Event times therefore do not depend on the save grid, and they are exact to the root finder's
+tolerance whatever the solver's step length, down to crossings shorter than `1/samples` of a
+step.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import optimistix as optx
+from jaxtyping import Array, Bool, Float, PyTree
+
+
+class EventBisection(optx.Bisection):
+    """Bisection for event times, which stops on the width of the bracket alone.
+
+    `optx.Bisection` also asks for |condition| < atol, which a condition of size O(10) with a
+    steep slope cannot meet in floating point. The bracket is the step in which the sign
+    changed, which holds exactly one crossing (see `WatchedSolver`); `flip=True` because every
+    condition decreases through zero.
+    """
+
+    def terminate(self, fn, y, args, options, state, tags):
+        del fn, args, options, tags
+        width = jnp.abs(state.lower - state.upper)
+        return width < self.atol + self.rtol * jnp.abs(y), optx.RESULTS.successful
+
+
+def event_root_finder(dtype) -> EventBisection:
+    tol = 1e-13 if dtype == jnp.float64 else 1e-6
+    return EventBisection(rtol=tol, atol=tol, flip=True)
+
+
+class _WatchState(eqx.Module):
+    inner: PyTree
+    previous: Float[Array, " n"]  # watched conditions at the start of the step
+    found: Bool[Array, " m"]  # observed event m already recorded
+    step_t0: Float[Array, " m"]
+    step_t1: Float[Array, " m"]
+    step_y0: PyTree  # state at step_t0, leading axis m
+
+
+class WatchedSolver(diffrax.AbstractWrappedSolver):
+    """Wraps `solver` so that no accepted step holds more than one crossing of a watched
+    condition, and records the step of the first downward crossing of each observed one.
+
+    **Arguments:**
+
+    - `solver`: any diffrax solver with an error estimate.
+    - `watch`: `watch(y, args) -> Float[Array, "n"]`, the watched conditions of one state.
+    - `observed`: indices (into `watch`'s output) of the observed, non-terminating events.
+    - `samples`: number of sub-intervals of each step on which signs are checked.
+    """
+
+    solver: diffrax.AbstractSolver
+    watch: Callable[[PyTree, Any], Array]
+    observed: tuple[int, ...] = eqx.field(static=True)
+    samples: int = eqx.field(static=True, default=8)
+
+    @property
+    def term_structure(self):
+        return self.solver.term_structure
+
+    @property
+    def interpolation_cls(self):  # pyright: ignore
+        return self.solver.interpolation_cls
+
+    @property
+    def term_compatible_contr_kwargs(self):
+        return self.solver.term_compatible_contr_kwargs
+
+    def order(self, terms):
+        return self.solver.order(terms)
+
+    def strong_order(self, terms):
+        return self.solver.strong_order(terms)
+
+    def error_order(self, terms):
+        return self.solver.error_order(terms)
+
+    def func(self, terms, t0, y0, args):
+        return self.solver.func(terms, t0, y0, args)
+
+    def init(self, terms, t0, t1, y0, args) -> _WatchState:
+        m = len(self.observed)
+        dtype = jnp.result_type(t0, t1)
+        t0 = jnp.asarray(t0, dtype)
+        stack = lambda x: jnp.broadcast_to(x, (m,) + jnp.shape(x))  # noqa: E731
+        return _WatchState(
+            inner=self.solver.init(terms, t0, t1, y0, args),
+            previous=self.watch(y0, args),
+            found=jnp.zeros(m, bool),
+            step_t0=stack(t0),
+            # a dummy step of nonzero length, so that re-stepping it is harmless
+            step_t1=stack(t0 + 1e-3),
+            step_y0=jax.tree_util.tree_map(stack, y0),
+        )
+
+    def step(self, terms, t0, t1, y0, args, solver_state: _WatchState, made_jump):
+        y1, y_error, dense_info, inner, result = self.solver.step(
+            terms, t0, t1, y0, args, solver_state.inner, made_jump
+        )
+        interpolation = self.solver.interpolation_cls(t0=t0, t1=t1, **dense_info)
+        fractions = jnp.arange(1, self.samples, dtype=jnp.result_type(t0)) / self.samples
+        interior = jax.vmap(lambda s: self.watch(interpolation.evaluate(t0 + s * (t1 - t0)), args))(
+            fractions
+        )
+        end = self.watch(y1, args)
+        values = jnp.concatenate([solver_state.previous[None], interior, end[None]])
+        positive = values > 0
+        changes = jnp.sum(positive[1:] != positive[:-1], axis=0)
+        hidden = jnp.any(changes > 1)
+        if y_error is not None:
+            y_error = jax.tree_util.tree_map(lambda e: jnp.where(hidden, jnp.inf, e), y_error)
+        observed = jnp.asarray(self.observed, int)
+        fell = jnp.any(positive[:-1, observed] & ~positive[1:, observed], axis=0)
+        new = fell & ~solver_state.found
+        take = lambda a, b: jnp.where(  # noqa: E731
+            new.reshape(new.shape + (1,) * (jnp.ndim(a) - 1)), a, b
+        )
+        stack = lambda x: jnp.broadcast_to(x, new.shape + jnp.shape(x))  # noqa: E731
+        state = _WatchState(
+            inner=inner,
+            previous=end,
+            found=solver_state.found | new,
+            step_t0=take(stack(t0), solver_state.step_t0),
+            step_t1=take(stack(t1), solver_state.step_t1),
+            step_y0=jax.tree_util.tree_map(
+                lambda a, b: take(stack(a), b), y0, solver_state.step_y0
+            ),
+        )
+        return y1, y_error, dense_info, state, result
+
+
+def locate_observed(
+    solver: WatchedSolver, terms, args, state: _WatchState, index: int, root_finder
+) -> Float[Array, ""]:
+    """Time of the first downward crossing of observed condition `index` (nan if none).
+
+    Repeats the recorded step from its start to rebuild its dense output, then root-finds the
+    condition on it. Differentiable (implicit function theorem through `optx.root_find`).
+    """
+    k = solver.observed.index(index)
+    t0, t1 = state.step_t0[k], state.step_t1[k]
+    y0 = jax.tree_util.tree_map(lambda x: x[k], state.step_y0)
+    inner = solver.solver
+    _, _, dense_info, _, _ = inner.step(
+        terms, t0, t1, y0, args, inner.init(terms, t0, t1, y0, args), False
+    )
+    interpolation = inner.interpolation_cls(t0=t0, t1=t1, **dense_info)
+
+    def fn(t, _):
+        return solver.watch(interpolation.evaluate(t), args)[index]
+
+    root = optx.root_find(
+        fn, root_finder, y0=t1, options=dict(lower=t0, upper=t1), throw=False
+    )
+    return jnp.where(state.found[k], root.value, jnp.nan)

@@ -1,0 +1,95 @@
+r"""The interface every dynamic level of model implements, and its event conditions.
+
+A level is a final `eqx.Module` with no fields of its own beyond static configuration. The
+engine (`tippejax._engine`) calls only the methods below and never branches on a level's
+name: adding a level is a new file in `tippejax/_models/` and one line in `LEVELS`
+(`tippejax/_models/levels.py`).
+
+Event conditions (`Conditions`) are scalars that are positive while the level describes the
+motion and fall through zero at the event:
+
+- `contact`: the numerator of $R_n$ times its denominator, $R_n D$ (ERRATA.md, 6): zero when
+  the top leaves the table;
+- `singular`: the denominator $D$ of $R_n$ (eq. reactie), zero at the Painleve-type singularity
+  of friction proportional to $R_n$ (ERRATA.md, 5);
+- `upright`: the vertical component of the symmetry axis, $a_Z = \cos\theta$; it falls through
+  zero when $\theta$ crosses $\pi/2$ upwards (the inversion);
+- `chart`: positive inside the level's chart (the Routhian chart ends near the poles); a level
+  without a chart edge returns 1.
+"""
+
+from __future__ import annotations
+
+import abc
+from typing import ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float, PyTree
+
+from .._state import State
+from .._top import TippeTop
+
+
+class Conditions(eqx.Module):
+    """Event conditions of one state (see the module docstring). Each is a scalar."""
+
+    contact: Float[Array, ""]
+    singular: Float[Array, ""]
+    upright: Float[Array, ""]
+    chart: Float[Array, ""]
+
+    def get(self, name: str) -> Float[Array, ""]:
+        return getattr(self, name)
+
+
+CONDITION_NAMES = ("contact", "singular", "upright", "chart")
+
+
+class AbstractLevel(eqx.Module):
+    """One level of model: its state, vector field, conversions and event conditions.
+
+    **Class attributes:**
+
+    - `name`: the level's name in `simulate(model=...)`.
+    - `friction_model`: `"full"` if the friction law sees the horizontal velocity of the centre
+      of mass, `"so3"` if it is dropped; used for the observed energy and normal force.
+    - `has_chart`: whether the level's coordinates end somewhere (then `conditions().chart`
+      falls through zero there and the run continues in `fallback`).
+    """
+
+    name: ClassVar[str]
+    friction_model: ClassVar[str]
+    has_chart: ClassVar[bool] = False
+
+    @abc.abstractmethod
+    def from_state(self, top: TippeTop, state: State) -> PyTree:
+        """The level's state for a (single) common `State`."""
+
+    @abc.abstractmethod
+    def to_state(self, top: TippeTop, y: PyTree) -> State:
+        """The common `State` of a (single) level state."""
+
+    @abc.abstractmethod
+    def vector_field(self, t, y: PyTree, top: TippeTop) -> PyTree:
+        """Time derivative of a single (unbatched) level state; diffrax's `f(t, y, args)`."""
+
+    @abc.abstractmethod
+    def conditions(self, top: TippeTop, y: PyTree) -> Conditions:
+        """Event conditions of a single level state."""
+
+    def in_chart(self, top: TippeTop, state: State) -> Array:
+        """Whether `state` can be represented in this level's coordinates."""
+        del top, state
+        return jnp.array(True)
+
+    def fallback(self) -> AbstractLevel | None:
+        """The level a run continues in when this one's chart ends (None: no chart)."""
+        return None
+
+    def error_norm(self, scaled_error: PyTree) -> Array:
+        """Norm of the scaled local error used by the step-size controller (RMS by default)."""
+        leaves = [jnp.ravel(x) for x in jax.tree_util.tree_leaves(scaled_error)]
+        flat = jnp.concatenate(leaves)
+        return jnp.sqrt(jnp.mean(flat**2))
