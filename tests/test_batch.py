@@ -17,7 +17,7 @@ def test_batch_equals_single_runs():
     thetas, spins = [0.1, 0.4], [30.0, 90.0]
     batch = tj.simulate_batch(top, thetas, spins, 1.0, saveat=TS)
     assert batch.theta.shape == (2, 2, TS.size)
-    assert np.all(np.asarray(batch.result._value) == 0)
+    assert np.all(np.asarray(batch.result == tj.RESULTS.successful))
     for i, th in enumerate(thetas):
         for j, n in enumerate(spins):
             single = tj.simulate(top, tj.initial_state(top, th, n), 1.0, saveat=TS)

@@ -178,7 +178,7 @@ def _check_saveat(saveat, t0, t1, dtype):
         if np.any(np.diff(arr) < 0):
             raise ValueError("saveat must be non-decreasing.")
         # The same rounding as the save times themselves (float32 tops round t1 too).
-        lo, hi = float(jnp.asarray(t0, dtype)), float(jnp.asarray(t1, dtype))
+        lo, hi = float(np.asarray(t0, dtype)), float(np.asarray(t1, dtype))
         if arr[0] < lo or arr[-1] > hi:
             raise ValueError(
                 f"saveat must lie within [t0, t1] = [{t0}, {t1}], got times from {arr[0]} to "
@@ -287,7 +287,7 @@ def simulate(
             raise ValueError(_STATE_MESSAGE)
     else:
         y0 = eqx.error_if(y0, ~(defect < _STATE_TOL), _STATE_MESSAGE)
-    guard_stiff = solver is None and is_traced(top.mu)
+    guard_stiff = solver is None and not _concrete(top)
     if solver is None:
         solver = default_solver(top)
     if adjoint is None:

@@ -10,6 +10,7 @@ from __future__ import annotations
 import functools
 
 import diffrax
+from diffrax._root_finder import use_stepsize_tol  # diffrax exports no public name for it
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -70,6 +71,19 @@ def run_segment(
     """Integrate `level` from `(t0, y0)` to `t1` or the first terminating event."""
     names = terminating + observed
     watch = Watch(level, names)
+    controller = diffrax.PIDController(rtol=rtol, atol=atol, norm=level.error_norm)
+    if isinstance(solver, diffrax.AbstractImplicitSolver):
+        # diffrax gives an implicit solver's root finder the controller's tolerances; it
+        # cannot see through the wrapper below, so do it here.
+        attrs = [
+            a for a in ("rtol", "atol", "norm")
+            if getattr(solver.root_finder, a) is use_stepsize_tol
+        ]
+        solver = eqx.tree_at(
+            lambda s: tuple(getattr(s.root_finder, a) for a in attrs),
+            solver,
+            tuple(getattr(controller, a) for a in attrs),
+        )
     watched = WatchedSolver(
         solver, watch, tuple(range(len(terminating), len(names))), samples=samples
     )
@@ -83,7 +97,6 @@ def run_segment(
     subs = [diffrax.SubSaveAt(t1=True)]
     if ts is not None:
         subs.append(diffrax.SubSaveAt(ts=jnp.clip(ts, t0, t1)))
-    controller = diffrax.PIDController(rtol=rtol, atol=atol, norm=level.error_norm)
     terms = diffrax.ODETerm(level.vector_field)
     sol = diffrax.diffeqsolve(
         terms,

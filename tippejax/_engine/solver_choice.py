@@ -38,9 +38,10 @@ def default_solver(top: TippeTop) -> diffrax.AbstractSolver:
     `simulate` then uses Dopri8 and reports members whose friction is too stiff for an explicit
     solver (`RESULTS.stiff_under_trace`) at once instead of running them into `max_steps`.
     """
-    if is_traced(top.mu):
+    if any(is_traced(x) for x in jax.tree_util.tree_leaves(top)):
         return diffrax.Dopri8()
-    rate = float(np.max(np.asarray(friction_rate(top))))
+    numpy_top = jax.tree_util.tree_map(lambda x: np.asarray(x, dtype=float), top)
+    rate = float(np.max(friction_rate(numpy_top)))
     if rate > IMPLICIT_RATE:
         return diffrax.Kvaerno5()
     return diffrax.Tsit5() if rate > STIFF_RATE else diffrax.Dopri8()

@@ -107,6 +107,15 @@ class WatchedSolver(diffrax.AbstractWrappedSolver):
     def func(self, terms, t0, y0, args):
         return self.solver.func(terms, t0, y0, args)
 
+    # Implicit solvers (Kvaerno5) are asked for these by diffrax.
+    @property
+    def root_finder(self):
+        return self.solver.root_finder
+
+    @property
+    def root_find_max_steps(self):
+        return self.solver.root_find_max_steps
+
     def init(self, terms, t0, t1, y0, args) -> _WatchState:
         m = len(self.observed)
         dtype = jnp.result_type(t0, t1)
@@ -141,6 +150,8 @@ class WatchedSolver(diffrax.AbstractWrappedSolver):
         observed = jnp.asarray(self.observed, int)
         fell = jnp.any(positive[:-1, observed] & ~positive[1:, observed], axis=0)
         new = fell & ~solver_state.found
+        time_dtype = solver_state.step_t0.dtype
+        t0, t1 = jnp.asarray(t0, time_dtype), jnp.asarray(t1, time_dtype)
         take = lambda a, b: jnp.where(  # noqa: E731
             new.reshape(new.shape + (1,) * (jnp.ndim(a) - 1)), a, b
         )
@@ -152,7 +163,7 @@ class WatchedSolver(diffrax.AbstractWrappedSolver):
             step_t0=take(stack(t0), solver_state.step_t0),
             step_t1=take(stack(t1), solver_state.step_t1),
             step_y0=jax.tree_util.tree_map(
-                lambda a, b: take(stack(a), b), y0, solver_state.step_y0
+                lambda a, b: take(stack(a), b).astype(b.dtype), y0, solver_state.step_y0
             ),
         )
         return y1, y_error, dense_info, state, result
@@ -176,7 +187,7 @@ def locate_observed(
     interpolation = inner.interpolation_cls(t0=t0, t1=t1, **dense_info)
 
     def fn(t, _):
-        return solver.watch(interpolation.evaluate(t), args)[index]
+        return solver.watch(interpolation.evaluate(t), args)[index].astype(t1.dtype)
 
     root = optx.root_find(
         fn, root_finder, y0=t1, options=dict(lower=t0, upper=t1), throw=False
