@@ -84,6 +84,11 @@ def run_segment(
             solver,
             tuple(getattr(controller, a) for a in attrs),
         )
+    if isinstance(solver, diffrax.AbstractRungeKutta) and solver.scan_kind is None:
+        # What diffrax's adjoints do to a bare Runge-Kutta solver (for forward-mode
+        # autodiff through its stages); they cannot see through the wrapper.
+        kind = "lax" if isinstance(adjoint, diffrax.ForwardMode) else "bounded"
+        solver = eqx.tree_at(lambda s: s.scan_kind, solver, kind, is_leaf=lambda x: x is None)
     watched = WatchedSolver(
         solver, watch, tuple(range(len(terminating), len(names))), samples=samples
     )

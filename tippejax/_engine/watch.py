@@ -116,6 +116,10 @@ class WatchedSolver(diffrax.AbstractWrappedSolver):
     def root_find_max_steps(self):
         return self.solver.root_find_max_steps
 
+    @property
+    def scan_kind(self):
+        return self.solver.scan_kind
+
     def init(self, terms, t0, t1, y0, args) -> _WatchState:
         m = len(self.observed)
         dtype = jnp.result_type(t0, t1)
