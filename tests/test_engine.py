@@ -1,0 +1,199 @@
+"""The engine: events exact on any save grid and with any solver, summary mode, long tight runs,
+and clear errors for bad input (in Python where values are concrete, `error_if` under jit).
+
+All runs here share one save-grid length and the default tolerances, so each (model, solver,
+summary) combination compiles once for the module.
+"""
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import tippejax as tj
+
+N = 201
+COARSE = np.array([0.0, 0.5, 1.0, 2.0, 5.0, 10.0, 20.0])
+
+
+@pytest.fixture(scope="module")
+def top():
+    return tj.default_top()
+
+
+@pytest.fixture(scope="module")
+def inverting(top):
+    """Standard top, theta0 = 0.1, spin 150: inverts at ~5.7 s (ERRATA: 5.70 s)."""
+    y0 = tj.initial_state(top, 0.1, 150.0)
+    fine = tj.simulate(top, y0, 20.0, saveat=np.linspace(0.0, 20.0, N))
+    return y0, fine
+
+
+def test_inversion_time_does_not_depend_on_the_save_grid(top, inverting):
+    y0, fine = inverting
+    coarse = tj.simulate(top, y0, 20.0, saveat=COARSE)
+    summary = tj.simulate(top, y0, 20.0, summary=True)
+    t_fine = float(fine.t_invert)
+    print(f"t_invert: fine grid {t_fine:.10f}, 7-point grid {float(coarse.t_invert):.10f}, "
+          f"summary {float(summary.t_invert):.10f}")
+    assert 5.6 < t_fine < 5.8
+    # the same solve (the save grid does not change the steps): equal to root-finder precision
+    assert abs(float(coarse.t_invert) - t_fine) < 1e-9
+    assert abs(float(summary.t_invert) - t_fine) < 1e-9
+    # theta really is pi/2 there: a tight run, saved at its own event time
+    t_tight = float(tj.simulate(top, y0, 20.0, summary=True, rtol=1e-12, atol=1e-14).t_invert)
+    tight = tj.simulate(top, y0, 20.0, saveat=[0.0, t_tight], rtol=1e-12, atol=1e-14)
+    print(f"theta(t_invert) - pi/2 = {float(tight.theta[-1]) - np.pi / 2:.1e} (rtol 1e-12)")
+    assert abs(float(tight.theta[-1]) - np.pi / 2) < 1e-9
+    # and it is the first upward crossing: on the fine grid, theta < pi/2 before it
+    before = np.asarray(fine.ts) < t_fine
+    assert np.all(np.asarray(fine.theta)[before] < np.pi / 2)
+
+
+def test_inversion_time_agrees_across_solvers_and_tolerances(top, inverting):
+    y0, fine = inverting
+    ref = tj.simulate(top, y0, 20.0, summary=True, rtol=1e-12, atol=1e-14)
+    t_ref = float(ref.t_invert)
+    errors = {}
+    for solver in (diffrax.Tsit5(), diffrax.Dopri8()):
+        for rtol in (1e-6, 1e-8):
+            sol = tj.simulate(top, y0, 20.0, summary=True, solver=solver, rtol=rtol,
+                              atol=rtol * 1e-2)
+            errors[(type(solver).__name__, rtol)] = abs(float(sol.t_invert) - t_ref)
+    print("t_invert error vs rtol-1e-12 run:", {k: f"{v:.1e}" for k, v in errors.items()})
+    for (name, rtol), err in errors.items():
+        assert err < 1e4 * rtol, (name, rtol, err)  # the error follows the tolerance
+
+
+def test_summary_mode_is_the_end_of_the_trajectory(top, inverting):
+    y0, fine = inverting
+    summary = tj.simulate(top, y0, 20.0, summary=True)
+    assert summary.ts.shape == (1,) and summary.theta.shape == (1,)
+    assert float(summary.ts[0]) == pytest.approx(20.0)
+    for name in ("theta", "theta_dot", "spin", "jellet", "energy", "normal_force"):
+        a, b = float(getattr(summary, name)[0]), float(getattr(fine, name)[-1])
+        assert a == pytest.approx(b, rel=1e-9, abs=1e-12), name
+    assert int(summary.num_steps) == int(fine.num_steps)
+
+
+def test_dopri8_at_loose_tolerance_finds_the_brief_contact_loss(top):
+    """ERRATA 6: at spin 200 R_n first dips below 0 at 5.1865 s, briefly. Dopri8 at rtol 1e-6
+    takes steps of ~1/3 of a nutation period, long enough to hold the whole dip; the watch on
+    the dense output finds it."""
+    y0 = tj.initial_state(top, 0.1, 200.0)
+    ref = tj.simulate(top, y0, 7.0, summary=True, throw=False, solver=diffrax.Tsit5(),
+                      rtol=1e-10, atol=1e-12)
+    loose = tj.simulate(top, y0, 7.0, summary=True, throw=False, solver=diffrax.Dopri8(),
+                        rtol=1e-6, atol=1e-8)
+    for sol in (ref, loose):
+        assert bool(sol.result == tj.RESULTS.contact_lost)
+    t_ref, t_loose = float(ref.t_contact_loss), float(loose.t_contact_loss)
+    print(f"contact loss: Tsit5 rtol 1e-10 {t_ref:.6f} s, Dopri8 rtol 1e-6 {t_loose:.6f} s "
+          f"({int(loose.num_steps)} steps)")
+    assert abs(t_ref - 5.1865) < 5e-4
+    assert abs(t_loose - t_ref) < 1e-4
+    # the run stops there, and R_n is (to root-finding precision) zero at the end
+    assert float(loose.t_final) == pytest.approx(t_loose)
+    assert abs(float(loose.normal_force[0])) < 1e-6
+
+
+def test_long_tight_run_of_a_fast_top_finishes():
+    """40 s at rtol 1e-10 of a 300 rad/s top: no max_steps (issue: 200 000 used to stop it).
+
+    This launch leaves the table during its rise (as spin 200 does, ERRATA 6); the run goes on
+    past the loss (`on_contact_loss="continue"`) so that all 40 s are integrated."""
+    top = tj.default_top()
+    y0 = tj.initial_state(top, 0.1, 300.0)
+    sol = tj.simulate(top, y0, 40.0, summary=True, rtol=1e-10, atol=1e-12, throw=False,
+                      on_contact_loss="continue")
+    print(f"40 s at rtol 1e-10, spin 300: {int(sol.num_steps)} steps, result {sol.result}, "
+          f"t_contact_loss {float(sol.t_contact_loss):.4f} s")
+    assert bool(sol.result == tj.RESULTS.contact_lost)  # flagged, not max_steps
+    assert float(sol.t_final) == pytest.approx(40.0)
+    J0 = float(tj.jellet(top, y0))
+    assert abs(float(sol.jellet[0]) / J0 - 1) < 1e-8  # J conserved over 40 s
+
+
+def test_routhian_level_finds_events_on_a_coarse_grid(top):
+    y0 = tj.initial_state(top, 0.3, 150.0)
+    a = tj.simulate(top, y0, 20.0, model="routhian", saveat=COARSE)
+    b = tj.simulate(top, y0, 20.0, model="so3", saveat=COARSE)
+    print(f"routhian t_invert {float(a.t_invert):.8f} ({a.model}), so3 {float(b.t_invert):.8f}")
+    assert np.isfinite(float(a.t_invert))
+    assert abs(float(a.t_invert) - float(b.t_invert)) < 1e-5
+
+
+# ------------------------------------------------------------------------------------------------
+# Bad input, as a new user would try it
+
+
+def test_saveat_beyond_t1_is_an_error(top):
+    y0 = tj.initial_state(top, 0.1, 100.0)
+    with pytest.raises(ValueError, match=r"within \[t0, t1\]"):
+        tj.simulate(top, y0, 1.0, saveat=[0.0, 0.5, 2.0])
+    with pytest.raises(ValueError, match="non-decreasing"):
+        tj.simulate(top, y0, 1.0, saveat=[0.0, 0.7, 0.5])
+    with pytest.raises(ValueError, match="either saveat or summary"):
+        tj.simulate(top, y0, 1.0, saveat=[0.0, 1.0], summary=True)
+
+
+def test_saveat_beyond_t1_under_jit_is_an_error(top):
+    y0 = tj.initial_state(top, 0.1, 100.0)
+    run = jax.jit(lambda ts: tj.simulate(top, y0, 1.0, saveat=ts, summary=False).theta)
+    with pytest.raises(Exception, match=r"within \[t0, t1\]"):
+        jax.block_until_ready(run(jnp.array([0.0, 0.5, 2.0])))
+
+
+@pytest.mark.parametrize("rtol, atol", [(-1e-8, 1e-10), (0.0, 1e-10), (1e-8, -1.0), (np.nan, 1e-10)])
+def test_bad_tolerances(top, rtol, atol):
+    y0 = tj.initial_state(top, 0.1, 100.0)
+    with pytest.raises(ValueError, match="rtol|atol"):
+        tj.simulate(top, y0, 1.0, rtol=rtol, atol=atol)
+
+
+def test_state_that_is_not_a_rotation_is_an_error(top):
+    y0 = tj.initial_state(top, 0.1, 100.0)
+    not_unit = eqx.tree_at(lambda s: s.axis, y0, 2.0 * y0.axis)
+    with pytest.raises(ValueError, match="unit vectors"):
+        tj.simulate(top, not_unit, 1.0)
+    skew = eqx.tree_at(lambda s: s.body, y0, y0.axis)  # body along the axis
+    with pytest.raises(ValueError, match="perpendicular"):
+        tj.simulate(top, skew, 1.0)
+    nan_spin = eqx.tree_at(lambda s: s.omega, y0, y0.omega.at[2].set(jnp.nan))
+    with pytest.raises(ValueError, match="finite"):
+        tj.simulate(top, nan_spin, 1.0)
+    run = jax.jit(lambda y: tj.simulate(top, y, 1.0, summary=True).theta)
+    with pytest.raises(Exception, match="unit vectors"):
+        jax.block_until_ready(run(not_unit))
+
+
+def test_batched_top_or_state_is_an_error(top):
+    tops = jax.tree_util.tree_map(lambda x: jnp.stack([x, x]), top)
+    y0 = tj.initial_state(top, 0.1, 100.0)
+    with pytest.raises(ValueError, match="one top.*jax.vmap"):
+        tj.simulate(tops, y0, 1.0)
+    with pytest.raises(ValueError, match="one state"):
+        tj.simulate(top, tj.initial_state(top, jnp.array([0.1, 0.2]), 100.0), 1.0)
+    with pytest.raises(TypeError, match="State"):
+        tj.simulate(top, (0.1, 100.0), 1.0)
+
+
+def test_other_bad_options(top):
+    y0 = tj.initial_state(top, 0.1, 100.0)
+    with pytest.raises(ValueError, match="Unknown model"):
+        tj.simulate(top, y0, 1.0, model="euler")
+    with pytest.raises(ValueError, match="max_steps"):
+        tj.simulate(top, y0, 1.0, max_steps=0)
+    with pytest.raises(ValueError, match="event_samples"):
+        tj.simulate(top, y0, 1.0, event_samples=1)
+    with pytest.raises(ValueError, match="on_contact_loss"):
+        tj.simulate(top, y0, 1.0, on_contact_loss="ignore")
+
+
+def test_simulate_batch_bad_grids(top):
+    with pytest.raises(ValueError, match="spin must be a non-empty"):
+        tj.simulate_batch(top, [0.1], [], 1.0)
+    with pytest.raises(ValueError, match="theta0 must be finite"):
+        tj.simulate_batch(top, [np.nan], [100.0], 1.0)
