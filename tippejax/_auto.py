@@ -1,53 +1,85 @@
 """`model="auto"`: the cheapest level whose measured error is below what the caller asks.
 
-The numbers below are copied from `benchmarks/LEVELS.md`, made by `python benchmarks/levels.py`:
-the worst error in theta(t) of each level against the full model over the benchmark's scenes, and
-the median cost (wall time relative to the full model in the same run). Re-run the benchmark and
-update them together when a model or solver changes.
+The numbers in `MEASURED` are copied from `benchmarks/LEVELS.md`, made by
+`python benchmarks/levels.py`: for each regime, the worst error in theta(t) of each level
+against the full model over the benchmark's scenes of that regime, and the median cost (wall
+time relative to the full model in the same run). Re-run the benchmark and update them together
+when a model or solver changes (`tests/test_auto.py` checks they agree).
+
+A launch's regime is read off the algebra level, before anything is integrated: stiff friction,
+a moving centre of mass, or else where the Jellet $J$ of the launch sends the top (which of the
+vertical states is stable for that $J$, by the sign of $W''$ at the poles).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from ._analysis.groups import classify
+from ._analysis.potential import effective_potential_derivative
 from ._engine.solver_choice import STIFF_RATE, friction_rate
+from ._invariants import jellet
 from ._state import State
 from ._top import TippeTop
 
-# Worst theta error (rad) against the full model and median cost relative to it, per regime,
-# from benchmarks/LEVELS.md. "stiff": friction_rate(top) > STIFF_RATE (the mu = 300 scene);
-# "moving": launches with horizontal centre-of-mass velocity included (all non-stiff scenes).
 MEASURED = {
-    "non-stiff": {"so3": (0.366, 0.98), "routhian": (0.366, 1.08)},
-    "moving": {"so3": (0.366, 0.98), "routhian": (0.366, 1.08)},
-    "stiff": {"so3": (0.536, 0.79), "routhian": (0.536, 0.46)},
+    "inverts": {"so3": (0.0441, 0.74), "routhian": (0.0441, 1.12)},
+    "stays upright": {"so3": (0.0134, 0.83), "routhian": (0.0134, 1.11)},
+    "intermediate": {"so3": (0.366, 0.79), "routhian": (0.366, 1.08)},
+    "stiff": {"so3": (0.536, 0.72), "routhian": (0.536, 0.95)},
+    "moving": {"so3": (0.104, 0.74), "routhian": (0.104, 1.14)},
 }
+"""Per regime and level: (worst theta error in rad, median cost relative to the full model)."""
+
+MEASURED_GROUPS = ("IIb",)
+"""Groups of tops the benchmark's scenes cover; for other groups `auto` keeps the full model."""
 
 COST_MARGIN = 0.9
 """A cheaper level is used only if its measured cost is below this fraction of the full model's.
 
-Costs are wall-time ratios on a shared 2-core machine; two runs of the benchmark gave 1.075 and
-0.98 for the same entry, so a level within ~10% of the full model is not measurably cheaper."""
+Costs are wall-time ratios on a shared 2-core machine that move by ~0.1 between runs, so a level
+within ~10% of the full model is not measurably cheaper."""
+
+
+def launch_regime(top: TippeTop, y0: State) -> str:
+    """The regime of a launch, as keyed in `MEASURED` (needs concrete values).
+
+    "stiff" if `friction_rate(top)` exceeds `STIFF_RATE`; else "moving" if the centre of mass
+    has a horizontal velocity; else, from $W''(\\theta; J)$ at the poles for the launch's $J$:
+    "inverts" ($\\theta = \\pi$ the only stable vertical state), "stays upright" ($\\theta = 0$
+    the only one), "intermediate" (neither: an intermediate state attracts) or "bistable".
+    """
+    if float(np.max(np.asarray(friction_rate(top)))) > STIFF_RATE:
+        return "stiff"
+    if bool(np.any(np.asarray(y0.velocity) != 0)):
+        return "moving"
+    J = jellet(top, y0)
+    up = float(effective_potential_derivative(top, 0.0, J, order=2)) > 0
+    down = float(effective_potential_derivative(top, np.pi, J, order=2)) > 0
+    return {(False, True): "inverts", (True, False): "stays upright",
+            (False, False): "intermediate", (True, True): "bistable"}[(up, down)]
 
 
 def choose_model(top: TippeTop, y0: State, *, tolerance: float | None) -> str:
     """The level `model="auto"` uses for this launch and `tolerance` (max theta error, rad).
 
     `tolerance=None` means "as accurate as the package can": the full model. Otherwise, in the
-    regime of this launch (stiff friction, or centre-of-mass velocity, or neither), the level
-    with the lowest measured cost among those whose measured worst error is at most `tolerance`
-    and whose cost is below `COST_MARGIN` (the full model, cost 1, always qualifies).
+    regime of this launch (`launch_regime`), the level with the lowest measured cost among those
+    whose measured worst error is at most `tolerance` and whose cost is below `COST_MARGIN` (the
+    full model, cost 1, always qualifies). Tops of groups the benchmark did not measure, regimes
+    it did not measure, and traced arguments (no regime can be read) keep the full model.
     """
     if tolerance is None:
         return "full"
     if not tolerance > 0:
         raise ValueError(f"tolerance must be a positive error in theta (rad), got {tolerance}.")
     try:
-        moving = bool(np.any(np.asarray(y0.velocity) != 0))
-        stiff = bool(np.max(np.asarray(friction_rate(top))) > STIFF_RATE)
+        regime = launch_regime(top, y0)
+        group = classify(top)
     except Exception:  # traced values: no regime can be read, stay with the full model
         return "full"
-    regime = "stiff" if stiff else ("moving" if moving else "non-stiff")
+    if group not in MEASURED_GROUPS or regime not in MEASURED:
+        return "full"
     candidates = [(1.0, 0.0, "full")]
     for level, (error, cost) in MEASURED[regime].items():
         if error <= tolerance and cost < COST_MARGIN:

@@ -88,6 +88,4 @@ def run_demo_simulation(top, theta0: float, spin: float, out: str, *, t1: float 
 def _result_text(sol) -> str:
     from ._solution import RESULTS
 
-    value = int(np.asarray(sol.result._value))
-    message = RESULTS._index_to_message[value]
-    return "success" if value == 0 else message
+    return "success" if bool(sol.result == RESULTS.successful) else RESULTS[sol.result]
