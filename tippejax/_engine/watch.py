@@ -15,8 +15,8 @@ the step-size controller shrinks it) until no step holds more than one crossing.
   `EventBisection`;
 - an *observed* event, which does not stop the run (the inversion, contact loss when the run
   goes on past it), is recorded in the solver state: the first accepted step in which its
-  condition fell through zero. After the solve, `locate_observed` repeats that one step to get
-  its dense output and finds the crossing by a root find, which is differentiable through the
+  condition fell through zero, with its dense output. After the solve, `locate_observed` finds
+  the crossing on it by a root find, which is differentiable through the
   implicit function theorem (as diffrax's events are).
 
 Event times therefore do not depend on the save grid, and they are exact to the root finder's
@@ -63,7 +63,7 @@ class _WatchState(eqx.Module):
     found: Bool[Array, " m"]  # observed event m already recorded
     step_t0: Float[Array, " m"]
     step_t1: Float[Array, " m"]
-    step_y0: PyTree  # state at step_t0, leading axis m
+    step_dense: PyTree  # the step's dense output (diffrax's dense_info), leading axis m
 
 
 class WatchedSolver(diffrax.AbstractWrappedSolver):
@@ -125,14 +125,23 @@ class WatchedSolver(diffrax.AbstractWrappedSolver):
         dtype = jnp.result_type(t0, t1)
         t0 = jnp.asarray(t0, dtype)
         stack = lambda x: jnp.broadcast_to(x, (m,) + jnp.shape(x))  # noqa: E731
+        # The shape of a step's dense output, filled with a constant interpolant (y0
+        # everywhere) on a dummy step of nonzero length: harmless to evaluate.
+        dense_struct = jax.eval_shape(
+            lambda: self.solver.step(
+                terms, t0, t0 + 1, y0, args, self.solver.init(terms, t0, t0 + 1, y0, args),
+                False,
+            )[2]
+        )
+        dense = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), dense_struct)
+        dense = {k: (y0 if k in ("y0", "y1") else v) for k, v in dense.items()}
         return _WatchState(
             inner=self.solver.init(terms, t0, t1, y0, args),
             previous=self.watch(y0, args),
             found=jnp.zeros(m, bool),
             step_t0=stack(t0),
-            # a dummy step of nonzero length, so that re-stepping it is harmless
-            step_t1=stack(t0 + 1e-3),
-            step_y0=jax.tree_util.tree_map(stack, y0),
+            step_t1=stack(t0 + 1),
+            step_dense=jax.tree_util.tree_map(stack, dense),
         )
 
     def step(self, terms, t0, t1, y0, args, solver_state: _WatchState, made_jump):
@@ -166,8 +175,8 @@ class WatchedSolver(diffrax.AbstractWrappedSolver):
             found=solver_state.found | new,
             step_t0=take(stack(t0), solver_state.step_t0),
             step_t1=take(stack(t1), solver_state.step_t1),
-            step_y0=jax.tree_util.tree_map(
-                lambda a, b: take(stack(a), b).astype(b.dtype), y0, solver_state.step_y0
+            step_dense=jax.tree_util.tree_map(
+                lambda a, b: take(stack(a), b).astype(b.dtype), dense_info, solver_state.step_dense
             ),
         )
         return y1, y_error, dense_info, state, result
@@ -178,17 +187,12 @@ def locate_observed(
 ) -> Float[Array, ""]:
     """Time of the first downward crossing of observed condition `index` (nan if none).
 
-    Repeats the recorded step from its start to rebuild its dense output, then root-finds the
-    condition on it. Differentiable (implicit function theorem through `optx.root_find`).
+    Root-finds the condition on the recorded step's dense output. Differentiable (implicit function theorem through `optx.root_find`).
     """
     k = solver.observed.index(index)
     t0, t1 = state.step_t0[k], state.step_t1[k]
-    y0 = jax.tree_util.tree_map(lambda x: x[k], state.step_y0)
-    inner = solver.solver
-    _, _, dense_info, _, _ = inner.step(
-        terms, t0, t1, y0, args, inner.init(terms, t0, t1, y0, args), False
-    )
-    interpolation = inner.interpolation_cls(t0=t0, t1=t1, **dense_info)
+    dense_info = jax.tree_util.tree_map(lambda x: x[k], state.step_dense)
+    interpolation = solver.solver.interpolation_cls(t0=t0, t1=t1, **dense_info)
 
     def fn(t, _):
         return solver.watch(interpolation.evaluate(t), args)[index].astype(t1.dtype)
