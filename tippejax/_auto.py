@@ -23,11 +23,11 @@ from ._state import State
 from ._top import TippeTop
 
 MEASURED = {
-    "inverts": {"so3": (0.0441, 0.74), "routhian": (0.0441, 1.12)},
-    "stays upright": {"so3": (0.0134, 0.83), "routhian": (0.0134, 1.11)},
-    "intermediate": {"so3": (0.366, 0.79), "routhian": (0.366, 1.08)},
-    "stiff": {"so3": (0.536, 0.72), "routhian": (0.536, 0.95)},
-    "moving": {"so3": (0.104, 0.74), "routhian": (0.104, 1.14)},
+    "inverts": {"so3": (0.234, 0.95), "routhian": (0.234, 0.87)},
+    "intermediate": {"so3": (0.385, 0.87), "routhian": (0.385, 0.89)},
+    "stays upright": {"so3": (0.0453, 0.79), "routhian": (0.0453, 1.19)},
+    "stiff": {"so3": (0.536, 0.59), "routhian": (0.536, 0.36)},
+    "moving": {"so3": (0.311, 0.92), "routhian": (0.311, 1.08)},
 }
 """Per regime and level: (worst theta error in rad, median cost relative to the full model)."""
 
