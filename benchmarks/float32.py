@@ -113,8 +113,8 @@ def main():
               f"{r['err']:.2e}", f"{r['t_err']:.2e}", r["ok"]] for r in rows],
         ),
         "",
-        f"float32's floor on this scene: {best32:.1e} rad in theta over {T1:g} s (about the "
-        "float64 error at rtol 1e-6); it costs about what float64 costs on this CPU (the solver's "
+        f"float32's floor on this scene: {best32:.1e} rad in theta over {T1:g} s (the same as "
+        "float64 at rtol 1e-5, the floor float32 is held to); it costs about what float64 costs on this CPU (the solver's "
         "fixed work per step does not shrink with the width of the numbers).",
     ])
     _common.write_section("float32.py", body)

@@ -8,6 +8,7 @@ re-implementation of the paper's inequalities, and the five eigenvalue routes ag
 
 from __future__ import annotations
 
+import internal as ti
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -15,8 +16,6 @@ import pytest
 import scipy.optimize
 import sympy as sp
 from helpers import GROUP_RATIOS, match_max_rel
-
-import internal as ti
 
 import tippejax as tj
 

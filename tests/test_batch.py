@@ -53,3 +53,19 @@ def test_sharded_batch_on_four_host_devices():
     assert r["devices"] == 4
     assert r["shape"] == [3, 2, 11]  # 6 launches padded to 8 and cut back
     assert r["diff"] < 1e-12
+
+
+def test_bucketed_batch_equals_unbucketed():
+    """buckets > 1 sorts launches by spin into equal-size batches and puts results back."""
+    top = tj.default_top()
+    thetas, spins = [0.1, 0.4], [90.0, 30.0]  # spins out of order: the sort must be undone
+    plain = tj.simulate_batch(top, thetas, spins, 1.0, saveat=TS)
+    for buckets in (2, 3):  # 3 buckets of 2: padded from 4 launches to 6
+        bucketed = tj.simulate_batch(top, thetas, spins, 1.0, saveat=TS, buckets=buckets)
+        assert bucketed.theta.shape == plain.theta.shape == (2, 2, TS.size)
+        assert np.all(np.asarray(bucketed.result == tj.RESULTS.successful))
+        # equal to about rtol: a member's rounding can depend on the size of its batch
+        diff = np.max(np.abs(np.asarray(bucketed.theta) - np.asarray(plain.theta)))
+        assert diff < 1e-6, diff
+        np.testing.assert_allclose(np.asarray(bucketed.spin[..., 0]),
+                                   np.asarray(plain.spin[..., 0]), rtol=1e-12)

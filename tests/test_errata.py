@@ -6,13 +6,12 @@ Each test states what the paper prints, what is true, and checks it numerically.
 from __future__ import annotations
 
 import diffrax
+import internal as ti
 import jax
 import jax.numpy as jnp
 import numpy as np
 import sympy as sp
 from helpers import match_max_rel
-
-import internal as ti
 
 import tippejax as tj
 

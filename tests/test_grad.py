@@ -5,13 +5,12 @@ import time
 
 import diffrax
 import equinox as eqx
+import internal as ti
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 from helpers import GROUP_RATIOS
-
-import internal as ti
 
 import tippejax as tj
 

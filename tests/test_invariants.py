@@ -7,14 +7,13 @@ and the contact constraint z = R - eps cos(theta) imposed with R_n as its multip
 derivation (sympy, below) shares no code with the package.
 """
 
+import internal as ti
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 import sympy as sp
 from helpers import MIXED_TOP_IDS, mixed_tops
-
-import internal as ti
 
 import tippejax as tj
 

@@ -1,14 +1,13 @@
 """The full, SO(3) and Routhian vector fields: invariants, mutual agreement, poles, Routhian terms."""
 
 import equinox as eqx
+import internal as ti
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 import sympy as sp
 from helpers import MIXED_TOP_IDS, mixed_tops
-
-import internal as ti
 
 import tippejax as tj
 

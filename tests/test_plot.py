@@ -6,13 +6,13 @@ import matplotlib
 
 matplotlib.use("Agg")
 
+import internal as ti  # noqa: E402
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 
-import internal as ti  # noqa: E402
 import tippejax as tj  # noqa: E402
 from tippejax._cli import REPRESENTATIVES  # noqa: E402
 from tippejax._plot import (  # noqa: E402

@@ -8,12 +8,11 @@ length `N` and a handful of tolerance settings, and the expensive runs are modul
 """
 
 import diffrax
+import internal as ti
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
-import internal as ti
 
 import tippejax as tj
 

@@ -3,12 +3,11 @@
 import re
 
 import equinox as eqx
+import internal as ti
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
-import internal as ti
 
 import tippejax as tj
 

@@ -1,13 +1,12 @@
 """Batching (vmap over states, tops and Jellet values) and jit of the public API."""
 
 import equinox as eqx
+import internal as ti
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 from helpers import GROUP_RATIOS
-
-import internal as ti
 
 import tippejax as tj
 

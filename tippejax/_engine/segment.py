@@ -11,11 +11,11 @@ import functools
 from collections.abc import Callable
 
 import diffrax
-from diffrax._root_finder import use_stepsize_tol  # diffrax exports no public name for it
 import equinox as eqx
 import jax
 import jax.flatten_util
 import jax.numpy as jnp
+from diffrax._root_finder import use_stepsize_tol  # diffrax exports no public name for it
 from jaxtyping import Array, Bool, Float, PyTree
 
 from .._models.base import AbstractLevel

@@ -1,0 +1,232 @@
+"""Gradients through the solve: reverse and forward mode, cost, compile time, correctness.
+
+Standard top, launch theta0 = 0.1, spin 150 rad/s, t1 = 20 s, full model, default solver
+(Dopri8). Two quantities, differentiated with respect to all seven fields of the top
+(m, R, eps, A, C, g, mu):
+
+- `t_invert` of a summary-mode solve (`summary=True`);
+- `sum(theta)` over 201 save points.
+
+Modes: reverse (`jax.grad`, default adjoint `RecursiveCheckpointAdjoint`) and forward
+(`jax.jacfwd` with `adjoint=diffrax.ForwardMode()`). Cost = median time of the compiled
+derivative / median time of the compiled forward solve of the same quantity (rtol 1e-8);
+compile = first call less the median. Correctness at rtol 1e-12: reverse against forward, and
+both against central differences (relative step 1e-6). Writes its section of
+benchmarks/RESULTS.md.
+
+    python benchmarks/gradients.py
+"""
+
+from __future__ import annotations
+
+import math
+import pathlib
+import sys
+import time
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+import tippejax as tj
+
+HERE = pathlib.Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE))
+from _common import interleaved, machine_line, table, verdict, write_section  # noqa: E402
+
+FIELDS = ("m", "R", "eps", "A", "C", "g", "mu")
+T1 = 20.0
+TS = jnp.linspace(0.0, T1, 201)
+LAUNCH = (0.1, 150.0)
+TIMING_TOL = (1e-8, 1e-10)
+CHECK_TOL = (1e-12, 1e-14)
+REL_STEP = 1e-6
+REPEATS = 5
+CHECKPOINTS = 8192  # > the ~3000 steps at rtol 1e-8: no recomputation
+LOG: list[str] = []
+
+
+def say(text=""):
+    print(text, flush=True)
+    LOG.append(text)
+
+
+def t_invert(top, rtol, atol, adjoint=None):
+    y0 = tj.initial_state(top, *LAUNCH)
+    sol = tj.simulate(top, y0, T1, summary=True, rtol=rtol, atol=atol, throw=False,
+                      adjoint=adjoint)
+    return sol.t_invert
+
+
+def sum_theta(top, rtol, atol, adjoint=None):
+    y0 = tj.initial_state(top, *LAUNCH)
+    sol = tj.simulate(top, y0, T1, saveat=TS, rtol=rtol, atol=atol, throw=False,
+                      adjoint=adjoint)
+    return jnp.sum(sol.theta)
+
+
+QUANTITIES = {"t_invert (summary)": t_invert, "sum(theta), 201 saves": sum_theta}
+
+
+def as_dict(grad_top) -> dict:
+    return {f: float(getattr(grad_top, f)) for f in FIELDS}
+
+
+def central_differences(value, top, rtol, atol) -> dict:
+    out = {}
+    for f in FIELDS:
+        x = float(getattr(top, f))
+        h = REL_STEP * abs(x)
+        plus = eqx.tree_at(lambda t: getattr(t, f), top, jnp.asarray(x + h))
+        minus = eqx.tree_at(lambda t: getattr(t, f), top, jnp.asarray(x - h))
+        out[f] = (float(value(plus, rtol, atol)) - float(value(minus, rtol, atol))) / (2 * h)
+    return out
+
+
+def rel(a: dict, b: dict) -> dict:
+    return {f: abs(a[f] - b[f]) / max(abs(b[f]), 1e-300) for f in FIELDS}
+
+
+def measure(name, fn):
+    top = tj.default_top()
+    value = eqx.filter_jit(fn)
+    reverse = eqx.filter_jit(jax.grad(fn))
+    forward = eqx.filter_jit(jax.jacfwd(lambda top, r, a: fn(top, r, a, diffrax.ForwardMode())))
+    # Profile: one tangent instead of seven; reverse mode with enough checkpoints to store
+    # every step (the default keeps ~log2(max_steps) = 20 and recomputes the rest).
+    one_tangent = eqx.filter_jit(lambda top, r, a: jax.jvp(
+        lambda mu: fn(eqx.tree_at(lambda t: t.mu, top, mu), r, a, diffrax.ForwardMode()),
+        (top.mu,), (jnp.ones_like(top.mu),))[1])
+    stored = eqx.filter_jit(jax.grad(lambda top, r, a: fn(
+        top, r, a, diffrax.RecursiveCheckpointAdjoint(checkpoints=CHECKPOINTS))))
+    r8, a8 = (jnp.asarray(x) for x in TIMING_TOL)
+    say(f"{name}: compiling and timing (rtol {TIMING_TOL[0]:g})")
+    results = interleaved({
+        "forward solve": lambda: value(top, r8, a8),
+        "reverse (jax.grad)": lambda: reverse(top, r8, a8),
+        "forward mode (jax.jacfwd, ForwardMode)": lambda: forward(top, r8, a8),
+        "profile: forward mode, 1 tangent (jax.jvp, d/dmu)": lambda: one_tangent(top, r8, a8),
+        f"profile: reverse, RecursiveCheckpointAdjoint(checkpoints={CHECKPOINTS})":
+            lambda: stored(top, r8, a8),
+    }, repeats=REPEATS)
+    base = results["forward solve"][0]
+    rows = []
+    for label, (timing, out) in results.items():
+        rows.append(dict(mode=label, wall=timing.wall, cpu=timing.cpu, compile=timing.compile,
+                         first=timing.first_wall, ratio=timing.wall / base.wall,
+                         ratio_cpu=timing.cpu / base.cpu))
+        say(f"  {label}: first {timing.first_wall:.1f} s, median {timing.wall:.3f} s wall "
+            f"({timing.wall / base.wall:.2f}x), {timing.cpu:.3f} s CPU "
+            f"({timing.cpu / base.cpu:.2f}x), compile {timing.compile:.1f} s")
+    # Correctness at tight tolerance (the same compiled functions: rtol/atol are traced).
+    r12, a12 = (jnp.asarray(x) for x in CHECK_TOL)
+    g_rev = as_dict(reverse(top, r12, a12))
+    g_fwd = as_dict(forward(top, r12, a12))
+    fd = central_differences(value, top, r12, a12)
+    value12 = float(value(top, r12, a12))
+    rev_fwd, rev_fd, fwd_fd = rel(g_rev, g_fwd), rel(g_rev, fd), rel(g_fwd, fd)
+    for f in FIELDS:
+        say(f"  d/d{f:3s}: reverse {g_rev[f]:+.10e}, forward {g_fwd[f]:+.10e}, FD {fd[f]:+.10e}"
+            f" | rel rev-fwd {rev_fwd[f]:.1e}, rev-FD {rev_fd[f]:.1e}, fwd-FD {fwd_fd[f]:.1e}")
+    return dict(name=name, rows=rows, rev=g_rev, fwd=g_fwd, fd=fd, rev_fwd=rev_fwd,
+                rev_fd=rev_fd, fwd_fd=fwd_fd, value=value12)
+
+
+def why(results) -> str:
+    """The profile behind the cost ratios, from the profile rows."""
+    parts = ["**Profile (why the cost targets are missed; wall-clock ratios).**"]
+    default_checkpoints = math.floor(-1.5 + math.sqrt(2 * 1_000_000 + 0.25)) + 1
+    for q in results:
+        r = {row["mode"].split(" (")[0].split(",")[0]: row for row in q["rows"]}
+        fwd7 = r["forward mode"]["ratio"]
+        fwd1 = r["profile: forward mode"]["ratio"]
+        rev = r["reverse"]["ratio"]
+        stored = r["profile: reverse"]["ratio"]
+        parts.append(
+            f"{q['name']}: forward mode costs {fwd1:.1f}x the solve with one tangent and "
+            f"{fwd7:.1f}x with seven, i.e. ~{fwd1:.1f}x for the dual-number solve plus "
+            f"~{(fwd7 - fwd1) / 6:.2f}x per further parameter; reverse mode costs {rev:.1f}x "
+            f"with the default adjoint (RecursiveCheckpointAdjoint; for max_steps = 1e6 "
+            f"equinox's checkpointed loop keeps {default_checkpoints} checkpoints, "
+            f"floor(sqrt(2 max_steps) - 1.5) + 1, so few of the ~3000 steps are recomputed) and "
+            f"{stored:.1f}x with {CHECKPOINTS} checkpoints (every step stored).")
+    parts.append(
+        "So recomputation is not the cost: in reverse mode the backward sweep through each "
+        "step (the transposed Runge-Kutta stages, the watch, the controller) costs "
+        f"~{stored - 1:.0f}x the step itself; in forward mode a step with seven tangents costs "
+        f"~{fwd7:.0f}x a plain one. Both "
+        "are the per-step bookkeeping of the solve (see the engine section's profile) carried "
+        "through autodiff, with the same small-kernel overhead. The ratios are relative to the "
+        "solve of the same quantity; CPU time is ~2x wall for the gradients and for solves "
+        "that output t_invert (a second XLA thread, see the engine section), so the ratios in "
+        "CPU time differ from the wall-clock ones where only one side has it.")
+    return " ".join(parts)
+
+
+def report(results, elapsed):
+    worst_ratio = max(r["ratio"] for q in results for r in q["rows"][1:3])
+    worst_compile = max(r["compile"] for q in results for r in q["rows"][1:3])
+    worst_modes = max(max(q["rev_fwd"].values()) for q in results)
+    worst_fd = max(max(max(q["rev_fd"].values()), max(q["fwd_fd"].values())) for q in results)
+    lines = [
+        "## gradients.py: derivatives through the solve",
+        "",
+        f"`python benchmarks/gradients.py` ({elapsed:.0f} s). Standard top, theta0 = 0.1, spin "
+        f"150 rad/s, t1 = 20 s, full model, default solver (Dopri8); derivatives with respect "
+        "to all seven fields of the top. Timing at rtol 1e-8, atol 1e-10 (5 interleaved "
+        "rounds after the compiling call); correctness at rtol 1e-12, atol 1e-14 (same "
+        "compiled functions), central differences of relative step 1e-6.",
+        "",
+        "### Targets",
+        "",
+        "| target | measured | verdict |",
+        "|---|---|---|",
+        "| gradient cost <= 5x the forward solve | "
+        + "; ".join(f"{q['name']}: " + ", ".join(f"{r['mode'].split(' ')[0]} {r['ratio']:.1f}x"
+                                                  for r in q["rows"][1:3]) for q in results)
+        + f" | {verdict(worst_ratio <= 5)}"
+        + ("" if worst_ratio <= 5 else f": worst {worst_ratio:.1f}x") + " |",
+        "| compile time of a gradient <= 10 s | "
+        + "; ".join(f"{q['name']}: " + ", ".join(f"{r['mode'].split(' ')[0]} {r['compile']:.1f} s"
+                                                  for r in q["rows"][1:3]) for q in results)
+        + f" | {verdict(worst_compile <= 10)}"
+        + ("" if worst_compile <= 10 else f": worst {worst_compile:.1f} s") + " |",
+        f"| reverse == forward mode | largest relative difference {worst_modes:.1e} | "
+        f"{verdict(worst_modes < 1e-6)} |",
+        f"| both match central differences | largest relative difference {worst_fd:.1e} | "
+        f"{verdict(worst_fd < 1e-4)} |",
+        "",
+        why(results),
+        "",
+    ]
+    for q in results:
+        lines += [f"### {q['name']} (value at rtol 1e-12: {q['value']:.10g})", ""]
+        lines.append(table(
+            ["run", "median wall s", "x forward solve", "median CPU s", "x (CPU)",
+             "first call s", "compile s"],
+            [[r["mode"], f"{r['wall']:.3f}", f"{r['ratio']:.2f}", f"{r['cpu']:.3f}",
+              f"{r['ratio_cpu']:.2f}", f"{r['first']:.1f}", f"{r['compile']:.1f}"]
+             for r in q["rows"]]))
+        lines += [""]
+        lines.append(table(
+            ["field", "reverse", "forward", "central difference", "rel rev-fwd", "rel rev-FD",
+             "rel fwd-FD"],
+            [[f, f"{q['rev'][f]:+.8e}", f"{q['fwd'][f]:+.8e}", f"{q['fd'][f]:+.8e}",
+              f"{q['rev_fwd'][f]:.1e}", f"{q['rev_fd'][f]:.1e}", f"{q['fwd_fd'][f]:.1e}"]
+             for f in FIELDS]))
+        lines += [""]
+    return "\n".join(lines)
+
+
+def main():
+    start = time.perf_counter()
+    say(machine_line())
+    results = [measure(name, fn) for name, fn in QUANTITIES.items()]
+    body = report(results, time.perf_counter() - start)
+    write_section("gradients.py", body)
+    say(f"done in {time.perf_counter() - start:.0f} s")
+
+
+if __name__ == "__main__":
+    main()
