@@ -580,9 +580,8 @@ def report(tp, fl, ls, big, elapsed):
         f"{big['ok']} of {big['n']} ok, mean steps {big['steps_mean']:.0f}. Memory "
         f"(`resource.getrusage` ru_maxrss): {big['rss0']:.0f} MB after the first chunk, "
         f"{big['rss']:.0f} MB peak at the end: it does not grow with the number of chunks, and "
-        "in summary mode not with t1 either. One chunk of 1e5 at once would hold every "
-        "member's solver state at once; chunks of ~2000 also run faster per member-step than "
-        "larger ones on this CPU (cache).",
+        "in summary mode not with t1 either (one chunk of 1e5 would hold every member's "
+        "solver state at once).",
     ]
     return "\n".join(lines)
 
