@@ -7,13 +7,13 @@ The public API is this flat namespace. Internals (vector fields, the Routhian pl
 linear-stability cross-checks, the engine) stay importable from their private modules.
 """
 
-import importlib.metadata
-import os
+import importlib.metadata as _metadata
+import os as _os
 
-import jax
+import jax as _jax
 
-if os.environ.get("TIPPEJAX_ENABLE_X64", "1").strip().lower() not in ("0", "false", "no"):
-    jax.config.update("jax_enable_x64", True)
+if _os.environ.get("TIPPEJAX_ENABLE_X64", "1").strip().lower() not in ("0", "false", "no"):
+    _jax.config.update("jax_enable_x64", True)
 
 from ._analysis.groups import (
     GROUPS as GROUPS,
@@ -48,6 +48,6 @@ from ._state import (
 from ._top import TippeTop as TippeTop, default_top as default_top
 
 try:
-    __version__ = importlib.metadata.version("tippejax")
-except importlib.metadata.PackageNotFoundError:  # running from a source tree
+    __version__ = _metadata.version("tippejax")
+except _metadata.PackageNotFoundError:  # running from a source tree
     __version__ = "0.0.0"
