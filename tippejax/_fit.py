@@ -1,0 +1,803 @@
+r"""Fitting physical parameters and launch quantities to a measured tilt $\theta(t_k)$.
+
+The fit is a weighted nonlinear least-squares problem,
+
+$$\min_p \tfrac12 \sum_k w_k\,\big(\theta(t_k; p) - \theta^{obs}_k\big)^2
+        \;[+\; \tfrac12 \sum_k w^\varphi_k \sin^2\theta^{obs}_k\,
+        \mathrm{wrap}\big(\varphi(t_k; p) - \varphi^{obs}_k\big)^2],$$
+
+where $\theta(t; p)$ comes from `simulate` at the chosen level of model. The free parameters $p$
+are mapped to unconstrained coordinates $u$ (logarithms, logits) so that positivity, $0 < \epsilon
+< R$, $A/C > 1/2$ and $0 < \theta_0 < \pi$ hold at every trial without clipping. Jacobians are
+taken in forward mode (few parameters, many residuals) through the ODE solve
+(`diffrax.ForwardMode`), in one pass that yields the residuals and all columns together.
+
+Inversion makes $\theta(t; p)$ very sensitive: a 30% change of $\mu$ moves the inversion of the
+standard top by more than a second, and a least-squares fit over the whole record then stalls in
+a flat, curved valley. The default strategy (`"levels"`) first fits slow observables: the times
+at which the kernel-smoothed tilt first crosses a ladder of levels, the same smoothing applied to
+data and model. Time residuals are nearly linear in the parameters (a 1 s shift is a 1 s
+residual, not a flat plateau), so this stage converges from far; the record itself is fitted
+from there. `benchmarks/fitting.py` measures it against plain and window-continuation fits.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Literal
+
+import diffrax
+import equinox as eqx
+import equinox.internal as eqxi
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import optimistix as optx
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
+from ._simulate import MODELS, simulate
+from ._state import State, euler_angles, euler_rates, spin, state_from_euler
+from ._top import TippeTop, _checks
+
+TOP_FIELDS = ("m", "R", "eps", "A", "C", "g", "mu")
+LAUNCH_FIELDS = ("theta0", "spin", "theta_dot", "phi_dot", "vx", "vy")
+FREE_NAMES = TOP_FIELDS + LAUNCH_FIELDS
+METHODS = ("levenberg_marquardt", "gauss_newton", "adam")
+STRATEGIES = ("levels", "windows", "plain")
+NUM_LEVELS = 12
+WINDOW_FRACTIONS = (0.2, 0.4, 0.6, 0.8, 1.0)
+# A save time at which the trial's simulation has stopped (contact lost, singularity, max steps)
+# gets this residual (rad): the largest error a tilt can have. It is finite and constant, so the
+# loss of such a trial is large, its gradient stays finite, and the optimiser rejects the step.
+FAILED_RESIDUAL = math.pi
+_LEVEL_TIME_SCALE = 0.05  # s: level-crossing residuals are divided by this
+
+
+class FIT_RESULTS(eqxi.Enumeration):
+    """Outcome of a fit. `successful` is the empty message."""
+
+    successful = ""
+    max_steps_reached = (
+        "The optimiser used max_steps without meeting its tolerance. The fit may still be "
+        "usable (look at loss_history); raise max_steps or try another strategy."
+    )
+    optimiser_failed = (
+        "The optimiser stopped on a non-finite loss or a singular linear system."
+    )
+    simulation_failed = (
+        "At the fitted parameters the simulation fails before the end of the record (contact "
+        "lost, the R_n singularity or max steps): those save times carry the failure residual."
+    )
+
+
+class FitResult(eqx.Module):
+    r"""The result of `fit`. Batched fits (several recordings) carry a leading batch axis.
+
+    **Fields:**
+
+    - `top`, `y0`: the fitted `TippeTop` and initial `State` (free quantities replaced).
+    - `free`: the names of the free parameters, in the order of `values`.
+    - `values`: fitted values of the free parameters.
+    - `std_errors`: their standard errors, $\sqrt{\mathrm{diag}\,\Sigma}$.
+    - `covariance`: $\Sigma = s^2 (J^\top J)^{-1}$, the Gauss-Newton covariance in the physical
+      parameters, with $J$ the Jacobian of the weighted residuals at the fit and $s^2 =
+      \mathrm{RSS}/(N - p)$ the residual variance ($N$ used points, $p$ free parameters). It
+      assumes independent errors of equal variance and a model that describes the data; it is
+      linear, so it understates the uncertainty of badly determined parameters.
+    - `correlation`: $\Sigma_{ij}/\sqrt{\Sigma_{ii}\Sigma_{jj}}$.
+    - `loss_history`: $\tfrac12\sum r_k^2$ after each optimiser step, all stages one after the
+      other (nan-padded to a fixed length).
+    - `stage_ends`: index in `loss_history` where each stage ended.
+    - `ts`, `theta_obs`: the data (nan where masked).
+    - `theta_fit`: the fitted model's tilt at `ts` (nan past a failure).
+    - `residuals`: `theta_fit - theta_obs` (nan where masked or failed).
+    - `rms`: root mean square of the residuals over the used points (rad).
+    - `describes_until`: the end of the initial part of the record that the model describes:
+      the last time before the moving RMS of the residuals (over 5% of the record) first
+      exceeds three times its median. For data the model made, the whole record.
+    - `converged`: whether the last stage met its tolerance.
+    - `result`: a `FIT_RESULTS` code; `message` gives its text.
+    - `num_steps`: optimiser steps, all stages.
+    - `model`, `method`, `strategy`: the level of model, optimiser and strategy used.
+    """
+
+    top: TippeTop
+    y0: State
+    values: Float[Array, "*batch p"]
+    std_errors: Float[Array, "*batch p"]
+    covariance: Float[Array, "*batch p p"]
+    correlation: Float[Array, "*batch p p"]
+    loss_history: Float[Array, "*batch steps"]
+    stage_ends: Int[Array, "*batch stages"]
+    ts: Float[Array, " N"]
+    theta_obs: Float[Array, "*batch N"]
+    theta_fit: Float[Array, "*batch N"]
+    residuals: Float[Array, "*batch N"]
+    rms: Float[Array, "*batch"]
+    describes_until: Float[Array, "*batch"]
+    converged: Bool[Array, "*batch"]
+    result: FIT_RESULTS
+    num_steps: Int[Array, "*batch"]
+    free: tuple[str, ...] = eqx.field(static=True)
+    model: str = eqx.field(static=True)
+    method: str = eqx.field(static=True)
+    strategy: str = eqx.field(static=True)
+
+    @property
+    def params(self) -> dict[str, Array]:
+        """The fitted free parameters by name."""
+        return {name: self.values[..., i] for i, name in enumerate(self.free)}
+
+    @property
+    def message(self) -> str | list[str]:
+        """Why the fit stopped ("converged" when it did)."""
+        size = int(np.size(np.asarray(self.result._value)))
+        texts = [
+            FIT_RESULTS[jax.tree_util.tree_map(lambda x: jnp.ravel(x)[i], self.result)] or "converged"
+            for i in range(size)
+        ]
+        return texts[0] if np.ndim(np.asarray(self.result._value)) == 0 else texts
+
+    def table(self) -> str:
+        """The fitted values with standard errors, one line per free parameter."""
+        values, errors = np.asarray(self.values), np.asarray(self.std_errors)
+        lines = []
+        if values.ndim == 1:
+            lines.append(f"{'parameter':>10}  {'value':>13}  {'std error':>11}  {'rel':>8}")
+            for name, v, e in zip(self.free, values, errors):
+                rel = abs(e / v) if v != 0 else np.inf
+                lines.append(f"{name:>10}  {v:13.6g}  {e:11.3g}  {rel:8.2%}")
+            lines.append(
+                f"rms residual {float(self.rms):.4g} rad; {int(self.num_steps)} optimiser "
+                f"steps; {self.message}"
+            )
+        else:
+            for b in range(values.shape[0]):
+                row = ", ".join(
+                    f"{n} = {v:.6g} +- {e:.2g}" for n, v, e in zip(self.free, values[b], errors[b])
+                )
+                lines.append(f"[{b}] {row}; rms {float(self.rms[b]):.3g}")
+        return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------------------------------
+# Parameters: physical values <-> unconstrained coordinates.
+
+
+def _logit(x):
+    return jnp.log(x) - jnp.log1p(-x)
+
+
+class _Base(eqx.Module):
+    """The guess: every top field and launch quantity, free or not (arrays, maybe batched)."""
+
+    top: dict[str, Array]
+    launch: dict[str, Array]
+
+
+def _launch_of(y0: State) -> dict[str, Array]:
+    theta, phi, psi = euler_angles(y0)
+    theta_dot, phi_dot, _ = euler_rates(y0)
+    return dict(
+        theta0=theta, spin=spin(y0), theta_dot=theta_dot, phi_dot=phi_dot, phi=phi, psi=psi,
+        vx=y0.velocity[..., 0], vy=y0.velocity[..., 1], x=y0.position[..., 0],
+        y=y0.position[..., 1],
+    )
+
+
+def _physical(u: Float[Array, " p"], base: _Base, free: tuple[str, ...]) -> dict[str, Array]:
+    """Physical values of the free parameters for unconstrained `u` (u = 0 is the guess)."""
+    t, lau = base.top, base.launch
+    z = dict(zip(free, u))
+    out = {}
+    for name in ("m", "R", "g", "mu"):
+        if name in z:
+            out[name] = t[name] * jnp.exp(z[name])
+    if "C" in z and "A" not in z:
+        out["C"] = 2 * t["A"] * jax.nn.sigmoid(z["C"] + _logit(t["C"] / (2 * t["A"])))
+    elif "C" in z:
+        out["C"] = t["C"] * jnp.exp(z["C"])
+    C = out.get("C", t["C"])
+    if "A" in z:
+        out["A"] = C * (0.5 + (t["A"] / t["C"] - 0.5) * jnp.exp(z["A"]))
+    if "eps" in z:
+        R = out.get("R", t["R"])
+        out["eps"] = R * jax.nn.sigmoid(z["eps"] + _logit(t["eps"] / t["R"]))
+    if "theta0" in z:
+        out["theta0"] = jnp.pi * jax.nn.sigmoid(z["theta0"] + _logit(lau["theta0"] / jnp.pi))
+    if "spin" in z:
+        out["spin"] = lau["spin"] * jnp.exp(z["spin"])
+    for name, floor in (("theta_dot", 1.0), ("phi_dot", 1.0), ("vx", 0.01), ("vy", 0.01)):
+        if name in z:
+            out[name] = lau[name] + jnp.maximum(jnp.abs(lau[name]), floor) * z[name]
+    return out
+
+
+def _assemble(values: dict[str, Array], base: _Base) -> tuple[TippeTop, State]:
+    """The top and initial state with `values` replacing the guess's fields."""
+    t = {**base.top, **{k: v for k, v in values.items() if k in TOP_FIELDS}}
+    lau = {**base.launch, **{k: v for k, v in values.items() if k in LAUNCH_FIELDS}}
+    top = TippeTop(**t)
+    y0 = state_from_euler(
+        lau["theta0"], lau["phi"], lau["psi"], lau["theta_dot"], lau["phi_dot"],
+        lau["spin"] - lau["phi_dot"] * jnp.cos(lau["theta0"]),
+        position=jnp.stack([lau["x"], lau["y"]], -1),
+        velocity=jnp.stack([lau["vx"], lau["vy"]], -1),
+    )
+    return top, y0
+
+
+# ---------------------------------------------------------------------------------------------
+# Residuals.
+
+
+class _Config(eqx.Module):
+    """Static settings of one fit (hashable: one compilation per configuration)."""
+
+    free: tuple[str, ...]
+    model: str
+    method: str
+    max_steps: int
+    sim_max_steps: int
+    has_phi: bool
+    solver: diffrax.AbstractSolver | None
+    learning_rate: float
+    tol: float
+
+
+class _Data(eqx.Module):
+    """Everything a stage needs that is an array (batched along with the recording)."""
+
+    base: _Base
+    ts: Float[Array, " N"]
+    t0: Float[Array, ""]
+    t_end: Float[Array, ""]
+    theta_obs: Float[Array, " N"]  # 0 where masked
+    weights: Float[Array, " N"]  # 0 where masked or outside the window
+    mask: Float[Array, " N"]  # 1 where a sample exists (for the smoothing), whatever the stage
+    phi_obs: Float[Array, " N"]
+    phi_weights: Float[Array, " N"]
+    smoother: Float[Array, "G N"]  # kernel rows: smoothed(g) = sum_k K[g, k] m_k y_k / sum_k K m
+    grid: Float[Array, " G"]
+    levels: Float[Array, " L"]
+    t_levels: Float[Array, " L"]
+    level_weight: Float[Array, ""]
+    rtol: Float[Array, ""]
+    atol: Float[Array, ""]
+
+
+def _simulated(values, data: _Data, cfg: _Config):
+    top, y0 = _assemble(values, data.base)
+    saves = jnp.minimum(data.ts, data.t_end)
+    sol = simulate(
+        top, y0, data.t_end, t0=data.t0, saveat=saves, model=cfg.model, rtol=data.rtol,
+        atol=data.atol, solver=cfg.solver, max_steps=cfg.sim_max_steps, throw=False,
+        adjoint=diffrax.ForwardMode(),
+    )
+    return sol
+
+
+def _first_crossings(smooth, grid, levels):
+    """Differentiable first time `smooth` (sampled on `grid`) reaches each level."""
+
+    def one(level):
+        above = smooth >= level
+        k = jnp.maximum(jnp.argmax(above), 1)
+        lo, hi = smooth[k - 1], smooth[k]
+        frac = jnp.clip((level - lo) / jnp.where(hi > lo, hi - lo, 1.0), 0.0, 1.0)
+        t_hit = grid[k - 1] + frac * (grid[k] - grid[k - 1])
+        # Never reached: past the end by the missing height, at the mean rate pi per record.
+        t_miss = grid[-1] + (level - jnp.max(smooth)) * (grid[-1] - grid[0]) / jnp.pi
+        return jnp.where(jnp.any(above), t_hit, t_miss)
+
+    return jax.vmap(one)(levels)
+
+
+def _smoothed(y, mask, smoother):
+    return (smoother @ (mask * y)) / jnp.maximum(smoother @ mask, 1e-300)
+
+
+def _residuals_of_values(values, data: _Data, cfg: _Config):
+    sol = _simulated(values, data, cfg)
+    theta = sol.theta
+    ok = jnp.isfinite(theta)
+    theta_safe = jnp.where(ok, theta, 0.0)
+    used = data.weights > 0
+    r = jnp.where(used, jnp.where(ok, theta_safe - data.theta_obs, FAILED_RESIDUAL), 0.0)
+    parts = [jnp.sqrt(data.weights) * r]
+    if cfg.has_phi:
+        phi = jnp.where(ok, sol.phi, 0.0)
+        dphi = jnp.arctan2(jnp.sin(phi - data.phi_obs), jnp.cos(phi - data.phi_obs))
+        used_phi = data.phi_weights > 0
+        rphi = jnp.where(used_phi, jnp.where(ok, dphi, FAILED_RESIDUAL), 0.0)
+        parts.append(jnp.sqrt(data.phi_weights) * jnp.sin(data.theta_obs) * rphi)
+    # Slow observables: level-crossing times of the smoothed tilt (model against data).
+    smooth = _smoothed(theta_safe, data.mask, data.smoother)
+    t_cross = _first_crossings(smooth, data.grid, data.levels)
+    parts.append(data.level_weight * (t_cross - data.t_levels) / _LEVEL_TIME_SCALE)
+    return jnp.concatenate(parts), sol
+
+
+def _residuals(u, data: _Data, cfg: _Config):
+    return _residuals_of_values(_physical(u, data.base, cfg.free), data, cfg)[0]
+
+
+def _value_and_jacobian(u, data, cfg):
+    """Residuals and their Jacobian in one forward-mode pass (primal plus p tangents)."""
+    jac, value = jax.jacfwd(lambda v: (_residuals(v, data, cfg),) * 2, has_aux=True)(u)
+    return value, jac
+
+
+def _residual_fn(cfg: _Config):
+    """The residual function for optimistix: a custom JVP so that `jax.linearize` keeps the
+    Jacobian as a matrix (one solve per step) instead of re-running the ODE per product."""
+
+    @jax.custom_jvp
+    def fn(u, data):
+        return _residuals(u, data, cfg)
+
+    @fn.defjvp
+    def _jvp(primals, tangents):
+        u, data = primals
+        value, jac = _value_and_jacobian(u, data, cfg)
+        return value, jac @ tangents[0]
+
+    return fn
+
+
+# ---------------------------------------------------------------------------------------------
+# Optimisers: one stage, run inside jit (and vmap over recordings).
+
+
+def _optimistix_stage(u0, data: _Data, cfg: _Config):
+    if cfg.method == "levenberg_marquardt":
+        solver = optx.LevenbergMarquardt(rtol=cfg.tol, atol=cfg.tol)
+    else:
+        solver = optx.GaussNewton(rtol=cfg.tol, atol=cfg.tol)
+    residuals = _residual_fn(cfg)
+
+    def fn(u, data):  # optimistix's solvers take functions returning (output, aux)
+        return residuals(u, data), None
+
+    options, tags = {"jac": "fwd"}, frozenset()
+    f_struct = jax.eval_shape(lambda: residuals(u0, data))
+    state0 = solver.init(fn, u0, data, options, f_struct, None, tags)
+    # The solver state holds a jaxpr (the linearised residuals): carry only its arrays.
+    dynamic0, static = eqx.partition(state0, eqx.is_array)
+    history0 = jnp.full(cfg.max_steps, jnp.nan, u0.dtype)
+
+    def cond(carry):
+        u, dynamic, _, k = carry
+        state = eqx.combine(dynamic, static)
+        done, _ = solver.terminate(fn, u, data, options, state, tags)
+        return (~done) & (k < cfg.max_steps)
+
+    def body(carry):
+        u, dynamic, history, k = carry
+        u, state, _ = solver.step(fn, u, data, options, eqx.combine(dynamic, static), tags)
+        loss = 0.5 * jnp.sum(state.f_info.residual**2)
+        return u, eqx.filter(state, eqx.is_array), history.at[k].set(loss), k + 1
+
+    u, dynamic, history, k = jax.lax.while_loop(cond, body, (u0, dynamic0, history0, 0))
+    state = eqx.combine(dynamic, static)
+    done, result = solver.terminate(fn, u, data, options, state, tags)
+    code = FIT_RESULTS.where(
+        done & (result == optx.RESULTS.successful),
+        FIT_RESULTS.successful,
+        FIT_RESULTS.where(done, FIT_RESULTS.optimiser_failed, FIT_RESULTS.max_steps_reached),
+    )
+    return u, history, k, code
+
+
+def _optax_stage(u0, data: _Data, cfg: _Config):
+    optimiser = optax.adam(cfg.learning_rate)
+    history0 = jnp.full(cfg.max_steps, jnp.nan, u0.dtype)
+
+    def loss_and_grad(u):
+        r, jac = _value_and_jacobian(u, data, cfg)
+        return 0.5 * jnp.sum(r**2), jac.T @ r
+
+    def cond(carry):
+        *_, k, done = carry
+        return (~done) & (k < cfg.max_steps)
+
+    def body(carry):
+        u, opt_state, best, history, k, _ = carry
+        loss, grad = loss_and_grad(u)
+        updates, opt_state = optimiser.update(grad, opt_state, u)
+        u_new = optax.apply_updates(u, updates)
+        # Stop when the step is small relative to the coordinates (as optimistix's Cauchy test).
+        done = jnp.max(jnp.abs(updates) / (cfg.tol + cfg.tol * jnp.abs(u))) < 1.0
+        best = jnp.where(loss < best[0], jnp.concatenate([loss[None], u]), best)
+        return u_new, opt_state, best, history.at[k].set(loss), k + 1, done
+
+    best0 = jnp.concatenate([jnp.array([jnp.inf], u0.dtype), u0])
+    carry = (u0, optimiser.init(u0), best0, history0, 0, jnp.array(False))
+    u, _, best, history, k, done = jax.lax.while_loop(cond, body, carry)
+    u = jnp.where(jnp.isfinite(best[0]), best[1:], u)
+    code = FIT_RESULTS.where(done, FIT_RESULTS.successful, FIT_RESULTS.max_steps_reached)
+    return u, history, k, code
+
+
+def _stage(u0, data, cfg):
+    if cfg.method == "adam":
+        return _optax_stage(u0, data, cfg)
+    return _optimistix_stage(u0, data, cfg)
+
+
+def _finish(u, code, data: _Data, cfg: _Config):
+    """Covariance, residuals and the fitted curve at the final coordinates."""
+    value, jac_u = _value_and_jacobian(u, data, cfg)
+    values = _physical(u, data.base, cfg.free)
+    dp_du = jax.jacfwd(lambda v: jnp.stack([_physical(v, data.base, cfg.free)[n] for n in cfg.free]))(u)
+    n_used = jnp.sum(data.weights > 0) + (jnp.sum(data.phi_weights > 0) if cfg.has_phi else 0)
+    p = len(cfg.free)
+    rss = jnp.sum(value**2)
+    s2 = rss / jnp.maximum(n_used - p, 1)
+    # J_p = J_u (du/dp); Sigma = s2 (J_p^T J_p)^{-1} = s2 G (J_u^T J_u)^{-1} G^T with G = dp/du.
+    jtj = jac_u.T @ jac_u
+    scale = 1.0 / jnp.sqrt(jnp.maximum(jnp.diag(jtj), 1e-300))
+    inv_scaled = jnp.linalg.inv(scale[:, None] * jtj * scale[None, :])
+    cov_u = s2 * scale[:, None] * inv_scaled * scale[None, :]
+    cov = dp_du @ cov_u @ dp_du.T
+    std = jnp.sqrt(jnp.maximum(jnp.diag(cov), 0.0))
+    std = jnp.where(jnp.isfinite(std), std, jnp.inf)
+    corr = cov / (std[:, None] * std[None, :])
+    _, sol = _residuals_of_values(values, data, cfg)
+    used = data.weights > 0
+    theta_fit = sol.theta
+    residuals = jnp.where(used, theta_fit - data.theta_obs, jnp.nan)
+    failed = jnp.any(used & ~jnp.isfinite(theta_fit))
+    top, y0 = _assemble(values, data.base)
+    vector = jnp.stack([values[n] for n in cfg.free])
+    return dict(
+        top=top, y0=y0, values=vector, std_errors=std, covariance=cov, correlation=corr,
+        theta_fit=theta_fit, residuals=residuals,
+        rms=jnp.sqrt(jnp.nanmean(jnp.where(used, residuals, jnp.nan) ** 2)),
+        result=FIT_RESULTS.where(failed, FIT_RESULTS.simulation_failed, code),
+    )
+
+
+@eqx.filter_jit
+def _run_stage(u0, data, cfg, batched):
+    if batched:
+        return jax.vmap(lambda u, d: _stage(u, d, cfg))(u0, data)
+    return _stage(u0, data, cfg)
+
+
+@eqx.filter_jit
+def _run_finish(u, code, data, cfg, batched):
+    if batched:
+        return jax.vmap(lambda v, c, d: _finish(v, c, d, cfg))(u, code, data)
+    return _finish(u, code, data, cfg)
+
+
+# ---------------------------------------------------------------------------------------------
+# Set-up in numpy: checks, masks, smoothing and the level ladder.
+
+
+def _as_1d_times(ts) -> np.ndarray:
+    arr = np.asarray(ts, dtype=float)
+    if arr.ndim != 1 or arr.size < 2:
+        raise ValueError(f"ts must be a 1-d array of at least 2 times, got shape {arr.shape}.")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError("ts must hold finite times (NaN or inf found); mark missing data with "
+                         "NaN in theta_obs instead.")
+    if np.any(np.diff(arr) <= 0):
+        raise ValueError("ts must be strictly increasing.")
+    return arr
+
+
+def _observations(name, obs, n) -> np.ndarray:
+    arr = np.asarray(obs, dtype=float)
+    if arr.ndim not in (1, 2) or arr.shape[-1] != n:
+        raise ValueError(
+            f"{name} must have shape (N,) or (batch, N) with N = len(ts) = {n}, got {arr.shape}."
+        )
+    if np.any(np.isinf(arr)):
+        raise ValueError(f"{name} holds inf; use NaN to mark missing samples (they are masked).")
+    return arr
+
+
+def _smoother(ts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Gaussian kernel rows from the data times onto a uniform grid, and the grid."""
+    span = ts[-1] - ts[0]
+    width = max(span / 80.0, 3.0 * float(np.median(np.diff(ts))))
+    num = int(min(max(np.ceil(4 * span / width) + 1, 50), 2000))
+    grid = np.linspace(ts[0], ts[-1], num)
+    kernel = np.exp(-0.5 * ((grid[:, None] - ts[None, :]) / width) ** 2)
+    return kernel, grid
+
+
+def _ladder(theta: np.ndarray, mask: np.ndarray, kernel, grid):
+    """Levels between the smoothed start and maximum, and the data's first crossing times.
+
+    Returns the levels, their times and whether the record rises enough (0.3 rad) to use them.
+    """
+    smooth = (kernel @ (mask * np.nan_to_num(theta))) / np.maximum(kernel @ mask, 1e-300)
+    start, top = smooth[0], smooth.max()
+    rises = top - start > 0.3
+    lo, hi = start + 0.1 * (top - start), top - 0.1 * (top - start)
+    levels = np.linspace(lo, hi, NUM_LEVELS) if rises else np.zeros(NUM_LEVELS)
+    times = np.asarray(_first_crossings(jnp.asarray(smooth), jnp.asarray(grid), jnp.asarray(levels)))
+    return levels, times, rises
+
+
+def _describes_until(ts: np.ndarray, residuals: np.ndarray) -> float:
+    """End of the initial stretch where the moving RMS of the residuals stays below 3x its median."""
+    finite = np.isfinite(residuals)
+    if finite.sum() < 5:
+        return float("nan")
+    width = 0.05 * (ts[-1] - ts[0])
+    rms = np.full(ts.shape, np.nan)
+    for i, t in enumerate(ts):
+        window = finite & (np.abs(ts - t) <= width / 2)
+        if window.sum() >= 3:
+            rms[i] = np.sqrt(np.mean(residuals[window] ** 2))
+    threshold = 3.0 * np.nanmedian(rms)
+    bad = np.nonzero(rms > threshold)[0]
+    return float(ts[-1]) if bad.size == 0 else float(ts[max(bad[0] - 1, 0)])
+
+
+def _check_guess(top_guess, y0_guess, free, batch):
+    if not isinstance(top_guess, TippeTop):
+        raise TypeError(f"top_guess must be a tippejax.TippeTop, got {type(top_guess).__name__}.")
+    if not isinstance(y0_guess, State):
+        raise TypeError(
+            f"y0_guess must be a tippejax.State (see initial_state), got {type(y0_guess).__name__}."
+        )
+    fields = {f: np.asarray(getattr(top_guess, f), dtype=float) for f in TOP_FIELDS}
+    for f, v in fields.items():
+        if not np.all(np.isfinite(v)):
+            raise ValueError(f"top_guess.{f} is not finite.")
+        if v.ndim > 1 or (v.ndim == 1 and (batch is None or v.shape[0] != batch)):
+            raise ValueError(
+                f"top_guess.{f} has shape {v.shape}: a guess is one top, or one per recording "
+                f"when theta_obs has shape (batch, N)."
+            )
+    for failed, message in _checks(*(fields[f] for f in ("m", "R", "eps", "A", "C", "g", "mu"))):
+        if np.any(failed):
+            raise ValueError(f"top_guess is not a valid top: {message}")
+    for name in ("m", "R", "g", "mu"):
+        if name in free and np.any(fields[name] == 0):
+            raise ValueError(f"{name!r} is free but its guess is 0; give a positive guess.")
+    launch = {k: np.asarray(v, dtype=float) for k, v in _launch_of(y0_guess).items()}
+    theta0 = launch["theta0"]
+    if np.any(np.sin(theta0) < 1e-6):
+        raise ValueError(
+            "y0_guess is at a pole (theta = 0 or pi), where the precession rate is undefined and "
+            "a top does not rise; launch the guess at a small tilt instead."
+        )
+    for k, v in launch.items():
+        if not np.all(np.isfinite(v)):
+            raise ValueError(f"y0_guess gives a non-finite launch quantity {k}.")
+    if "spin" in free and np.any(launch["spin"] == 0):
+        raise ValueError("'spin' is free but the guess has zero spin: give a non-zero guess "
+                         "(its sign is kept; theta alone cannot tell the spin's direction).")
+    if "A" in free and np.any(fields["A"] / fields["C"] <= 0.5):
+        raise ValueError("'A' is free but the guess has A/C = 1/2: give A/C > 1/2.")
+    if "C" in free and "A" not in free and np.any(fields["C"] >= 2 * fields["A"]):
+        raise ValueError("'C' is free but the guess has C >= 2A, which no rigid body has.")
+    return fields, launch
+
+
+def fit(
+    top_guess: TippeTop,
+    y0_guess: State,
+    ts: ArrayLike,
+    theta_obs: ArrayLike,
+    *,
+    free: Sequence[str] = ("mu", "eps", "spin"),
+    phi_obs: ArrayLike | None = None,
+    model: Literal["full", "so3", "routhian"] = "full",
+    method: Literal["levenberg_marquardt", "gauss_newton", "adam"] = "levenberg_marquardt",
+    strategy: Literal["levels", "windows", "plain"] = "levels",
+    t0: float | None = None,
+    weights: ArrayLike | None = None,
+    max_steps: int = 200,
+    tol: float = 1e-8,
+    rtol: float = 1e-8,
+    atol: float = 1e-10,
+    solver: diffrax.AbstractSolver | None = None,
+    sim_max_steps: int = 100_000,
+    learning_rate: float = 0.02,
+) -> FitResult:
+    r"""Fit free parameters of the top and its launch to a measured tilt $\theta(t_k)$.
+
+    **Arguments:**
+
+    - `top_guess`: a `TippeTop`; its fields give the fixed parameters and the starting guess.
+    - `y0_guess`: the `State` at time `t0` (see `initial_state`); gives the launch quantities.
+    - `ts`: the observation times (strictly increasing, finite), shape `(N,)`.
+    - `theta_obs`: the measured tilt (rad), shape `(N,)`, or `(batch, N)` to fit several
+      recordings at once (vmapped: one compilation, one solve per step for all). **NaN marks a
+      missing sample, which is masked** (left out of the loss), e.g. video frames where the top
+      was not found.
+    - `free`: names of the parameters to fit: top fields `m, R, eps, A, C, g, mu` and launch
+      quantities `theta0, spin, theta_dot, phi_dot, vx, vy`. The spin keeps the sign of its
+      guess (theta alone cannot tell its direction).
+    - `phi_obs`: optional precession angle (rad, unwrapped or not; differences are wrapped),
+      weighted by $\sin\theta^{obs}$ (the axis' horizontal displacement), NaN masked.
+    - `model`: level of model to fit with, `"full"`, `"so3"` or `"routhian"`.
+    - `method`: `"levenberg_marquardt"` (default; `optimistix.LevenbergMarquardt`),
+      `"gauss_newton"` (`optimistix.GaussNewton`) or `"adam"` (`optax.adam` at
+      `learning_rate` in the unconstrained coordinates). Jacobians by forward mode.
+    - `strategy`: `"levels"` (default: level-crossing times of the smoothed tilt first, then the
+      record), `"windows"` (continuation: the first 20%, 40%, ... of the record in turn) or
+      `"plain"` (the whole record at once).
+    - `t0`: time of `y0_guess` (default `ts[0]`; must be `<= ts[0]`).
+    - `weights`: optional non-negative weight per sample (e.g. `1/sigma_k^2`).
+    - `max_steps`: optimiser steps per stage. `tol`: the optimiser's relative and absolute
+      tolerance on the parameters and the loss.
+    - `rtol`, `atol`, `solver`, `sim_max_steps`: passed to `simulate` for every trial.
+
+    Every trial's simulation runs with `throw=False`. Save times after a trial stops (contact
+    lost, the $R_n$ singularity, max steps) get the finite residual `FAILED_RESIDUAL` ($\pi$),
+    so such a trial has a large loss and is rejected, never a NaN.
+
+    **Returns:** a `FitResult`, with standard errors from the Gauss-Newton covariance
+    $s^2 (J^\top J)^{-1}$ scaled by the residual variance $s^2 = \mathrm{RSS}/(N - p)$.
+    """
+    free = tuple(free)
+    unknown = [n for n in free if n not in FREE_NAMES]
+    if unknown:
+        raise ValueError(f"Unknown names in free: {unknown}; choose from {FREE_NAMES}.")
+    if not free:
+        raise ValueError(f"free is empty; name at least one of {FREE_NAMES}.")
+    if len(set(free)) != len(free):
+        raise ValueError(f"free names a parameter twice: {free}.")
+    if model not in ("full", "so3", "routhian"):
+        allowed = tuple(m for m in MODELS if m in ("full", "so3", "routhian"))
+        raise ValueError(f"fit supports model in {allowed}, got {model!r}.")
+    if method not in METHODS:
+        raise ValueError(f"Unknown method {method!r}; choose one of {METHODS}.")
+    if strategy not in STRATEGIES:
+        raise ValueError(f"Unknown strategy {strategy!r}; choose one of {STRATEGIES}.")
+    if not (isinstance(max_steps, (int, np.integer)) and max_steps > 0):
+        raise ValueError(f"max_steps must be a positive integer, got {max_steps!r}.")
+    if not tol > 0:
+        raise ValueError(f"tol must be positive, got {tol}.")
+    ts_np = _as_1d_times(ts)
+    n = ts_np.size
+    obs = _observations("theta_obs", theta_obs, n)
+    batch = obs.shape[0] if obs.ndim == 2 else None
+    obs2 = obs.reshape(-1, n)
+    phi2 = None
+    if phi_obs is not None:
+        phi_arr = _observations("phi_obs", phi_obs, n)
+        if phi_arr.shape != obs.shape:
+            raise ValueError(f"phi_obs has shape {phi_arr.shape}, theta_obs {obs.shape}.")
+        phi2 = phi_arr.reshape(-1, n)
+    if weights is None:
+        w2 = np.ones_like(obs2)
+    else:
+        w = np.broadcast_to(np.asarray(weights, dtype=float), obs.shape).reshape(-1, n)
+        if np.any(~np.isfinite(w)) or np.any(w < 0):
+            raise ValueError("weights must be finite and non-negative.")
+        w2 = w.copy()
+    mask2 = np.isfinite(obs2) & (w2 > 0)
+    for b in range(obs2.shape[0]):
+        if mask2[b].sum() <= len(free):
+            raise ValueError(
+                f"Recording {b} has {mask2[b].sum()} usable samples (not NaN) for "
+                f"{len(free)} free parameters; a fit needs more samples than parameters."
+            )
+    t0 = float(ts_np[0]) if t0 is None else float(t0)
+    if not t0 <= ts_np[0]:
+        raise ValueError(f"t0 = {t0} must not be later than the first observation ts[0] = {ts_np[0]}.")
+    fields, launch = _check_guess(top_guess, y0_guess, free, batch)
+
+    dtype = jnp.result_type(top_guess.m)
+    bsize = obs2.shape[0]
+    kernel, grid = _smoother(ts_np)
+    ladders = [_ladder(obs2[b], mask2[b].astype(float), kernel, grid) for b in range(bsize)]
+    rises = np.array([lad[2] for lad in ladders])
+
+    def per_rec(x):  # a field of the guess: scalar or (batch,)
+        x = np.asarray(x, dtype=float)
+        return jnp.asarray(np.broadcast_to(x, (bsize,)), dtype)
+
+    base = _Base(
+        top={f: per_rec(v) for f, v in fields.items()},
+        launch={k: per_rec(v) for k, v in launch.items()},
+    )
+    data = _Data(
+        base=base,
+        ts=jnp.asarray(np.broadcast_to(ts_np, (bsize, n)), dtype),
+        t0=per_rec(t0),
+        t_end=per_rec(ts_np[-1]),
+        theta_obs=jnp.asarray(np.where(mask2, obs2, 0.0), dtype),
+        weights=jnp.asarray(np.where(mask2, w2, 0.0), dtype),
+        mask=jnp.asarray(mask2, dtype),
+        phi_obs=jnp.asarray(np.nan_to_num(phi2) if phi2 is not None else np.zeros_like(obs2), dtype),
+        phi_weights=jnp.asarray(
+            np.where(np.isfinite(phi2) & mask2, w2, 0.0) if phi2 is not None else np.zeros_like(obs2),
+            dtype,
+        ),
+        smoother=jnp.asarray(np.broadcast_to(kernel, (bsize,) + kernel.shape), dtype),
+        grid=jnp.asarray(np.broadcast_to(grid, (bsize,) + grid.shape), dtype),
+        levels=jnp.asarray(np.stack([lad[0] for lad in ladders]), dtype),
+        t_levels=jnp.asarray(np.stack([lad[1] for lad in ladders]), dtype),
+        level_weight=jnp.zeros((bsize,), dtype),
+        rtol=per_rec(rtol),
+        atol=per_rec(atol),
+    )
+    cfg = _Config(
+        free=free, model=model, method=method, max_steps=int(max_steps),
+        sim_max_steps=int(sim_max_steps), has_phi=phi2 is not None, solver=solver,
+        learning_rate=float(learning_rate), tol=float(tol),
+    )
+    batched = batch is not None
+    if not batched:
+        data = jax.tree_util.tree_map(lambda x: x[0], data)
+
+    def with_stage(theta_weight_mask, t_end, level_weight):
+        w = jnp.asarray(np.where(mask2 & theta_weight_mask, w2, 0.0), dtype)
+        pw = data.phi_weights
+        if phi2 is not None:
+            pw = jnp.asarray(
+                np.where(np.isfinite(phi2) & mask2 & theta_weight_mask, w2, 0.0), dtype
+            )
+        lw = jnp.asarray(np.broadcast_to(level_weight, (bsize,)), dtype)
+        te = per_rec(t_end)
+        if not batched:
+            w, pw, lw, te = w[0], pw[0], lw[0], te[0]
+        return eqx.tree_at(
+            lambda d: (d.weights, d.phi_weights, d.level_weight, d.t_end), data, (w, pw, lw, te)
+        )
+
+    everything = np.ones((bsize, n), bool)
+    stages = []
+    if strategy == "levels":
+        # Stage 1: level-crossing times only (records that do not rise skip it: weight 0, and
+        # their theta residuals are then used from the start). Then the record, in growing
+        # windows: the nutation's phase error grows with time, so even 1% off in the spin
+        # puts a long record in another valley of the loss.
+        stage1_theta = np.broadcast_to(~rises[:, None], (bsize, n))
+        stages.append(with_stage(stage1_theta, ts_np[-1], rises.astype(float)))
+    if strategy in ("levels", "windows"):
+        for frac in WINDOW_FRACTIONS:
+            t_end = ts_np[0] + frac * (ts_np[-1] - ts_np[0])
+            inside = np.broadcast_to(ts_np <= t_end + 1e-12, (bsize, n))
+            stages.append(with_stage(inside, t_end, 0.0))
+    else:
+        stages.append(with_stage(everything, ts_np[-1], 0.0))
+
+    p = len(free)
+    u = jnp.zeros((bsize, p) if batched else (p,), dtype)
+    histories, counts = [], []
+    code = None
+    for stage_data in stages:
+        u, history, k, code = _run_stage(u, stage_data, cfg, batched)
+        histories.append(history)
+        counts.append(k)
+    final = stages[-1]
+    out = _run_finish(u, code, final, cfg, batched)
+    hist = jnp.concatenate(histories, axis=-1)
+    stage_ends = jnp.stack([jnp.asarray(c) for c in counts], axis=-1)
+    stage_ends = jnp.cumsum(stage_ends, axis=-1)
+    # Compact the histories: each stage's steps one after the other, nan-padded at the end.
+    hist_np = np.asarray(hist).reshape(bsize, len(stages), int(max_steps))
+    counts_np = np.asarray(jnp.stack([jnp.asarray(c) for c in counts], -1)).reshape(bsize, -1)
+    packed = np.full((bsize, len(stages) * int(max_steps)), np.nan)
+    for b in range(bsize):
+        row = np.concatenate([hist_np[b, s, : counts_np[b, s]] for s in range(len(stages))])
+        packed[b, : row.size] = row
+    code = out["result"]
+    residuals = np.asarray(out["residuals"]).reshape(bsize, n)
+    describes = np.array([_describes_until(ts_np, residuals[b]) for b in range(bsize)])
+    theta_obs_out = np.where(mask2, obs2, np.nan)
+    if not batched:
+        packed, describes, theta_obs_out = packed[0], describes[0], theta_obs_out[0]
+    return FitResult(
+        top=out["top"], y0=out["y0"], values=out["values"], std_errors=out["std_errors"],
+        covariance=out["covariance"], correlation=out["correlation"],
+        loss_history=jnp.asarray(packed, dtype), stage_ends=stage_ends,
+        ts=jnp.asarray(ts_np, dtype), theta_obs=jnp.asarray(theta_obs_out, dtype),
+        theta_fit=out["theta_fit"], residuals=out["residuals"], rms=out["rms"],
+        describes_until=jnp.asarray(describes, dtype),
+        converged=code == FIT_RESULTS.successful, result=code, num_steps=sum(counts), free=free, model=model, method=method, strategy=strategy,
+    )
+
