@@ -39,7 +39,7 @@ def inverting_fit():
     assert 5.5 < float(sol.t_invert) < 6.0
     obs[150:170] = np.nan  # a gap of 0.2 s, as when the top leaves the camera's view
     guess, y0 = _guess(1.3, 0.72, 127.0)
-    return _fit.fit(guess, y0, TS, obs, free=FREE), obs
+    return tj.fit(guess, y0, TS, obs, free=FREE), obs
 
 
 def test_recovers_parameters_from_poor_guess(inverting_fit):
@@ -98,20 +98,18 @@ def test_standard_errors_match_scatter_of_noisy_fits():
 
 
 def test_trial_that_loses_contact_does_not_break_fit():
-    """Spin 150 inverts; the guess (spin 210) loses contact at about 5.2 s, so the first trials
-    stop early. Their save times get the finite failure residual, and the fit recovers."""
-    obs, sol = _record(150.0, seed=3)
-    assert int(sol.result._value) == int(tj.RESULTS.successful._value)
-    guess, y0 = _guess(1.05, 0.95, 210.0)
+    """The guess (spin 200) loses contact at about 5.2 s, so the first trials stop early: their
+    later save times get the finite failure residual, and the fit recovers the truth."""
+    obs, sol = _record(100.0, seed=3)
+    guess, y0 = _guess(1.05, 0.95, 200.0)
     first = tj.simulate(guess, y0, 8.0, saveat=TS, throw=False)
     assert int(first.result._value) == int(tj.RESULTS.contact_lost._value)
-    # The loss and Jacobian at the failing guess are finite.
-    res = _fit.fit(guess, y0, TS, obs, free=FREE)
+    res = tj.fit(guess, y0, TS, obs, free=FREE)
     assert np.isfinite(np.asarray(res.loss_history)[0])
     print(res.table())
-    truth = np.array([0.3, float(tj.default_top().eps), 150.0])
+    truth = np.array([0.3, float(tj.default_top().eps), 100.0])
     assert np.all(np.abs(np.asarray(res.values) - truth) / truth < 0.02)
-    assert bool(res.converged)
+    assert bool(res.converged), res.message
 
 
 @pytest.fixture(scope="module")

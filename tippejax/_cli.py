@@ -1,8 +1,11 @@
-"""Command line: `tippejax classify | diagram | demo`.
+"""Command line: `tippejax classify | diagram | demo | fit`.
 
 - `classify`: the group and thresholds of a top, and a map of the groups.
 - `diagram`: the six bifurcation diagrams (the paper's Fig. 1) and the map of the groups.
 - `demo`: the analysis of the default top launched near upright (and, later, its simulation).
+- `fit`: fit parameters of a top and its launch to a measured tilt theta(t) read from a CSV file
+  (columns `t`, `theta` and optionally `phi`; see `read_fit_csv`), with `tippejax.fit`; prints
+  the fitted values and writes `fit.png` (`fit_figure`) and `fit.csv`.
 
 Run as `tippejax ...` (console script) or `python -m tippejax._cli ...`.
 """
@@ -10,8 +13,11 @@ Run as `tippejax ...` (console script) or `python -m tippejax._cli ...`.
 from __future__ import annotations
 
 import argparse
+import csv
 import math
 import os
+import sys
+import time
 from collections.abc import Sequence
 
 DEFAULT_OUT = "tippejax-out"
@@ -227,6 +233,195 @@ def _cmd_demo(args) -> int:
     return 0
 
 
+# ---------------------------------------------------------------------------------------------
+# tippejax fit
+
+
+FIT_DEFAULT_SPIN = 100.0  # rad/s: launch spin guess of `tippejax fit`
+FIT_MIN_THETA0 = 0.02  # rad: the launch tilt guess is clipped to at least this (a top at a pole
+# does not rise, and `fit` refuses a guess at theta = 0)
+
+
+def _cell(text: str, column: str, row: int, path: str) -> float:
+    """One CSV cell as a float: empty or "nan" is a missing sample (NaN)."""
+    text = text.strip()
+    if text == "" or text.lower() == "nan":
+        return math.nan
+    try:
+        return float(text)
+    except ValueError:
+        raise ValueError(
+            f"{path}, line {row}: column {column!r} holds {text!r}, which is not a number "
+            f"(leave the cell empty or write nan for a missing sample)."
+        ) from None
+
+
+def read_fit_csv(path: str):
+    """Read the data of `tippejax fit`: a CSV file with a header row naming the columns.
+
+    Columns `t` (s) and `theta` (rad) are required, `phi` (rad) is optional; other columns are
+    ignored. An empty cell or `nan` is a missing sample (NaN), except in `t`, which must be a
+    number on every row.
+
+    **Returns:** `(t, theta, phi)`, numpy arrays (`phi` is `None` without a `phi` column).
+    """
+    import numpy as np
+
+    if not os.path.isfile(path):
+        raise ValueError(f"data file {path!r} not found.")
+    with open(path, newline="") as handle:
+        reader = csv.reader(handle)
+        header = next(reader, None)
+        if header is None:
+            raise ValueError(f"{path} is empty; it needs a header row with columns t and theta.")
+        names = [h.strip().lower() for h in header]
+        missing = [c for c in ("t", "theta") if c not in names]
+        if missing:
+            raise ValueError(
+                f"{path} has no column {' or '.join(repr(c) for c in missing)} in its header "
+                f"row {header}; the data need columns t (s) and theta (rad), optionally phi (rad)."
+            )
+        wanted = ["t", "theta"] + (["phi"] if "phi" in names else [])
+        index = {c: names.index(c) for c in wanted}
+        columns = {c: [] for c in wanted}
+        for row_number, row in enumerate(reader, start=2):
+            if not row or all(not cell.strip() for cell in row):
+                continue  # blank line
+            for c in wanted:
+                text = row[index[c]] if index[c] < len(row) else ""
+                columns[c].append(_cell(text, c, row_number, path))
+    t = np.asarray(columns["t"], dtype=float)
+    if t.size < 2:
+        raise ValueError(f"{path} holds {t.size} data rows; a fit needs more.")
+    if not np.all(np.isfinite(t)):
+        bad = int(np.flatnonzero(~np.isfinite(t))[0])
+        raise ValueError(
+            f"{path}: the time t of data row {bad + 1} is missing; every row needs a t."
+        )
+    theta = np.asarray(columns["theta"], dtype=float)
+    phi = np.asarray(columns["phi"], dtype=float) if "phi" in columns else None
+    return t, theta, phi
+
+
+def fit_guess(args):
+    """The starting top of `tippejax fit`: `default_top()` with the given fields replaced.
+
+    `--m`, `--R`, `--eps`, `--mu` replace those fields. `--A-over-C` and/or `--eps-over-R`
+    rebuild the top with `TippeTop.from_ratios` (keeping m, R, mu; the ratio not given is kept
+    from the top so far; C = 0.4 m R^2, a homogeneous sphere).
+    """
+    import tippejax as tj
+
+    if args.eps is not None and args.eps_over_R is not None:
+        raise ValueError("give the eccentricity once: --eps (m) or --eps-over-R, not both.")
+    top = tj.default_top()
+    fields = {f: float(getattr(top, f)) for f in ("m", "R", "eps", "A", "C", "g", "mu")}
+    for name in ("m", "R", "eps", "mu"):
+        value = getattr(args, name)
+        if value is not None:
+            fields[name] = float(value)
+    if args.A_over_C is not None or args.eps_over_R is not None:
+        a_over_c = args.A_over_C if args.A_over_C is not None else fields["A"] / fields["C"]
+        eps_over_r = args.eps_over_R if args.eps_over_R is not None else fields["eps"] / fields["R"]
+        return tj.TippeTop.from_ratios(
+            a_over_c, eps_over_r, m=fields["m"], R=fields["R"], mu=fields["mu"], g=fields["g"]
+        )
+    return tj.TippeTop(**fields)
+
+
+def write_fit_outputs(result, out: str) -> list[str]:
+    """Write `fit.png` (`fit_figure`) and `fit.csv` (t, theta_obs, theta_fit, residual; recording
+    0 of a batched fit) to the folder `out`; returns their paths."""
+    import numpy as np
+
+    _agg()
+    from ._plot import fit_figure
+
+    os.makedirs(out, exist_ok=True)
+    paths = [_save(fit_figure(result), os.path.join(out, "fit.png"))]
+    columns = [np.asarray(result.ts)] + [
+        np.asarray(x).reshape(-1, np.asarray(result.ts).size)[0]
+        for x in (result.theta_obs, result.theta_fit, result.residuals)
+    ]
+    path = os.path.join(out, "fit.csv")
+    with open(path, "w", newline="") as handle:
+        writer = csv.writer(handle)
+        writer.writerow(["t", "theta_obs", "theta_fit", "residual"])
+        for row in zip(*columns):
+            writer.writerow([format(float(v), ".10g") for v in row])
+    paths.append(path)
+    return paths
+
+
+def _run_fit(args) -> int:
+    import numpy as np
+
+    import tippejax as tj
+
+    t, theta, phi = read_fit_csv(args.data)
+    if args.no_phi:
+        phi = None
+    if args.t_max is not None:
+        keep = t <= args.t_max
+        if keep.sum() < 2:
+            raise ValueError(
+                f"--t-max {args.t_max:g} s leaves {keep.sum()} samples (t starts at {t[0]:g} s)."
+            )
+        t, theta = t[keep], theta[keep]
+        phi = phi[keep] if phi is not None else None
+    if not np.any(np.isfinite(theta)):
+        raise ValueError(f"{args.data}: every theta sample is missing.")
+    free = tuple(name.strip() for name in args.free.split(",") if name.strip())
+    top = fit_guess(args)
+    first = float(theta[np.isfinite(theta)][0])
+    theta0 = args.theta0
+    if theta0 is None:  # the first sample, away from the poles
+        theta0 = min(max(first, FIT_MIN_THETA0), math.pi - FIT_MIN_THETA0)
+    y0 = tj.initial_state(top, theta0, args.spin)
+    n_used = int(np.isfinite(theta).sum())
+    print(
+        f"data: {args.data}: {t.size} samples from t = {t[0]:g} to {t[-1]:g} s "
+        f"({n_used} with theta{', with phi' if phi is not None else ''})"
+    )
+    print(
+        f"guess: m = {float(top.m):.4g} kg, R = {float(top.R):.4g} m, eps = {float(top.eps):.4g} m "
+        f"(eps/R = {float(top.eps / top.R):.4g}), A/C = {float(top.A / top.C):.4g}, "
+        f"mu = {float(top.mu):.4g} s/m; launch theta0 = {theta0:.4g} rad, "
+        f"spin = {args.spin:g} rad/s"
+    )
+    print(
+        f"fitting {', '.join(free) or '(nothing)'} (model {args.model}, "
+        f"strategy {args.strategy}, method {args.method}) ..."
+    )
+    start = time.perf_counter()
+    result = tj.fit(
+        top, y0, t, theta, free=free, phi_obs=phi, model=args.model, method=args.method,
+        strategy=args.strategy, max_steps=args.max_steps,
+    )
+    wall = time.perf_counter() - start
+    print(result.table())
+    describes = float(result.describes_until)
+    print(f"model:           {result.model}")
+    print(
+        f"describes until: {describes:.4g} s"
+        + ("  (the whole record)" if describes >= t[-1] else f"  (of {t[-1]:g} s: the model "
+           "stops describing the data there; try --t-max or another model)")
+    )
+    print(f"converged:       {bool(result.converged)} ({result.message})")
+    print(f"wall time:       {wall:.1f} s (including compilation)")
+    for path in write_fit_outputs(result, args.out):
+        print(f"wrote {path}")
+    return 0
+
+
+def _cmd_fit(args) -> int:
+    try:
+        return _run_fit(args)
+    except (ValueError, TypeError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="tippejax", description="Steady states and groups of the tippe top (tippejax)."
@@ -234,7 +429,10 @@ def _parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     def out_option(p):
-        p.add_argument("--out", default=DEFAULT_OUT, help=f"output folder (default ./{DEFAULT_OUT})")
+        p.add_argument(
+            "--out", metavar="DIR", default=DEFAULT_OUT,
+            help=f"output folder (default ./{DEFAULT_OUT})",
+        )
 
     p = sub.add_parser("classify", help="group and thresholds of a top; writes group_map.png")
     p.add_argument("--A-over-C", dest="A_over_C", type=float, default=None, help="A/C (>= 0.5)")
@@ -254,11 +452,72 @@ def _parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--theta0", type=float, default=0.1, help="launch tilt (rad), default 0.1")
     p.set_defaults(func=_cmd_demo)
+
+    from ._fit import FREE_NAMES, METHODS, STRATEGIES
+
+    p = sub.add_parser(
+        "fit",
+        help="fit a top's parameters to a measured tilt theta(t) in a CSV file",
+        description=(
+            "Fit free parameters of the top and its launch to a measured tilt theta(t) with "
+            "tippejax.fit. DATA.csv has a header row with columns t (s) and theta (rad), "
+            "optionally phi (rad, the precession angle, fitted too); an empty cell or nan is a "
+            "missing sample. The starting guess is the default top (A/C 0.9, eps/R 0.3, "
+            "m 0.02 kg, R 0.025 m, mu 0.3 s/m) with the fields given below replaced. Prints the "
+            "fitted values with standard errors and writes fit.png and fit.csv "
+            "(t, theta_obs, theta_fit, residual) to --out."
+        ),
+    )
+    p.add_argument("data", metavar="DATA.csv", help="the data: columns t, theta[, phi]")
+    p.add_argument(
+        "--free", metavar="NAMES", default="mu,eps,spin",
+        help=f"comma-separated names of the parameters to fit (default mu,eps,spin), from: "
+             f"{','.join(FREE_NAMES)}",
+    )
+    guess = p.add_argument_group("starting guess (default: the default top)")
+    guess.add_argument("--m", type=float, default=None, help="mass (kg), default 0.02")
+    guess.add_argument(
+        "--R", type=float, default=None, help="radius of the sphere (m), default 0.025"
+    )
+    guess.add_argument("--eps", type=float, default=None,
+                       help="centre of sphere to centre of mass (m), default 0.0075")
+    guess.add_argument("--A-over-C", dest="A_over_C", metavar="X", type=float, default=None,
+                       help="A/C, default 0.9. --A-over-C or --eps-over-R rebuild the top with "
+                            "TippeTop.from_ratios (keeping m, R, mu; C = 0.4 m R^2)")
+    guess.add_argument("--eps-over-R", dest="eps_over_R", metavar="Y", type=float, default=None,
+                       help="eps/R in (0, 1), default 0.3 (not together with --eps)")
+    guess.add_argument(
+        "--mu", type=float, default=None, help="viscous friction coefficient (s/m), default 0.3"
+    )
+    guess.add_argument("--theta0", metavar="TH", type=float, default=None,
+                       help="launch tilt (rad) at the first time; default the first theta of the "
+                            f"data, at least {FIT_MIN_THETA0:g}")
+    guess.add_argument("--spin", metavar="N", type=float, default=FIT_DEFAULT_SPIN,
+                       help=f"launch spin (rad/s), default {FIT_DEFAULT_SPIN:g}")
+    p.add_argument("--model", default="full", choices=("full", "so3", "routhian"),
+                   help="level of model to fit with (default full)")
+    p.add_argument("--strategy", default="levels", choices=STRATEGIES,
+                   help="fitting strategy (default levels: level-crossing times first, then "
+                        "the record)")
+    p.add_argument("--method", default="levenberg_marquardt", choices=METHODS,
+                   help="optimiser (default levenberg_marquardt)")
+    p.add_argument("--max-steps", dest="max_steps", metavar="K", type=int, default=200,
+                   help="optimiser steps per stage (default 200)")
+    p.add_argument("--t-max", dest="t_max", metavar="T", type=float, default=None,
+                   help="use only the samples with t <= T (s): the part of the record the "
+                        "model describes")
+    p.add_argument("--no-phi", dest="no_phi", action="store_true",
+                   help="ignore a phi column (fit theta only)")
+    out_option(p)
+    p.set_defaults(func=_cmd_fit)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the `tippejax` console script. **Returns:** the exit status (0)."""
+    """Entry point of the `tippejax` console script.
+
+    **Returns:** the exit status: 0, or 2 for bad input to `fit` (the message goes to stderr).
+    """
     args = _parser().parse_args(argv)
     return args.func(args)
 

@@ -47,12 +47,12 @@ FREE_NAMES = TOP_FIELDS + LAUNCH_FIELDS
 METHODS = ("levenberg_marquardt", "gauss_newton", "adam")
 STRATEGIES = ("levels", "windows", "plain")
 NUM_LEVELS = 12
-WINDOW_FRACTIONS = (0.2, 0.4, 0.6, 0.8, 1.0)
 # A save time at which the trial's simulation has stopped (contact lost, singularity, max steps)
 # gets this residual (rad): the largest error a tilt can have. It is finite and constant, so the
 # loss of such a trial is large, its gradient stays finite, and the optimiser rejects the step.
 FAILED_RESIDUAL = math.pi
 _LEVEL_TIME_SCALE = 0.05  # s: level-crossing residuals are divided by this
+_U_MAX = 30.0  # |u| bound: sigmoid(30) = 1 - 1e-13 < 1, exp(30) = 1e13
 
 
 class FIT_RESULTS(eqxi.Enumeration):
@@ -190,7 +190,10 @@ def _launch_of(y0: State) -> dict[str, Array]:
 def _physical(u: Float[Array, " p"], base: _Base, free: tuple[str, ...]) -> dict[str, Array]:
     """Physical values of the free parameters for unconstrained `u` (u = 0 is the guess)."""
     t, lau = base.top, base.launch
-    z = dict(zip(free, u))
+    # Bounded arguments keep sigmoids below 1 and exponentials finite in float64 (a guard on
+    # the unconstrained coordinates, not a clip of the physical values).
+    bound = _U_MAX if u.dtype == jnp.float64 else 15.0  # float32: sigmoid(15) < 1 still
+    z = dict(zip(free, jnp.clip(u, -bound, bound)))
     out = {}
     for name in ("m", "R", "g", "mu"):
         if name in z:
@@ -217,9 +220,16 @@ def _physical(u: Float[Array, " p"], base: _Base, free: tuple[str, ...]) -> dict
 
 def _assemble(values: dict[str, Array], base: _Base) -> tuple[TippeTop, State]:
     """The top and initial state with `values` replacing the guess's fields."""
-    t = {**base.top, **{k: v for k, v in values.items() if k in TOP_FIELDS}}
     lau = {**base.launch, **{k: v for k, v in values.items() if k in LAUNCH_FIELDS}}
-    top = TippeTop(**t)
+    # The guess is a checked top; trial values are valid by construction (reparametrised), so
+    # they replace its fields without TippeTop's runtime checks: a trial that overflows to
+    # inf makes a non-finite simulation, which gets the failure residual, instead of raising.
+    top = TippeTop(**base.top)
+    changed = [k for k in TOP_FIELDS if k in values]
+    if changed:
+        top = eqx.tree_at(
+            lambda tp: [getattr(tp, k) for k in changed], top, [values[k] for k in changed]
+        )
     y0 = state_from_euler(
         lau["theta0"], lau["phi"], lau["psi"], lau["theta_dot"], lau["phi_dot"],
         lau["spin"] - lau["phi_dot"] * jnp.cos(lau["theta0"]),
@@ -274,7 +284,7 @@ def _simulated(values, data: _Data, cfg: _Config):
     sol = simulate(
         top, y0, data.t_end, t0=data.t0, saveat=saves, model=cfg.model, rtol=data.rtol,
         atol=data.atol, solver=cfg.solver, max_steps=cfg.sim_max_steps, throw=False,
-        adjoint=diffrax.ForwardMode(),
+        adjoint=diffrax.ForwardMode(), on_contact_loss="continue",
     )
     return sol
 
@@ -302,8 +312,13 @@ def _smoothed(y, mask, smoother):
 def _residuals_of_values(values, data: _Data, cfg: _Config):
     sol = _simulated(values, data, cfg)
     theta = sol.theta
-    ok = jnp.isfinite(theta)
-    theta_safe = jnp.where(ok, theta, 0.0)
+    finite = jnp.isfinite(theta)
+    theta_safe = jnp.where(finite, theta, 0.0)
+    # Past a contact loss the hard-table model does not hold: those samples get the failure
+    # residual. The run itself goes on (on_contact_loss="continue") with the same equations, so
+    # the level-crossing times below stay smooth functions of the parameters through the loss.
+    lost = sol.ts > sol.t_contact_loss  # False when contact is never lost (nan)
+    ok = finite & ~lost
     used = data.weights > 0
     r = jnp.where(used, jnp.where(ok, theta_safe - data.theta_obs, FAILED_RESIDUAL), 0.0)
     parts = [jnp.sqrt(data.weights) * r]
@@ -447,7 +462,7 @@ def _finish(u, code, data: _Data, cfg: _Config):
     corr = cov / (std[:, None] * std[None, :])
     _, sol = _residuals_of_values(values, data, cfg)
     used = data.weights > 0
-    theta_fit = sol.theta
+    theta_fit = jnp.where(sol.ts > sol.t_contact_loss, jnp.nan, sol.theta)
     residuals = jnp.where(used, theta_fit - data.theta_obs, jnp.nan)
     failed = jnp.any(used & ~jnp.isfinite(theta_fit))
     top, y0 = _assemble(values, data.base)
@@ -523,6 +538,19 @@ def _ladder(theta: np.ndarray, mask: np.ndarray, kernel, grid):
     levels = np.linspace(lo, hi, NUM_LEVELS) if rises else np.zeros(NUM_LEVELS)
     times = np.asarray(_first_crossings(jnp.asarray(smooth), jnp.asarray(grid), jnp.asarray(levels)))
     return levels, times, rises
+
+
+def _window_ends(ts: np.ndarray) -> list[float]:
+    """Ends of the growing windows: the first holds 1/64 of the record (at least 10 samples),
+    each next one twice as much, the last the whole record. A short first window keeps the
+    nutation's phase error (it grows with time and with the error in the spin) under a cycle."""
+    span = ts[-1] - ts[0]
+    width = max(span / 64, ts[min(10, ts.size - 1)] - ts[0])
+    ends = []
+    while width < span:
+        ends.append(float(ts[0] + width))
+        width *= 2
+    return ends + [float(ts[-1])]
 
 
 def _describes_until(ts: np.ndarray, residuals: np.ndarray) -> float:
@@ -752,14 +780,19 @@ def fit(
     stages = []
     if strategy == "levels":
         # Stage 1: level-crossing times only (records that do not rise skip it: weight 0, and
-        # their theta residuals are then used from the start). Then the record, in growing
-        # windows: the nutation's phase error grows with time, so even 1% off in the spin
-        # puts a long record in another valley of the loss.
+        # their theta residuals are then used from the start). Then the record in growing
+        # windows, the level times still in the loss: the nutation's phase error grows with
+        # time, so even 1% off in the spin puts a long record in another valley of the loss,
+        # while an early window alone leaves directions free that the levels pin down. Last,
+        # the whole record alone (the loss the covariance is about).
         stage1_theta = np.broadcast_to(~rises[:, None], (bsize, n))
         stages.append(with_stage(stage1_theta, ts_np[-1], rises.astype(float)))
-    if strategy in ("levels", "windows"):
-        for frac in WINDOW_FRACTIONS:
-            t_end = ts_np[0] + frac * (ts_np[-1] - ts_np[0])
+        for t_end in _window_ends(ts_np)[:-1]:
+            inside = np.broadcast_to(ts_np <= t_end + 1e-12, (bsize, n))
+            stages.append(with_stage(inside, ts_np[-1], rises.astype(float)))
+        stages.append(with_stage(everything, ts_np[-1], 0.0))
+    elif strategy == "windows":
+        for t_end in _window_ends(ts_np):
             inside = np.broadcast_to(ts_np <= t_end + 1e-12, (bsize, n))
             stages.append(with_stage(inside, t_end, 0.0))
     else:
