@@ -269,7 +269,7 @@ def read_fit_csv(path: str):
 
     if not os.path.isfile(path):
         raise ValueError(f"data file {path!r} not found.")
-    with open(path, newline="") as handle:
+    with open(path, newline="", encoding="utf-8-sig") as handle:  # -sig: a spreadsheet's BOM
         reader = csv.reader(handle)
         header = next(reader, None)
         if header is None:
@@ -402,11 +402,14 @@ def _run_fit(args) -> int:
     print(result.table())
     describes = float(result.describes_until)
     print(f"model:           {result.model}")
-    print(
-        f"describes until: {describes:.4g} s"
-        + ("  (the whole record)" if describes >= t[-1] else f"  (of {t[-1]:g} s: the model "
-           "stops describing the data there; try --t-max or another model)")
-    )
+    if math.isnan(describes):
+        note = "  (undefined: too few finite residuals)"
+    elif describes >= t[-1]:
+        note = "  (the whole record)"
+    else:
+        note = (f"  (of {t[-1]:g} s: the model stops describing the data there; try --t-max or "
+                "another model)")
+    print(f"describes until: {_fmt(describes, '.4g')} s{note}")
     print(f"converged:       {bool(result.converged)} ({result.message})")
     print(f"wall time:       {wall:.1f} s (including compilation)")
     for path in write_fit_outputs(result, args.out):
@@ -417,7 +420,7 @@ def _run_fit(args) -> int:
 def _cmd_fit(args) -> int:
     try:
         return _run_fit(args)
-    except (ValueError, TypeError) as err:
+    except (ValueError, TypeError, OSError) as err:  # bad input: a message, not a traceback
         print(f"error: {err}", file=sys.stderr)
         return 2
 

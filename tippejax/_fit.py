@@ -52,6 +52,7 @@ NUM_LEVELS = 12
 # loss of such a trial is large, its gradient stays finite, and the optimiser rejects the step.
 FAILED_RESIDUAL = math.pi
 _LEVEL_TIME_SCALE = 0.05  # s: level-crossing residuals are divided by this
+_STAGE_TOL = 1e-4  # optimiser tolerance of the intermediate stages (the last one uses `tol`)
 _U_MAX = 30.0  # |u| bound: sigmoid(30) = 1 - 1e-13 < 1, exp(30) = 1e13
 
 
@@ -90,13 +91,20 @@ class FitResult(eqx.Module):
     - `loss_history`: $\tfrac12\sum r_k^2$ after each optimiser step, all stages one after the
       other (nan-padded to a fixed length).
     - `stage_ends`: index in `loss_history` where each stage ended.
-    - `ts`, `theta_obs`: the data (nan where masked).
+    - `ts`, `theta_obs`: the data (nan where masked); `ts` carries the batch axis too, so
+      `jax.tree_util.tree_map(lambda x: x[b], result)` picks recording `b`.
     - `theta_fit`: the fitted model's tilt at `ts` (nan past a failure).
     - `residuals`: `theta_fit - theta_obs` (nan where masked or failed).
-    - `rms`: root mean square of the residuals over the used points (rad).
+    - `rms`: root mean square of the theta residuals over the used points (rad).
+    - `noise`: the noise level the residuals are judged against: `sigma` if given, else the
+      10th percentile of the moving RMS of the residuals over 5% of the record (the residual
+      of the best-described stretches). `rms` well above `noise` says the model does not
+      describe the whole record, whatever `converged` says.
     - `describes_until`: the end of the initial part of the record that the model describes:
-      the last time before the moving RMS of the residuals (over 5% of the record) first
-      exceeds three times its median. For data the model made, the whole record.
+      the last time before the moving RMS of the residuals first exceeds `3 * noise`. For data
+      the model made, the whole record.
+    - `phi_fit`, `phi_residuals`: the fitted precession angle and its wrapped residual (nan
+      unless `phi_obs` was given).
     - `converged`: whether the last stage met its tolerance.
     - `result`: a `FIT_RESULTS` code; `message` gives its text.
     - `num_steps`: optimiser steps, all stages.
@@ -111,12 +119,15 @@ class FitResult(eqx.Module):
     correlation: Float[Array, "*batch p p"]
     loss_history: Float[Array, "*batch steps"]
     stage_ends: Int[Array, "*batch stages"]
-    ts: Float[Array, " N"]
+    ts: Float[Array, "*batch N"]
     theta_obs: Float[Array, "*batch N"]
     theta_fit: Float[Array, "*batch N"]
     residuals: Float[Array, "*batch N"]
     rms: Float[Array, "*batch"]
+    noise: Float[Array, "*batch"]
     describes_until: Float[Array, "*batch"]
+    phi_fit: Float[Array, "*batch N"]
+    phi_residuals: Float[Array, "*batch N"]
     converged: Bool[Array, "*batch"]
     result: FIT_RESULTS
     num_steps: Int[Array, "*batch"]
@@ -150,15 +161,19 @@ class FitResult(eqx.Module):
                 rel = abs(e / v) if v != 0 else np.inf
                 lines.append(f"{name:>10}  {v:13.6g}  {e:11.3g}  {rel:8.2%}")
             lines.append(
-                f"rms residual {float(self.rms):.4g} rad; {int(self.num_steps)} optimiser "
-                f"steps; {self.message}"
+                f"rms residual {float(self.rms):.4g} rad (noise level {float(self.noise):.3g}); "
+                f"describes the record until t = {float(self.describes_until):.4g} s of "
+                f"{float(self.ts[-1]):.4g} s; {int(self.num_steps)} optimiser steps; {self.message}"
             )
         else:
             for b in range(values.shape[0]):
                 row = ", ".join(
                     f"{n} = {v:.6g} +- {e:.2g}" for n, v, e in zip(self.free, values[b], errors[b])
                 )
-                lines.append(f"[{b}] {row}; rms {float(self.rms[b]):.3g}")
+                lines.append(
+                    f"[{b}] {row}; rms {float(self.rms[b]):.3g}; {int(self.num_steps[b])} steps; "
+                    f"{self.message[b]}"
+                )
         return "\n".join(lines)
 
 
@@ -254,7 +269,6 @@ class _Config(eqx.Module):
     has_phi: bool
     solver: diffrax.AbstractSolver | None
     learning_rate: float
-    tol: float
 
 
 class _Data(eqx.Module):
@@ -269,13 +283,15 @@ class _Data(eqx.Module):
     mask: Float[Array, " N"]  # 1 where a sample exists (for the smoothing), whatever the stage
     phi_obs: Float[Array, " N"]
     phi_weights: Float[Array, " N"]
-    smoother: Float[Array, "G N"]  # kernel rows: smoothed(g) = sum_k K[g, k] m_k y_k / sum_k K m
+    smoother_index: Int[Array, "G M"]  # samples near each grid point (a band of the kernel)
+    smoother_weight: Float[Array, "G M"]  # their Gaussian weights (0 for padding)
     grid: Float[Array, " G"]
     levels: Float[Array, " L"]
     t_levels: Float[Array, " L"]
     level_weight: Float[Array, ""]
     rtol: Float[Array, ""]
     atol: Float[Array, ""]
+    tol: Float[Array, ""]  # the optimiser's tolerance in this stage
 
 
 def _simulated(values, data: _Data, cfg: _Config):
@@ -305,8 +321,10 @@ def _first_crossings(smooth, grid, levels):
     return jax.vmap(one)(levels)
 
 
-def _smoothed(y, mask, smoother):
-    return (smoother @ (mask * y)) / jnp.maximum(smoother @ mask, 1e-300)
+def _smoothed(y, mask, index, weight):
+    """Kernel regression onto the grid: sum_k w_gk m_k y_k / sum_k w_gk m_k over the band."""
+    numerator = jnp.sum(weight * (mask * y)[index], axis=-1)
+    return numerator / jnp.maximum(jnp.sum(weight * mask[index], axis=-1), 1e-300)
 
 
 def _residuals_of_values(values, data: _Data, cfg: _Config):
@@ -329,7 +347,7 @@ def _residuals_of_values(values, data: _Data, cfg: _Config):
         rphi = jnp.where(used_phi, jnp.where(ok, dphi, FAILED_RESIDUAL), 0.0)
         parts.append(jnp.sqrt(data.phi_weights) * jnp.sin(data.theta_obs) * rphi)
     # Slow observables: level-crossing times of the smoothed tilt (model against data).
-    smooth = _smoothed(theta_safe, data.mask, data.smoother)
+    smooth = _smoothed(theta_safe, data.mask, data.smoother_index, data.smoother_weight)
     t_cross = _first_crossings(smooth, data.grid, data.levels)
     parts.append(data.level_weight * (t_cross - data.t_levels) / _LEVEL_TIME_SCALE)
     return jnp.concatenate(parts), sol
@@ -368,9 +386,9 @@ def _residual_fn(cfg: _Config):
 
 def _optimistix_stage(u0, data: _Data, cfg: _Config):
     if cfg.method == "levenberg_marquardt":
-        solver = optx.LevenbergMarquardt(rtol=cfg.tol, atol=cfg.tol)
+        solver = optx.LevenbergMarquardt(rtol=data.tol, atol=data.tol)
     else:
-        solver = optx.GaussNewton(rtol=cfg.tol, atol=cfg.tol)
+        solver = optx.GaussNewton(rtol=data.tol, atol=data.tol)
     residuals = _residual_fn(cfg)
 
     def fn(u, data):  # optimistix's solvers take functions returning (output, aux)
@@ -424,7 +442,7 @@ def _optax_stage(u0, data: _Data, cfg: _Config):
         updates, opt_state = optimiser.update(grad, opt_state, u)
         u_new = optax.apply_updates(u, updates)
         # Stop when the step is small relative to the coordinates (as optimistix's Cauchy test).
-        done = jnp.max(jnp.abs(updates) / (cfg.tol + cfg.tol * jnp.abs(u))) < 1.0
+        done = jnp.max(jnp.abs(updates) / (data.tol + data.tol * jnp.abs(u))) < 1.0
         best = jnp.where(loss < best[0], jnp.concatenate([loss[None], u]), best)
         return u_new, opt_state, best, history.at[k].set(loss), k + 1, done
 
@@ -464,12 +482,19 @@ def _finish(u, code, data: _Data, cfg: _Config):
     used = data.weights > 0
     theta_fit = jnp.where(sol.ts > sol.t_contact_loss, jnp.nan, sol.theta)
     residuals = jnp.where(used, theta_fit - data.theta_obs, jnp.nan)
+    phi_fit = jnp.where(jnp.isfinite(theta_fit), sol.phi, jnp.nan)
+    dphi = phi_fit - data.phi_obs
+    phi_residuals = jnp.where(
+        data.phi_weights > 0, jnp.arctan2(jnp.sin(dphi), jnp.cos(dphi)), jnp.nan
+    )
+    if not cfg.has_phi:
+        phi_fit = jnp.full_like(phi_fit, jnp.nan)
     failed = jnp.any(used & ~jnp.isfinite(theta_fit))
     top, y0 = _assemble(values, data.base)
     vector = jnp.stack([values[n] for n in cfg.free])
     return dict(
         top=top, y0=y0, values=vector, std_errors=std, covariance=cov, correlation=corr,
-        theta_fit=theta_fit, residuals=residuals,
+        theta_fit=theta_fit, residuals=residuals, phi_fit=phi_fit, phi_residuals=phi_residuals,
         rms=jnp.sqrt(jnp.nanmean(jnp.where(used, residuals, jnp.nan) ** 2)),
         result=FIT_RESULTS.where(failed, FIT_RESULTS.simulation_failed, code),
     )
@@ -516,22 +541,31 @@ def _observations(name, obs, n) -> np.ndarray:
     return arr
 
 
-def _smoother(ts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Gaussian kernel rows from the data times onto a uniform grid, and the grid."""
+def _smoother(ts: np.ndarray):
+    """A Gaussian kernel from the data times onto a uniform grid, as a band: for each grid point
+    the indices of the samples within 4 kernel widths and their weights (memory G x M, with M
+    the most samples in one band, not G x N)."""
     span = ts[-1] - ts[0]
     width = max(span / 80.0, 3.0 * float(np.median(np.diff(ts))))
     num = int(min(max(np.ceil(4 * span / width) + 1, 50), 2000))
     grid = np.linspace(ts[0], ts[-1], num)
-    kernel = np.exp(-0.5 * ((grid[:, None] - ts[None, :]) / width) ** 2)
-    return kernel, grid
+    lo = np.searchsorted(ts, grid - 4 * width, side="left")
+    hi = np.searchsorted(ts, grid + 4 * width, side="right")
+    band = int(np.max(hi - lo))
+    index = np.minimum(lo[:, None] + np.arange(band)[None, :], ts.size - 1)
+    inside = (lo[:, None] + np.arange(band)[None, :]) < hi[:, None]
+    weight = np.where(inside, np.exp(-0.5 * ((grid[:, None] - ts[index]) / width) ** 2), 0.0)
+    return (index, weight), grid
 
 
-def _ladder(theta: np.ndarray, mask: np.ndarray, kernel, grid):
+def _ladder(theta: np.ndarray, mask: np.ndarray, band, grid):
     """Levels between the smoothed start and maximum, and the data's first crossing times.
 
     Returns the levels, their times and whether the record rises enough (0.3 rad) to use them.
     """
-    smooth = (kernel @ (mask * np.nan_to_num(theta))) / np.maximum(kernel @ mask, 1e-300)
+    index, weight = band
+    y = mask * np.nan_to_num(theta)
+    smooth = np.sum(weight * y[index], -1) / np.maximum(np.sum(weight * mask[index], -1), 1e-300)
     start, top = smooth[0], smooth.max()
     rises = top - start > 0.3
     lo, hi = start + 0.1 * (top - start), top - 0.1 * (top - start)
@@ -553,20 +587,34 @@ def _window_ends(ts: np.ndarray) -> list[float]:
     return ends + [float(ts[-1])]
 
 
-def _describes_until(ts: np.ndarray, residuals: np.ndarray) -> float:
-    """End of the initial stretch where the moving RMS of the residuals stays below 3x its median."""
+def _moving_rms(ts: np.ndarray, residuals: np.ndarray, width: float) -> np.ndarray:
+    """RMS of the finite residuals within width/2 of each sample (nan where fewer than 3)."""
     finite = np.isfinite(residuals)
-    if finite.sum() < 5:
+    sq = np.cumsum(np.concatenate([[0.0], np.where(finite, residuals, 0.0) ** 2]))
+    count = np.cumsum(np.concatenate([[0], finite.astype(int)]))
+    lo = np.searchsorted(ts, ts - width / 2, side="left")
+    hi = np.searchsorted(ts, ts + width / 2, side="right")
+    num = count[hi] - count[lo]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(num >= 3, np.sqrt((sq[hi] - sq[lo]) / np.maximum(num, 1)), np.nan)
+
+
+def _describes_until(ts: np.ndarray, residuals: np.ndarray, noise: float) -> float:
+    """End of the initial stretch where the moving RMS (over 5% of the record) of the residuals
+    stays below 3 x `noise`."""
+    rms = _moving_rms(ts, residuals, 0.05 * (ts[-1] - ts[0]))
+    if not np.isfinite(noise) or np.all(np.isnan(rms)):
         return float("nan")
-    width = 0.05 * (ts[-1] - ts[0])
-    rms = np.full(ts.shape, np.nan)
-    for i, t in enumerate(ts):
-        window = finite & (np.abs(ts - t) <= width / 2)
-        if window.sum() >= 3:
-            rms[i] = np.sqrt(np.mean(residuals[window] ** 2))
-    threshold = 3.0 * np.nanmedian(rms)
-    bad = np.nonzero(rms > threshold)[0]
+    bad = np.nonzero(rms > 3.0 * noise)[0]
     return float(ts[-1]) if bad.size == 0 else float(ts[max(bad[0] - 1, 0)])
+
+
+def _noise_level(ts: np.ndarray, residuals: np.ndarray) -> float:
+    """The residual level of the best-described stretches: the 10th percentile of the moving RMS
+    over 5% of the record. For a model that describes the data, this is the noise (about 0.8
+    of its standard deviation at 40 samples a window)."""
+    rms = _moving_rms(ts, residuals, 0.05 * (ts[-1] - ts[0]))
+    return float(np.nanpercentile(rms, 10)) if np.any(np.isfinite(rms)) else float("nan")
 
 
 def _check_guess(top_guess, y0_guess, free, batch):
@@ -624,8 +672,9 @@ def fit(
     strategy: Literal["levels", "windows", "plain"] = "levels",
     t0: float | None = None,
     weights: ArrayLike | None = None,
+    sigma: float | None = None,
     max_steps: int = 200,
-    tol: float = 1e-8,
+    tol: float = 1e-6,
     rtol: float = 1e-8,
     atol: float = 1e-10,
     solver: diffrax.AbstractSolver | None = None,
@@ -640,7 +689,9 @@ def fit(
     - `y0_guess`: the `State` at time `t0` (see `initial_state`); gives the launch quantities.
     - `ts`: the observation times (strictly increasing, finite), shape `(N,)`.
     - `theta_obs`: the measured tilt (rad), shape `(N,)`, or `(batch, N)` to fit several
-      recordings at once (vmapped: one compilation, one solve per step for all). **NaN marks a
+      recordings at once (vmapped: one compilation; all recordings step together, so the
+      batch runs as long as its slowest member: this pays on an accelerator, while on a CPU
+      a loop of single fits was measured faster, see `benchmarks/RESULTS.md`). **NaN marks a
       missing sample, which is masked** (left out of the loss), e.g. video frames where the top
       was not found.
     - `free`: names of the parameters to fit: top fields `m, R, eps, A, C, g, mu` and launch
@@ -657,6 +708,8 @@ def fit(
       `"plain"` (the whole record at once).
     - `t0`: time of `y0_guess` (default `ts[0]`; must be `<= ts[0]`).
     - `weights`: optional non-negative weight per sample (e.g. `1/sigma_k^2`).
+    - `sigma`: the noise of `theta_obs` (rad), if known: the level `describes_until` judges the
+      residuals against (default: estimated from the residuals, see `FitResult.noise`).
     - `max_steps`: optimiser steps per stage. `tol`: the optimiser's relative and absolute
       tolerance on the parameters and the loss.
     - `rtol`, `atol`, `solver`, `sim_max_steps`: passed to `simulate` for every trial.
@@ -687,6 +740,8 @@ def fit(
         raise ValueError(f"max_steps must be a positive integer, got {max_steps!r}.")
     if not tol > 0:
         raise ValueError(f"tol must be positive, got {tol}.")
+    if sigma is not None and not (np.isfinite(sigma) and sigma > 0):
+        raise ValueError(f"sigma must be a positive noise level (rad), got {sigma}.")
     ts_np = _as_1d_times(ts)
     n = ts_np.size
     obs = _observations("theta_obs", theta_obs, n)
@@ -719,8 +774,8 @@ def fit(
 
     dtype = jnp.result_type(top_guess.m)
     bsize = obs2.shape[0]
-    kernel, grid = _smoother(ts_np)
-    ladders = [_ladder(obs2[b], mask2[b].astype(float), kernel, grid) for b in range(bsize)]
+    band, grid = _smoother(ts_np)
+    ladders = [_ladder(obs2[b], mask2[b].astype(float), band, grid) for b in range(bsize)]
     rises = np.array([lad[2] for lad in ladders])
 
     def per_rec(x):  # a field of the guess: scalar or (batch,)
@@ -744,24 +799,26 @@ def fit(
             np.where(np.isfinite(phi2) & mask2, w2, 0.0) if phi2 is not None else np.zeros_like(obs2),
             dtype,
         ),
-        smoother=jnp.asarray(np.broadcast_to(kernel, (bsize,) + kernel.shape), dtype),
+        smoother_index=jnp.asarray(np.broadcast_to(band[0], (bsize,) + band[0].shape)),
+        smoother_weight=jnp.asarray(np.broadcast_to(band[1], (bsize,) + band[1].shape), dtype),
         grid=jnp.asarray(np.broadcast_to(grid, (bsize,) + grid.shape), dtype),
         levels=jnp.asarray(np.stack([lad[0] for lad in ladders]), dtype),
         t_levels=jnp.asarray(np.stack([lad[1] for lad in ladders]), dtype),
         level_weight=jnp.zeros((bsize,), dtype),
         rtol=per_rec(rtol),
         atol=per_rec(atol),
+        tol=per_rec(tol),
     )
     cfg = _Config(
         free=free, model=model, method=method, max_steps=int(max_steps),
         sim_max_steps=int(sim_max_steps), has_phi=phi2 is not None, solver=solver,
-        learning_rate=float(learning_rate), tol=float(tol),
+        learning_rate=float(learning_rate),
     )
     batched = batch is not None
     if not batched:
         data = jax.tree_util.tree_map(lambda x: x[0], data)
 
-    def with_stage(theta_weight_mask, t_end, level_weight):
+    def with_stage(theta_weight_mask, t_end, level_weight, stage_tol=_STAGE_TOL):
         w = jnp.asarray(np.where(mask2 & theta_weight_mask, w2, 0.0), dtype)
         pw = data.phi_weights
         if phi2 is not None:
@@ -769,11 +826,12 @@ def fit(
                 np.where(np.isfinite(phi2) & mask2 & theta_weight_mask, w2, 0.0), dtype
             )
         lw = jnp.asarray(np.broadcast_to(level_weight, (bsize,)), dtype)
-        te = per_rec(t_end)
+        te, to = per_rec(t_end), per_rec(max(stage_tol, tol))
         if not batched:
-            w, pw, lw, te = w[0], pw[0], lw[0], te[0]
+            w, pw, lw, te, to = w[0], pw[0], lw[0], te[0], to[0]
         return eqx.tree_at(
-            lambda d: (d.weights, d.phi_weights, d.level_weight, d.t_end), data, (w, pw, lw, te)
+            lambda d: (d.weights, d.phi_weights, d.level_weight, d.t_end, d.tol),
+            data, (w, pw, lw, te, to),
         )
 
     everything = np.ones((bsize, n), bool)
@@ -787,16 +845,18 @@ def fit(
         # the whole record alone (the loss the covariance is about).
         stage1_theta = np.broadcast_to(~rises[:, None], (bsize, n))
         stages.append(with_stage(stage1_theta, ts_np[-1], rises.astype(float)))
-        for t_end in _window_ends(ts_np)[:-1]:
-            inside = np.broadcast_to(ts_np <= t_end + 1e-12, (bsize, n))
-            stages.append(with_stage(inside, ts_np[-1], rises.astype(float)))
-        stages.append(with_stage(everything, ts_np[-1], 0.0))
+        if rises.any():  # (a record that does not rise was fitted whole in stage 1)
+            for t_end in _window_ends(ts_np)[:-1]:
+                inside = np.broadcast_to(ts_np <= t_end + 1e-12, (bsize, n))
+                stages.append(with_stage(inside, ts_np[-1], rises.astype(float)))
+        stages.append(with_stage(everything, ts_np[-1], 0.0, tol))
     elif strategy == "windows":
-        for t_end in _window_ends(ts_np):
+        ends = _window_ends(ts_np)
+        for t_end in ends:
             inside = np.broadcast_to(ts_np <= t_end + 1e-12, (bsize, n))
-            stages.append(with_stage(inside, t_end, 0.0))
+            stages.append(with_stage(inside, t_end, 0.0, tol if t_end == ends[-1] else _STAGE_TOL))
     else:
-        stages.append(with_stage(everything, ts_np[-1], 0.0))
+        stages.append(with_stage(everything, ts_np[-1], 0.0, tol))
 
     p = len(free)
     u = jnp.zeros((bsize, p) if batched else (p,), dtype)
@@ -820,17 +880,24 @@ def fit(
         packed[b, : row.size] = row
     code = out["result"]
     residuals = np.asarray(out["residuals"]).reshape(bsize, n)
-    describes = np.array([_describes_until(ts_np, residuals[b]) for b in range(bsize)])
+    if sigma is None:
+        noise = np.array([_noise_level(ts_np, residuals[b]) for b in range(bsize)])
+    else:
+        noise = np.broadcast_to(np.asarray(sigma, dtype=float), (bsize,)).copy()
+    describes = np.array([_describes_until(ts_np, residuals[b], noise[b]) for b in range(bsize)])
     theta_obs_out = np.where(mask2, obs2, np.nan)
+    ts_out = np.broadcast_to(ts_np, (bsize, n))
     if not batched:
         packed, describes, theta_obs_out = packed[0], describes[0], theta_obs_out[0]
+        noise, ts_out = noise[0], ts_out[0]
     return FitResult(
         top=out["top"], y0=out["y0"], values=out["values"], std_errors=out["std_errors"],
         covariance=out["covariance"], correlation=out["correlation"],
         loss_history=jnp.asarray(packed, dtype), stage_ends=stage_ends,
-        ts=jnp.asarray(ts_np, dtype), theta_obs=jnp.asarray(theta_obs_out, dtype),
+        ts=jnp.asarray(ts_out, dtype), theta_obs=jnp.asarray(theta_obs_out, dtype),
         theta_fit=out["theta_fit"], residuals=out["residuals"], rms=out["rms"],
-        describes_until=jnp.asarray(describes, dtype),
+        describes_until=jnp.asarray(describes, dtype), noise=jnp.asarray(noise, dtype),
+        phi_fit=out["phi_fit"], phi_residuals=out["phi_residuals"],
         converged=code == FIT_RESULTS.successful, result=code, num_steps=sum(counts), free=free, model=model, method=method, strategy=strategy,
     )
 

@@ -391,7 +391,7 @@ def fit_figure(result, *, title: str | None = None):
     ax_res.set_xlabel("$t$ (s)")
     ax_res.set_ylabel(r"$\theta - \theta^{obs}$ (rad)")
     if np.isfinite(rms):
-        ax_res.legend(loc="upper left", fontsize=9, framealpha=0.9)
+        ax_res.legend(loc="best", fontsize=9, framealpha=0.9)
     ax_res.set_xlim(ts[0], ts[-1])
 
     if title is None:
