@@ -260,3 +260,26 @@ def test_bad_input_raises(kwargs, error, match):
     args.update({k: kwargs.pop(k) for k in list(kwargs) if k in args})
     with pytest.raises(error, match=match):
         _fit.fit(args["top_guess"], args["y0_guess"], args["ts"], args["theta_obs"], **kwargs)
+
+
+def test_reports_the_part_of_the_record_the_model_describes():
+    """Data the model did not make: after 6.5 s the tilt stops at 2.3 rad, as when a real top's
+    stem lands on the table. A fit of the whole record is distorted; `trim` refits on the part
+    the model describes, says where that ends, and recovers the top."""
+    obs, _ = _record(100.0, seed=11)
+    landed = TS >= 6.5
+    obs[landed] = 2.3 + NOISE * np.random.default_rng(12).standard_normal(landed.sum())
+    guess, y0 = _guess(1.1, 0.9, 110.0)
+    whole = tj.fit(guess, y0, TS, obs, free=FREE, trim=False)
+    print(whole.table())
+    assert float(whole.rms) > 3 * float(whole.noise)  # the whole record is not described
+    res = tj.fit(guess, y0, TS, obs, free=FREE)
+    print(res.table(), float(res.fitted_until))
+    assert 6.0 < float(res.fitted_until) <= 6.5
+    assert 6.0 < float(res.describes_until) <= 6.5
+    truth = np.array([0.3, float(tj.default_top().eps), 100.0])
+    assert np.all(np.abs(np.asarray(res.values) - truth) / truth < 0.02)
+    assert float(res.rms) < 1.5 * NOISE  # over the fitted part
+    residuals = np.asarray(res.residuals)
+    assert np.all(np.isfinite(residuals))  # reported on the whole record
+    assert np.mean(np.abs(residuals[TS > 6.8])) > 0.3

@@ -103,6 +103,7 @@ class FitResult(eqx.Module):
     - `describes_until`: the end of the initial part of the record that the model describes:
       the last time before the moving RMS of the residuals first exceeds `3 * noise`. For data
       the model made, the whole record.
+    - `fitted_until`: the end of the part of the record the fit used (`trim`; else the end).
     - `phi_fit`, `phi_residuals`: the fitted precession angle and its wrapped residual (nan
       unless `phi_obs` was given).
     - `converged`: whether the last stage met its tolerance.
@@ -126,6 +127,7 @@ class FitResult(eqx.Module):
     rms: Float[Array, "*batch"]
     noise: Float[Array, "*batch"]
     describes_until: Float[Array, "*batch"]
+    fitted_until: Float[Array, "*batch"]
     phi_fit: Float[Array, "*batch N"]
     phi_residuals: Float[Array, "*batch N"]
     converged: Bool[Array, "*batch"]
@@ -680,6 +682,7 @@ def fit(
     solver: diffrax.AbstractSolver | None = None,
     sim_max_steps: int = 100_000,
     learning_rate: float = 0.02,
+    trim: bool = True,
 ) -> FitResult:
     r"""Fit free parameters of the top and its launch to a measured tilt $\theta(t_k)$.
 
@@ -713,6 +716,12 @@ def fit(
     - `max_steps`: optimiser steps per stage. `tol`: the optimiser's relative and absolute
       tolerance on the parameters and the loss.
     - `rtol`, `atol`, `solver`, `sim_max_steps`: passed to `simulate` for every trial.
+    - `trim`: for a record the model does not describe to its end (a real top whose stem
+      lands, data from another engine), fit again on the part it describes: after each fit,
+      `describes_until` on the whole record becomes the end of the next fit's window, until it
+      moves by less than 2% of the record (at most 4 fits). `FitResult.fitted_until` says
+      where the fit ended; residuals are reported on the whole record. Costs nothing extra for
+      a record the first fit describes.
 
     Every trial's simulation runs with `throw=False`. Save times after a trial stops (contact
     lost, the $R_n$ singularity, max steps) get the finite residual `FAILED_RESIDUAL` ($\pi$),
@@ -721,6 +730,13 @@ def fit(
     **Returns:** a `FitResult`, with standard errors from the Gauss-Newton covariance
     $s^2 (J^\top J)^{-1}$ scaled by the residual variance $s^2 = \mathrm{RSS}/(N - p)$.
     """
+    if trim:
+        return _trimmed_fit(
+            top_guess, y0_guess, ts, theta_obs, free=free, phi_obs=phi_obs, model=model,
+            method=method, strategy=strategy, t0=t0, weights=weights, sigma=sigma,
+            max_steps=max_steps, tol=tol, rtol=rtol, atol=atol, solver=solver,
+            sim_max_steps=sim_max_steps, learning_rate=learning_rate,
+        )
     free = tuple(free)
     unknown = [n for n in free if n not in FREE_NAMES]
     if unknown:
@@ -897,7 +913,57 @@ def fit(
         ts=jnp.asarray(ts_out, dtype), theta_obs=jnp.asarray(theta_obs_out, dtype),
         theta_fit=out["theta_fit"], residuals=out["residuals"], rms=out["rms"],
         describes_until=jnp.asarray(describes, dtype), noise=jnp.asarray(noise, dtype),
+        fitted_until=jnp.asarray(np.broadcast_to(ts_np[-1], describes.shape), dtype),
         phi_fit=out["phi_fit"], phi_residuals=out["phi_residuals"],
         converged=code == FIT_RESULTS.successful, result=code, num_steps=sum(counts), free=free, model=model, method=method, strategy=strategy,
     )
 
+
+_TRIM_ROUNDS = 4
+
+
+def _trimmed_fit(top_guess, y0_guess, ts, theta_obs, **kwargs) -> FitResult:
+    """`fit` on the part of the record the model describes (see `trim` in `fit`)."""
+    res = fit(top_guess, y0_guess, ts, theta_obs, trim=False, **kwargs)
+    ts_np = np.asarray(ts, dtype=float)
+    obs = np.asarray(theta_obs, dtype=float)
+    phi = kwargs.get("phi_obs")
+    phi = None if phi is None else np.asarray(phi, dtype=float)
+    obs2 = obs.reshape(-1, ts_np.size)
+    span = ts_np[-1] - ts_np[0]
+    shortest = ts_np[0] + 0.1 * span
+    ends = np.full(obs2.shape[0], ts_np[-1])
+
+    def on_whole_record(result):
+        theta_fit = np.asarray(result.theta_fit).reshape(obs2.shape)
+        residuals = theta_fit - obs2  # nan where the data are missing or the run failed
+        noise = np.asarray(result.noise, dtype=float).reshape(-1)
+        describes = np.array([
+            _describes_until(ts_np, residuals[b], noise[b]) for b in range(obs2.shape[0])
+        ])
+        return residuals, describes
+
+    residuals, describes = on_whole_record(res)
+    for _ in range(_TRIM_ROUNDS - 1):
+        new_ends = np.where(np.isfinite(describes), np.maximum(describes, shortest), ends)
+        if np.all(np.abs(new_ends - ends) <= 0.02 * span):
+            break
+        ends = new_ends
+        cut = ts_np[None, :] > ends[:, None]
+        masked = np.where(cut, np.nan, obs2).reshape(obs.shape)
+        if phi is not None:
+            kwargs["phi_obs"] = np.where(cut, np.nan, phi.reshape(obs2.shape)).reshape(obs.shape)
+        res = fit(top_guess, y0_guess, ts, masked, trim=False, **kwargs)
+        residuals, describes = on_whole_record(res)
+    dtype = res.rms.dtype
+    shape = np.shape(np.asarray(res.rms))
+    return eqx.tree_at(
+        lambda r: (r.theta_obs, r.residuals, r.describes_until, r.fitted_until),
+        res,
+        (
+            jnp.asarray(obs, dtype),
+            jnp.asarray(residuals.reshape(obs.shape), dtype),
+            jnp.asarray(describes.reshape(shape), dtype),
+            jnp.asarray(ends.reshape(shape), dtype),
+        ),
+    )

@@ -24,7 +24,7 @@ from ._solution import RESULTS, Solution
 from ._state import State, euler_angles, euler_rates, spin
 from ._top import TippeTop
 
-MODELS = (*LEVELS, "gyroscopic", "auto")
+MODELS = (*LEVELS, "auto")
 
 
 def _observe(top, states: State, friction_model: str, valid):
@@ -219,9 +219,12 @@ def simulate(
     - `t1`: final time (s).
     - `model`: `"full"` (translation included), `"so3"` (translation dropped in the friction),
       `"routhian"` (reduced system with $J$ fixed; leaves the chart for the SO(3) level when
-      $|\sin\theta| <$ `CHART_SIN_MIN`, reported as `"routhian->so3"`), `"auto"` (the
-      cheapest level whose measured error is below `tolerance`), or `"gyroscopic"` (not yet
-      available).
+      $|\sin\theta| <$ `CHART_SIN_MIN`, reported as `"routhian->so3"`), `"gyroscopic"` (the
+      slow flow for $\theta$ alone with the nutation averaged out, `tippejax/_models/gyroscopic.py`:
+      `y0` is first projected onto the slow manifold; the solution is the state on it, with no
+      nutation and no translation; where gyroscopic balance is lost it stops with
+      `RESULTS.no_gyroscopic_balance`, and a launch it cannot describe is not integrated), or
+      `"auto"` (the cheapest level whose measured error is below `tolerance`).
     - `saveat`: save times within `[t0, t1]`, non-decreasing (default: 1001 points from `t0`
       to `t1`). Events (inversion, contact loss, the $R_n$ singularity, the chart edge) are
       located inside the solve, whatever the save grid.
@@ -236,7 +239,8 @@ def simulate(
       (default, reverse mode, for `jax.grad`) or `diffrax.ForwardMode()` (for `jax.jacfwd`,
       cheaper with few parameters).
     - `throw`: raise on failure (contact loss with `on_contact_loss="stop"`, the $R_n$
-      singularity, max steps, NaN). With `False` the failure is in `sol.result`.
+      singularity, max steps, NaN, loss of gyroscopic balance). With `False` the failure is in
+      `sol.result`.
     - `progress`: show diffrax's tqdm progress meter.
     - `on_contact_loss`: `"stop"` ends the run at $R_n = 0$ (a failure); `"continue"` goes on,
       flags `result = contact_lost` and does not raise for it.
@@ -250,10 +254,6 @@ def simulate(
         raise ValueError(f"Unknown model {model!r}; choose one of {MODELS}.")
     if on_contact_loss not in ("stop", "continue"):
         raise ValueError(f"on_contact_loss must be 'stop' or 'continue', got {on_contact_loss!r}.")
-    if model == "gyroscopic":
-        raise NotImplementedError(
-            "model='gyroscopic' is not yet available; use 'routhian', 'so3' or 'full'."
-        )
     _check_top_and_state(top, y0)
     if not (isinstance(max_steps, (int, np.integer)) and max_steps > 0):
         raise ValueError(f"max_steps must be a positive integer, got {max_steps!r}.")
@@ -300,7 +300,7 @@ def simulate(
         progress=progress, samples=int(event_samples),
     )
     name = model
-    if LEVELS[model].has_chart:
+    if LEVELS[model].fallback() is not None:
         switch = out["t_chart_switch"]
         fallback = LEVELS[model].fallback().name
         if _concrete(switch):

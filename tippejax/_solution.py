@@ -39,6 +39,15 @@ class RESULTS(eqxi.Enumeration):
         "would not finish. Pass solver=diffrax.Kvaerno5(), or call simulate with a concrete "
         "top so that the default can be chosen per top. The member was not integrated."
     )
+    no_gyroscopic_balance = (
+        "model='gyroscopic' cannot describe this motion: either the steady-precession "
+        "(gyroscopic balance) equation A h Omega^2 - J Omega - m g eps (R cos(theta) - eps) = 0 "
+        "has no real root here (the spin is too slow, e.g. |n_pi| < n_* = 2 sqrt(A m g eps)/C "
+        "near the inverted position), or the nutation the level averages out has grown past "
+        "0.05 rad and is still growing (at fast spins the slow manifold repels during the rise; "
+        "a contact loss may follow). The run stopped at `t_final` (a launch outside was not "
+        "integrated; values from there on are nan). Use model='so3' (or 'routhian', 'full')."
+    )
 
 
 class Solution(eqx.Module):
@@ -54,10 +63,17 @@ class Solution(eqx.Module):
       their rates are singular where $\sin\theta = 0$.
     - `theta_dot`, `phi_dot`, `psi_dot`: Euler rates (rad/s); `spin`: $n = \omega\cdot a$.
     - `position`, `velocity`: horizontal centre-of-mass position and velocity, `(n_save, 2)`
-      (constant zero for the SO(3) and Routhian levels, which drop translation).
+      (constant zero for the SO(3), Routhian and gyroscopic levels, which drop translation).
+
+    With `model="gyroscopic"` every field is that of the state on the slow manifold: `theta_dot`
+    is the slow drift (no nutation), `phi_dot` the balance precession rate, `spin` and `energy`
+    their values there, `normal_force` about $mg$ (a contact loss caused by the nutation is not
+    seen); `jellet` is exact.
     - `jellet`: $J$; `energy`: $E$; `normal_force`: $R_n$; `slip_speed`: $|v_Q|$.
     - `states`: the `State`s at `ts`.
     - `model`: the level used (str); "routhian->so3" when a Routhian run left its chart.
+      A gyroscopic run that leaves the domain of gyroscopic balance stops there
+      (`result == RESULTS.no_gyroscopic_balance`) and stays "gyroscopic".
     - `result`: a `RESULTS` code (`sol.result == tj.RESULTS.successful`).
     - `t_invert`: first upward crossing of $\theta = \pi/2$ (nan if none).
     - `t_contact_loss`: first time $R_n = 0$ (nan if never).

@@ -1,10 +1,12 @@
 """A run as a chain of segments: a level until its chart ends, then its fallback level.
 
 The Routhian level hands over to the SO(3) level near a pole; the full and SO(3) levels are
-one segment. Contact loss either ends the run (a terminating event) or is observed and the run
-goes on past it (`stop_on_contact=False`); the inversion is always observed. The chain is static
-(it depends on the level only), so under `jit`/`vmap` every segment is compiled once and a
-member that does not need a segment runs it with zero length.
+one segment. A level whose chart ends with no fallback (the gyroscopic level) stops there and
+reports its `chart_end_result`; started outside its chart, it is not integrated at all.
+Contact loss either ends the run (a terminating event) or is observed and the run goes on past
+it (`stop_on_contact=False`); the inversion is always observed. The chain is static (it depends
+on the level only), so under `jit`/`vmap` every segment is compiled once and a member that does
+not need a segment runs it with zero length.
 """
 
 from __future__ import annotations
@@ -33,7 +35,14 @@ def _where_tree(pred, a, b):
     return jax.tree_util.tree_map(lambda x, y: jnp.where(pred, x, y), a, b)
 
 
-def _segment_result(segment, stop_on_contact):
+def _chart_end_code(level: AbstractLevel):
+    """The `RESULTS` member a chart end reports when `level` has no fallback (else None)."""
+    if level.has_chart and level.fallback() is None and level.chart_end_result is not None:
+        return getattr(RESULTS, level.chart_end_result)
+    return None
+
+
+def _segment_result(segment, stop_on_contact, chart_end=None):
     ok = (segment.solver_result == diffrax.RESULTS.successful) | (
         segment.solver_result == diffrax.RESULTS.event_occurred
     )
@@ -46,6 +55,8 @@ def _segment_result(segment, stop_on_contact):
     result = RESULTS.where(segment.fired["singular"], RESULTS.normal_force_singular, result)
     if stop_on_contact:
         result = RESULTS.where(segment.fired["contact"], RESULTS.contact_lost, result)
+    if chart_end is not None:
+        result = RESULTS.where(segment.fired["chart"], chart_end, result)
     return result
 
 
@@ -100,9 +111,15 @@ def run_chain(
     for i, lvl in enumerate(chain):
         last = i == len(chain) - 1
         runs = active & lvl.in_chart(top, state)
+        chart_end = _chart_end_code(lvl)
         if not last:
             # Outside this level's chart from the start: hand over at once.
             hand_over_now = active & ~runs
+        elif chart_end is not None:
+            # Outside the chart of a level with no fallback: nothing to integrate; say why.
+            result = RESULTS.where(
+                active & ~runs & (result == RESULTS.successful), chart_end, result
+            )
         y0 = lvl.from_state(top, _where_tree(runs, state, stand_in))
         t_stop = jnp.where(runs, t1, t_start)
         terminating = ("singular",) + (("chart",) if lvl.has_chart else ()) + (
@@ -115,7 +132,7 @@ def run_chain(
         )
         steps = steps + seg.num_steps
         rejected = rejected + seg.num_rejected_steps
-        seg_result = _segment_result(seg, stop_on_contact)
+        seg_result = _segment_result(seg, stop_on_contact, chart_end)
         result = RESULTS.where(
             runs & (result == RESULTS.successful), seg_result, result
         )

@@ -14,8 +14,9 @@ motion and fall through zero at the event:
   of friction proportional to $R_n$ (ERRATA.md, 5);
 - `upright`: the vertical component of the symmetry axis, $a_Z = \cos\theta$; it falls through
   zero when $\theta$ crosses $\pi/2$ upwards (the inversion);
-- `chart`: positive inside the level's chart (the Routhian chart ends near the poles); a level
-  without a chart edge returns 1.
+- `chart`: positive inside the level's chart (the Routhian chart ends near the poles; the
+  gyroscopic level's domain ends where gyroscopic balance is lost); a level without a chart edge
+  returns 1.
 """
 
 from __future__ import annotations
@@ -56,12 +57,16 @@ class AbstractLevel(eqx.Module):
     - `friction_model`: `"full"` if the friction law sees the horizontal velocity of the centre
       of mass, `"so3"` if it is dropped; used for the observed energy and normal force.
     - `has_chart`: whether the level's coordinates end somewhere (then `conditions().chart`
-      falls through zero there and the run continues in `fallback`).
+      falls through zero there and the run continues in `fallback`, or stops, see below).
+    - `chart_end_result`: for a level with a chart and no fallback, the name of the `RESULTS`
+      member the run reports when the chart ends (the run stops there; a state outside the
+      chart at `t0` is not integrated).
     """
 
     name: ClassVar[str]
     friction_model: ClassVar[str]
     has_chart: ClassVar[bool] = False
+    chart_end_result: ClassVar[str | None] = None
 
     @abc.abstractmethod
     def from_state(self, top: TippeTop, state: State) -> PyTree:

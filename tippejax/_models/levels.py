@@ -6,6 +6,7 @@ one line here.
 
 from .base import AbstractLevel as AbstractLevel, Conditions as Conditions
 from .full import FullLevel
+from .gyroscopic import GyroscopicLevel
 from .routhian import RouthianLevel
 from .so3 import SO3Level
 
@@ -13,4 +14,5 @@ LEVELS: dict[str, AbstractLevel] = {
     "full": FullLevel(),
     "so3": SO3Level(),
     "routhian": RouthianLevel(),
+    "gyroscopic": GyroscopicLevel(),
 }

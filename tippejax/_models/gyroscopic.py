@@ -1,0 +1,393 @@
+r"""The gyroscopic level: a slow flow for $\theta$ alone, with the nutation averaged out.
+
+The model is the paper's SO(3) approximation (Sec. 2.2: translation dropped in the friction law,
+the same as the `so3` and `routhian` levels), reduced once more. Symbols as in the paper and
+ERRATA.md: $x = \cos\theta$, $h = R - \epsilon x$, $\Omega = \dot\varphi$ (precession rate),
+$n = \dot\psi + \dot\varphi\cos\theta$ (spin), $J$ the Jellet (eq. jello),
+$D = R^2A\sin^2\theta + C(Rx-\epsilon)^2$.
+
+**Assumptions.**
+
+1. $J$ is fixed. This is not an approximation: $J$ is exactly conserved by the full model
+   (eqs. Jellet, jello), whatever the friction law.
+2. The slow manifold: $\dot\theta$ is of the order of the friction ($\mu$), so the inertia of the
+   slow motion ($M_\theta\ddot\theta$, $\tfrac12 M_\theta'\dot\theta^2$) and the friction term
+   $\mu R'_n h^2\dot\theta$ of the $\theta$-equation are dropped (they are $O(\mu^2)$). What
+   remains of the $\theta$-equation of $L'$ (the first of eqs. reducedeqs, in Euler angles) is
+   $\partial L'/\partial\theta = 0$ at $\dot\theta = 0$:
+
+   $$\sin\theta\,\big(A\Omega^2\cos\theta - C n\Omega - m g\epsilon\big) = 0. \tag{G1}$$
+
+   This is the gyroscopic balance: the gyroscopic torque $\Omega\sin\theta\,(Cn - A\Omega\cos\theta)$
+   balances the torque of the normal force about the centre of mass, $R_n\,\epsilon\sin\theta$.
+   On (G1) eq. reactie gives exactly $R'_n = m g$ (at $\dot\theta = 0$); the flow uses $R_n = mg$.
+3. Eliminating $n$ with eq. jello, (G1) becomes a quadratic for the precession rate:
+
+   $$A h\,\Omega^2 - J\,\Omega - m g\epsilon\,(R\cos\theta - \epsilon) = 0,\qquad
+     \Delta = J^2 + 4 A h\, m g\epsilon\,(R\cos\theta - \epsilon). \tag{G2}$$
+
+   and then $n = (A\Omega^2\cos\theta - m g\epsilon)/(C\Omega)$.
+
+**Which root.** The level follows the root of larger $|\Omega|$,
+$\Omega = (J + \mathrm{sgn}(J)\sqrt\Delta)/(2Ah) \approx J/(Ah) \approx Cn/(A\cos\theta)$: the
+precession at about the nutation frequency, with the angular momentum nearly vertical
+($L_{\rm hor} \propto Cn - A\Omega\cos\theta = -mg\epsilon/\Omega \to 0$). It is the slow
+manifold because it is the one the motion settles on: linearised at a pole in a regular chart
+(the SO(3) model), the two complex modes of the top are the two roots of (G2) (frequencies
+$\Omega_\pm$), and the one on this root grows or decays at the rate of this flow (standard
+top, $n_0 = 60$ rad/s: $0.760 + 71.3i$ against $0.764$ here), while the other root's mode (the
+classical slow precession, $\Omega \approx -mg\epsilon(R-\epsilon)/J$) decays about five times
+faster ($-4.77 - 4.64i$): that mode is the "nutation" a launch with $\omega = n a$ sheds in the
+first half second (ERRATA.md, useful facts). Along the small root the slip is large ($p \approx
+Rn$) and the motion leaves it. Where the relative equilibria lie on the small root (tops with
+$A/C < (1 + \epsilon/R)/2$, near $\theta = \pi$), this level does not follow them (see below).
+
+**The slip and the friction torque.** With $\dot\theta$ slow the slip velocity of $Q$ is
+$\sin\theta\, p$ across the vertical plane $\Pi$ plus $h\dot\theta$ in it, with
+
+$$p = R\dot\psi + \epsilon\dot\varphi = R n - \Omega(R\cos\theta - \epsilon) = \dot{\bar\varphi}.$$
+
+The $\psi$-equation of $L'$ with the force $Q'$ (Sec. 2.2; equivalently eq. reducedeqs2, since
+$Cn = R\,\partial\mathcal R/\partial\dot{\bar\varphi} - \epsilon J/S$) is exact:
+$\tfrac{d}{dt}(Cn) = Q'_\psi = -\mu R'_n R\sin^2\theta\, p$. On the slow manifold $n = n(\theta; J)$,
+so $\dot\theta = \dot n/(dn/d\theta)$, and with $F_\Omega = 2Ah\Omega - J$ ($= \pm\sqrt\Delta$)
+and $dn/dx$ from implicit differentiation of (G2),
+
+$$\dot\theta = \frac{\mu m g R\,\sin\theta\; p\, F_\Omega}
+{A\Omega F_\Omega + \epsilon(A\Omega^2 + m g R)\,(A\cos\theta + m g\epsilon/\Omega^2)}. \tag{G3}$$
+
+Every term is a smooth function of $x = \cos\theta$ and $\dot\theta \propto \sin\theta$: the flow
+is regular at $\theta = 0, \pi$, which are fixed points (a vertical launch stays vertical).
+
+**Fixed points and stability.** Besides the poles, $\dot\theta = 0$ where $p = 0$: rolling
+without slipping, which on (G1) is $W'(\theta) = 0$ (eq. crit_amendedpot) -- the intermediate
+states of eq. define_intstates. At such a state the slope of (G3) is
+$-\mu m g\sin^2\theta\, W''/(\beta'^2 + M_{\bar\varphi}W'')$, and the denominator is
+$M_\theta M_{\bar\varphi}\nu^2 > 0$ with $\nu$ the nutation frequency below: stable exactly where
+$W'' > 0$ (eq. stabilityba). At the poles the slope changes sign at $J_1$, $J_2$ (eqs. n1, n2).
+
+**Large spin.** As $J \to \infty$, (G3) tends to
+$\dot\theta = (\mu m g R^2/A)\,(1 - \tfrac{\epsilon}{R}\cos\theta)\sin\theta\,
+\big((\tfrac AC - 1)\cos\theta + \tfrac\epsilon R\big)$: the rise rate does not depend on the
+spin, and its sign is that of eq. Exist (Groups I, II, III).
+
+**Comparison with the literature.** Moffatt, Shimomura & Branicki (2004) (gyroscopic
+approximation, to leading order in the spin) and Ueda, Sasaki & Watanabe (2005) (the gyroscopic
+balance condition, GBC, $A\Omega\cos\theta = Cn$: $L$ vertical) balance the gyroscopic torque
+alone. (G1) keeps the torque of the normal force, $mg\epsilon\sin\theta$; the GBC is its
+$J \to \infty$ limit. This changes three things. The fixed points of (G3) are the intermediate
+states of eq. define_intstates at every $J$ (with the GBC only the limit above, whose zeros are
+$0, \pi, \theta_c$); their stability is the $W''$ verdict at every $J$, not only a linearisation
+about the steady states (as the paper says of USW, Sec. 6); and (G2) can have no real root:
+$\Delta < 0$, which at $\theta = \pi$ is the sleeping-top condition $|n_\pi| < n_* =
+2\sqrt{Amg\epsilon}/C$ (Sec. 4). USW use a modified Coulomb friction; here it is eq. viscfric.
+
+**The nutation it drops.** About the slow manifold the top nutates at frequency $\nu$,
+$\nu^2 = ((Cn - 2A\Omega\cos\theta)^2 + A^2\Omega^2\sin^2\theta)/(A M_\theta) > 0$
+($M_\theta = A + m\epsilon^2\sin^2\theta$; $U''/M_\theta$ of the heavy top at fixed momenta), and its
+amplitude $a$ grows at the rate $\sigma = (\operatorname{tr} - \lambda)/2$, with
+$\lambda = \partial\dot\theta/\partial\theta$ the slope of (G3) and
+
+$$\operatorname{tr} = -\mu mg\Big(\frac{h^2}{M_\theta} + \frac{D}{AC}\Big) + \frac{\mu m\epsilon
+\sin^2\theta\, p}{M_\theta}\Big((2\Omega\cos\theta - \tfrac{Cn}{A})(R\cos\theta - \epsilon)
++ R\Omega\sin^2\theta\Big)$$
+
+the trace of the reduced system (eqs. reducedeqs, reducedeqs2) linearised at the balance point
+(the last term is the friction modulated by $R'_n$, which depends on $\dot{\bar\varphi}$). At a
+pole $\sigma$ is the decay rate of the other root's mode. $\sigma$ is negative for slow spins
+but turns positive during the rise at fast ones (standard top: for $n_0 \gtrsim 140$ rad/s,
+$\sigma \approx +9$/s at $\theta = 1.4$ for $n_0 = 200$): the slow manifold then repels and the
+nutation, first damped, grows again -- the route to the contact loss of ERRATA.md, 6. The level
+carries $\ln a$ ($\dot{\ln a} = \sigma$, from the launch's own nutation, see below) so that it
+can say when the dropped nutation has become large.
+
+**Where the level stops** (`Conditions.chart`, terminating; the run ends with
+`RESULTS.no_gyroscopic_balance`, and a launch outside is not integrated):
+
+- $\Delta/(J^2 + 4Ahmg\epsilon|R\cos\theta - \epsilon|) <$ `BALANCE_MARGIN`: no (or barely a)
+  real root of (G2): the spin is too slow for gyroscopic balance at this $\theta$ (near the fold
+  $\Delta = 0$ the two roots merge and (G3) is not Lipschitz);
+- the nutation is larger than `NUTATION_MAX` and growing ($a >$ `NUTATION_MAX` and
+  $\sigma > 0$): $\max(\ln(a_{\max}/a), -\sigma/\nu)$ falls through zero.
+
+**Projection of a launch** (`from_state`). A launch with $\omega = n a$ is not on the slow
+manifold (ERRATA.md): the slow flow must start from the launch's slow-mode content, not its
+$\theta$. Near a pole both modes are linear: in complex notation $\xi = a_X + i a_Y$,
+$w = \omega_X + i\omega_Y$, each mode has $w = r\xi$ with $r = \dot\psi + i\dot\theta/\sin\theta$ of
+its root. The slow component is $\xi_s = (w - r_{\rm in}\xi)/(r_{\rm out} - r_{\rm in})$, and
+$\sin\theta_s = |\xi_s|$; the nutation is the rest, $a_0 = |\xi - \xi_s|$ (at least
+`NUTATION_FLOOR`). $r_{\rm in}$ is the other root's at the nearer pole and $r_{\rm out}$ this
+root's at the launch's $\theta$. It is exact on the slow manifold (`to_state` then `from_state`
+returns $\theta$, and $a_0 = 0$) and, near a pole, the exact linear projection. For a launch far
+from both (large tilt and large nutation) it is an estimate.
+
+**What is dropped.** The nutation (and with it any contact loss it causes: $R_n = mg$ on the
+slow manifold), and the translation of the centre of mass (position and velocity are reported
+as zero, as by the SO(3) and Routhian levels).
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from .._invariants import jellet
+from .._state import State, euler_angles, state_from_euler
+from .._top import TippeTop
+from .base import AbstractLevel, Conditions
+from .routhian import routhian_normal_force
+
+BALANCE_MARGIN = 0.01
+r"""The level stops where $\Delta/(J^2 + 4Ahmg\epsilon|R\cos\theta - \epsilon|)$ falls below this."""
+
+NUTATION_MAX = 0.05
+r"""The level stops where the nutation amplitude it drops exceeds this (rad) while growing."""
+
+NUTATION_FLOOR = 1e-12
+r"""Nutation amplitude (rad) given to a launch that has none (on the slow manifold)."""
+
+
+def _sign(J):
+    return jnp.where(J >= 0, 1.0, -1.0).astype(jnp.result_type(J))
+
+
+def balance_discriminant(top: TippeTop, x, J) -> Array:
+    r"""$\Delta = J^2 + 4Ah\,mg\epsilon(Rx - \epsilon)$ of (G2); $x = \cos\theta$. $< 0$: no balance."""
+    h = top.R - top.eps * x
+    return J**2 + 4 * top.A * h * top.m * top.g * top.eps * (top.R * x - top.eps)
+
+
+def precession_rate(top: TippeTop, x, J, *, branch: int = 1) -> Array:
+    r"""A root $\Omega$ of (G2) at $x = \cos\theta$.
+
+    `branch=1` (the slow manifold): $(J + \mathrm{sgn}(J)\sqrt\Delta)/(2Ah)$;
+    `branch=-1` (the classical slow precession): $-2mg\epsilon(Rx - \epsilon)/(J + \mathrm{sgn}(J)
+    \sqrt\Delta)$, the same root written without cancellation. $\sqrt\Delta$ is taken as 0 where
+    $\Delta < 0$.
+    """
+    h = top.R - top.eps * x
+    root = _sign(J) * jnp.sqrt(jnp.maximum(balance_discriminant(top, x, J), 0.0))
+    if branch == 1:
+        return (J + root) / (2 * top.A * h)
+    if branch == -1:
+        return -2 * top.m * top.g * top.eps * (top.R * x - top.eps) / (J + root)
+    raise ValueError(f"branch must be 1 or -1, got {branch!r}.")
+
+
+class SlowManifold(eqx.Module):
+    r"""The slow manifold at one $\theta$ for one $J$ (see the module docstring).
+
+    - `precession`: $\Omega = \dot\varphi$, a root of (G2).
+    - `spin`: $n = (A\Omega^2\cos\theta - mg\epsilon)/(C\Omega)$.
+    - `slip`: $p = Rn - \Omega(R\cos\theta - \epsilon)$ (slip across $\Pi$ is $p\sin\theta$).
+    - `rate`: $\dot\theta/\sin\theta$ of (G3) (regular at the poles).
+    - `theta_dot`: $\dot\theta$ of (G3).
+    - `discriminant`: $\Delta$ of (G2).
+    """
+
+    precession: Array
+    spin: Array
+    slip: Array
+    rate: Array
+    theta_dot: Array
+    discriminant: Array
+
+
+def slow_manifold(top: TippeTop, theta, J, *, branch: int = 1) -> SlowManifold:
+    r"""Precession, spin, slip and the slow flow (G3) at $\theta$ on one root of (G2).
+
+    `branch=1` is the level's slow manifold; `branch=-1` (the other root) is singular at
+    $\cos\theta = \epsilon/R$ and serves the projection at the poles and the analysis.
+    """
+    theta = jnp.asarray(theta, dtype=jnp.result_type(theta, top.m))
+    x, s = jnp.cos(theta), jnp.sin(theta)
+    m, g, eps, R, A, C = top.m, top.g, top.eps, top.R, top.A, top.C
+    h = R - eps * x
+    omega = precession_rate(top, x, J, branch=branch)
+    spin = (A * omega**2 * x - m * g * eps) / (C * omega)
+    slip = R * spin - omega * (R * x - eps)
+    f_omega = 2 * A * h * omega - J
+    denominator = A * omega * f_omega + eps * (A * omega**2 + m * g * R) * (
+        A * x + m * g * eps / omega**2
+    )
+    rate = top.mu * m * g * R * slip * f_omega / denominator
+    return SlowManifold(
+        precession=omega,
+        spin=spin,
+        slip=slip,
+        rate=rate,
+        theta_dot=rate * s,
+        discriminant=balance_discriminant(top, x, J),
+    )
+
+
+def gyroscopic_theta_dot(top: TippeTop, theta, J) -> Array:
+    r"""$\dot\theta$ of the slow flow (G3) on the level's root of (G2)."""
+    return slow_manifold(top, theta, J).theta_dot
+
+
+def limit_theta_dot(top: TippeTop, theta) -> Array:
+    r"""The $J \to \infty$ limit of (G3):
+    $(\mu mgR^2/A)(1 - \tfrac\epsilon R\cos\theta)\sin\theta\,((\tfrac AC - 1)\cos\theta + \tfrac\epsilon R)$."""
+    x, s = jnp.cos(theta), jnp.sin(theta)
+    a, e = top.A / top.C, top.eps / top.R
+    return top.mu * top.m * top.g * top.R**2 / top.A * (1 - e * x) * s * ((a - 1) * x + e)
+
+
+def nutation_frequency(top: TippeTop, theta, J) -> Array:
+    r"""$\nu$ of the nutation about the slow manifold:
+    $\nu^2 = ((Cn - 2A\Omega\cos\theta)^2 + A^2\Omega^2\sin^2\theta)/(A M_\theta)$."""
+    x, s = jnp.cos(theta), jnp.sin(theta)
+    sm = slow_manifold(top, theta, J)
+    inertia = top.A + top.m * top.eps**2 * s**2
+    nu2 = ((top.C * sm.spin - 2 * top.A * sm.precession * x) ** 2
+           + (top.A * sm.precession * s) ** 2) / (top.A * inertia)
+    return jnp.sqrt(nu2)
+
+
+def nutation_damping(top: TippeTop, theta, J) -> Array:
+    r"""$\sigma = (\operatorname{tr} - \lambda)/2$: growth rate of the nutation about the slow
+    manifold (negative: it decays). See the module docstring."""
+    theta = jnp.asarray(theta, dtype=jnp.result_type(theta, top.m))
+    x, s = jnp.cos(theta), jnp.sin(theta)
+    sm, slope = jax.jvp(
+        lambda th: slow_manifold(top, th, J), (theta,), (jnp.ones_like(theta),)
+    )
+    m, g, eps, R, A, C = top.m, top.g, top.eps, top.R, top.A, top.C
+    h = R - eps * x
+    d = R**2 * A * s**2 + C * (R * x - eps) ** 2
+    inertia = A + m * eps**2 * s**2
+    omega, n, p = sm.precession, sm.spin, sm.slip
+    trace = -top.mu * m * g * (h**2 / inertia + d / (A * C)) + top.mu * m * eps * s**2 * p * (
+        (2 * omega * x - C * n / A) * (R * x - eps) + R * omega * s**2
+    ) / inertia
+    return 0.5 * (trace - slope.theta_dot)
+
+
+def validity(top: TippeTop, theta, J, log_amplitude) -> Array:
+    r"""`Conditions.chart` of the level: $\min(\Delta_{\rm rel} - $ `BALANCE_MARGIN`$,
+    \max(\ln(a_{\max}/a), -\sigma/\nu))$, with $\ln a$ = `log_amplitude`.
+
+    Positive where (G2) has a real root with margin and the nutation is small or decaying; the
+    level stops where it falls through zero (see the module docstring).
+    """
+    x = jnp.cos(theta)
+    h = top.R - top.eps * x
+    scale = J**2 + 4 * top.A * h * top.m * top.g * top.eps * jnp.abs(top.R * x - top.eps)
+    balance = balance_discriminant(top, x, J) / scale - BALANCE_MARGIN
+    decaying = -nutation_damping(top, theta, J) / nutation_frequency(top, theta, J)
+    small = jnp.log(NUTATION_MAX) - log_amplitude
+    return jnp.minimum(balance, jnp.maximum(small, decaying))
+
+
+def _complex_ratio(top, theta, J, branch):
+    """(Re, Im) of r = psi_dot + i theta_dot/sin(theta) of a mode (see the module docstring)."""
+    sm = slow_manifold(top, theta, J, branch=branch)
+    return sm.spin - sm.precession * jnp.cos(theta), sm.rate
+
+
+def project_launch(top: TippeTop, state: State):
+    r"""$(\theta_s, \varphi_s, \psi_s, \ln a_0, J)$: a (single) state projected onto the slow
+    manifold, with the amplitude $a_0$ of its nutation.
+
+    See "Projection of a launch" in the module docstring. Regular at the poles.
+    """
+    J = jellet(top, state)
+    theta, phi, psi = euler_angles(state)
+    a, w = state.axis, state.omega
+    north = a[2] >= 0
+    pole = jnp.where(north, 0.0, jnp.pi).astype(theta.dtype)
+    in_re, in_im = _complex_ratio(top, pole, J, -1)
+    out_re, out_im = _complex_ratio(top, theta, J, 1)
+    # c = (w - r_in xi) / (r_out - r_in), complex arithmetic in real components
+    num_re = w[0] - (in_re * a[0] - in_im * a[1])
+    num_im = w[1] - (in_re * a[1] + in_im * a[0])
+    den_re, den_im = out_re - in_re, out_im - in_im
+    den2 = den_re**2 + den_im**2
+    c_re = (num_re * den_re + num_im * den_im) / den2
+    c_im = (num_im * den_re - num_re * den_im) / den2
+    mod2 = c_re**2 + c_im**2
+    positive = mod2 > 0
+    modulus = jnp.where(positive, jnp.sqrt(jnp.where(positive, mod2, 1.0)), 0.0)
+    tilt = jnp.arcsin(jnp.clip(modulus, 0.0, 1.0))
+    theta_s = jnp.where(north, tilt, jnp.pi - tilt)
+    # xi_s = -i sin(theta_s) e^{i phi_s}: phi_s = atan2(Re xi_s, -Im xi_s); keep phi + psi.
+    phi_s = jnp.where(positive, jnp.arctan2(c_re, -c_im), phi)
+    # the nutation: what is left of the horizontal axis, xi - xi_s
+    rest2 = (a[0] - c_re) ** 2 + (a[1] - c_im) ** 2
+    floor2 = jnp.asarray(NUTATION_FLOOR, rest2.dtype) ** 2
+    log_amplitude = 0.5 * jnp.log(jnp.maximum(rest2, floor2))
+    return theta_s, phi_s, psi + phi - phi_s, log_amplitude, J
+
+
+class GyroscopicLevelState(eqx.Module):
+    r"""State of the gyroscopic level: $\theta$, the precession and spin angles, the log of the
+    nutation amplitude, and $J$.
+
+    Only $\theta$ is dynamic. $\varphi$ and $\psi$ are integrated from $\dot\varphi = \Omega$ and
+    $\dot\psi = n - \Omega\cos\theta$ to report the orientation, and `nutation` $= \ln a$ from
+    $\sigma$ to watch the nutation that is dropped; none of them feeds back. $J$ is constant.
+    """
+
+    theta: Float[Array, ""]
+    phi: Float[Array, ""]
+    psi: Float[Array, ""]
+    nutation: Float[Array, ""]
+    jellet: Float[Array, ""]
+
+
+class GyroscopicLevel(AbstractLevel):
+    r"""The slow flow (G3) for $\theta$ with $J$ fixed (see the module docstring).
+
+    `to_state` gives the state on the slow manifold: $\theta$, $\dot\theta$ of (G3) (the slow
+    drift, no nutation), $\dot\varphi = \Omega$, spin $n$ from (G1), horizontal position and
+    velocity zero. `from_state` projects a state onto it (`project_launch`). The step size is
+    controlled on $\theta$ alone. Where (G2) has no real root, or the dropped nutation is large
+    and growing, the run stops with `RESULTS.no_gyroscopic_balance` (no fallback).
+    """
+
+    name = "gyroscopic"
+    friction_model = "so3"
+    has_chart = True
+    chart_end_result = "no_gyroscopic_balance"
+
+    def from_state(self, top, state):
+        theta, phi, psi, log_amplitude, J = project_launch(top, state)
+        return GyroscopicLevelState(
+            theta=theta, phi=phi, psi=psi, nutation=log_amplitude, jellet=J
+        )
+
+    def to_state(self, top, y):
+        sm = slow_manifold(top, y.theta, y.jellet)
+        psi_dot = sm.spin - sm.precession * jnp.cos(y.theta)
+        return state_from_euler(y.theta, y.phi, y.psi, sm.theta_dot, sm.precession, psi_dot)
+
+    def vector_field(self, t, y, top):
+        sm = slow_manifold(top, y.theta, y.jellet)
+        return GyroscopicLevelState(
+            theta=sm.theta_dot,
+            phi=sm.precession,
+            psi=sm.spin - sm.precession * jnp.cos(y.theta),
+            nutation=nutation_damping(top, y.theta, y.jellet),
+            jellet=jnp.zeros_like(y.jellet),
+        )
+
+    def conditions(self, top, y):
+        sm = slow_manifold(top, y.theta, y.jellet)
+        normal_force, denominator = routhian_normal_force(
+            top, y.theta, sm.theta_dot, sm.precession, sm.spin
+        )
+        return Conditions(
+            contact=normal_force * denominator,
+            singular=denominator,
+            upright=jnp.cos(y.theta),
+            chart=validity(top, y.theta, y.jellet, y.nutation),
+        )
+
+    def in_chart(self, top, state):
+        return self.conditions(top, self.from_state(top, state)).chart > 0
+
+    def error_norm(self, scaled_error):
+        return jnp.abs(scaled_error.theta)
