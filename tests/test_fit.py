@@ -174,6 +174,17 @@ def test_gradient_of_every_free_parameter_matches_finite_differences(short_probl
         assert grad_p[i] == pytest.approx(fd, rel=2e-4, abs=1e-8 * abs(fd) + 1e-12), name
 
 
+def test_non_finite_trial_is_a_failed_trial_not_an_error(short_problem):
+    """An optimiser step that overflows (nan coordinates) must not reach simulate's state
+    checks: every sample gets the finite failure residual."""
+    data, cfg = short_problem
+    r = jax.jit(lambda u: _fit._residuals(u, data, cfg))(jnp.full(len(cfg.free), jnp.nan))
+    theta_part = np.asarray(r)[: data.ts.size]
+    used = np.asarray(data.weights) > 0
+    assert np.all(np.isfinite(np.asarray(r)))
+    np.testing.assert_allclose(theta_part[used], _fit.FAILED_RESIDUAL * np.sqrt(np.asarray(data.weights)[used]))
+
+
 def test_reparametrisation_keeps_constraints(short_problem):
     data, cfg = short_problem
     physical = jax.jit(lambda u: _fit._physical(u, data.base, cfg.free))

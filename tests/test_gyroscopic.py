@@ -19,7 +19,6 @@ from helpers import GROUP_RATIOS
 import tippejax as tj
 from tippejax._models.gyroscopic import (
     BALANCE_MARGIN,
-    NUTATION_MAX,
     GyroscopicLevel,
     GyroscopicLevelState,
     limit_theta_dot,
@@ -27,7 +26,6 @@ from tippejax._models.gyroscopic import (
     nutation_frequency,
     project_launch,
     slow_manifold,
-    validity,
 )
 
 N = 201  # one save-grid length for every run
@@ -79,11 +77,11 @@ def _sympy_slow_flow():
     L = sp.Rational(1, 2) * ((eps**2 * m * sp.sin(TH) ** 2 + A) * thd**2
                              + A * sp.sin(TH) ** 2 * phd**2
                              + C * (psd + phd * sp.cos(TH)) ** 2) - m * g * (R - eps * sp.cos(TH))
-    on_manifold = {TH.diff(t, 2): 0}
+    no_acceleration = {TH.diff(t, 2): 0}
     slow = {thd: 0, phd: Om, psd: n - Om * sp.cos(th)}
 
     def at_slow(expr):
-        expr = expr.subs(on_manifold).subs(slow)
+        expr = expr.subs(no_acceleration).subs(slow)
         return expr.subs(TH, th)
 
     # theta-equation, d/dt dL'/dthd - dL'/dth = Q'_theta = -mu R'_n h^2 thd = 0 on the manifold
@@ -153,7 +151,8 @@ def test_slow_flow_derivation_sympy(getkey):
 
 def test_nutation_frequency_sympy():
     """nu^2 = U''/M_theta of the heavy top at fixed momenta p_phi, p_psi, at the balance point."""
-    th, A, C, m, g, eps, R, pphi, ppsi = sp.symbols("theta A C m g epsilon R p_phi p_psi", real=True)
+    names = "theta A C m g epsilon R p_phi p_psi"
+    th, A, C, m, g, eps, R, pphi, ppsi = sp.symbols(names, real=True)
     U = (pphi - ppsi * sp.cos(th)) ** 2 / (2 * A * sp.sin(th) ** 2) + m * g * (R - eps * sp.cos(th))
     U2 = sp.lambdify((th, A, C, m, g, eps, R, pphi, ppsi), sp.diff(U, th, 2))
     for name in ("IIb", "Ib", "III"):
@@ -167,34 +166,35 @@ def test_nutation_frequency_sympy():
             p_phi = A_ * np.sin(theta) ** 2 * float(sm.precession) + p_psi * np.cos(theta)
             inertia = A_ + pars[2] * pars[4] ** 2 * np.sin(theta) ** 2
             nu2 = U2(theta, *pars, p_phi, p_psi) / inertia
-            np.testing.assert_allclose(float(nutation_frequency(top, theta, J)) ** 2, nu2, rtol=1e-8)
-
-
-def test_trace_and_nutation_against_routhian_linearisation():
-    """At a balance point the trace of the Routhian system's Jacobian in (theta, thd, phibard) is
-    2 sigma + lambda (exactly), and its complex pair is the nutation: frequency nu, growth sigma
-    (to leading order in the friction)."""
-    for name in ("IIb", "Ib", "III"):
-        top = tj.TippeTop.from_ratios(*GROUP_RATIOS[name])
-        for theta, spin in ((0.5, 100.0), (1.4, 100.0), (1.0, 200.0)):
-            J = jellet_of(top, spin)
-            sm = slow_manifold(top, theta, J)
-
-            def field(z):
-                y = ti.RouthianState(theta=z[0], phibar=0.0 * z[0], c=0.0 * z[0], theta_dot=z[1],
-                                     phibar_dot=z[2])
-                d = ti.routhian_vector_field(0.0, y, (top, J))
-                return jnp.stack([d.theta, d.theta_dot, d.phibar_dot])
-
-            jac = jax.jacfwd(field)(jnp.array([theta, 0.0, float(sm.slip)]))
-            slope = float(jax.grad(lambda t: slow_manifold(top, t, J).theta_dot)(theta))
-            sigma = float(nutation_damping(top, theta, J))
-            np.testing.assert_allclose(2 * sigma + slope, float(jnp.trace(jac)), rtol=1e-9)
-            ev = np.linalg.eigvals(np.asarray(jac))
-            pair = ev[np.argmax(np.abs(ev.imag))]
             nu = float(nutation_frequency(top, theta, J))
-            assert abs(abs(pair.imag) - nu) < 0.03 * nu
-            assert abs(pair.real - sigma) < 0.2 * abs(sigma) + 0.6, (name, theta, spin)
+            np.testing.assert_allclose(nu**2, nu2, rtol=1e-8)
+
+
+def test_nutation_against_the_linearisations():
+    """At the relative equilibria on the level's root, the nutation pair of the reduced system
+    (steady_states' autodiff Jacobian) is nu and sigma; at the poles (SO(3) model, a regular
+    chart) sigma is the decay rate of the other root's mode."""
+    checked = 0
+    for name in GROUP_RATIOS:
+        top = tj.TippeTop.from_ratios(*GROUP_RATIOS[name])
+        for spin in (20.0, 40.0, 80.0, 200.0):
+            J = jellet_of(top, spin)
+            ss = tj.steady_states(top, J)
+            for k in range(2):
+                if not bool(ss.intermediate_valid[k]):
+                    continue
+                theta = float(ss.intermediate_theta[k])
+                sm = slow_manifold(top, theta, J)
+                if abs(float(sm.slip)) > 1e-9 * abs(float(sm.precession)) * float(top.R):
+                    continue  # on the other root
+                ev = np.asarray(ss.intermediate_eigenvalues_reduced[k])
+                pair = ev[np.argmax(np.abs(ev.imag))]
+                nu, sigma = float(nutation_frequency(top, theta, J)), float(
+                    nutation_damping(top, theta, J))
+                assert abs(abs(pair.imag) - nu) < 0.03 * nu, (name, spin)
+                assert abs(pair.real - sigma) < 0.03 * abs(pair.real), (name, spin, pair, sigma)
+                checked += 1
+    assert checked >= 12
 
 
 def test_pole_slopes_match_so3_linearisation():
@@ -206,10 +206,9 @@ def test_pole_slopes_match_so3_linearisation():
     for spin in (30.0, 60.0, 150.0, 400.0):
         J = jellet_of(top, spin)
         ev = np.asarray(ti.vector_field_eigenvalues(top, 0.0, J, model="so3", pole=True))
-        ev = ev[ev.imag > 0] if np.sum(ev.imag > 0) == 2 else ev
         outer, inner = slow_manifold(top, 0.0, J), slow_manifold(top, 0.0, J, branch=-1)
         mode = ev[np.argmin(np.abs(ev.imag - float(outer.precession)))]
-        other = ev[np.argmin(np.abs(np.abs(ev.imag) - abs(float(inner.precession))))]
+        other = ev[np.argmin(np.abs(ev.imag - float(inner.precession)))]
         rel.append(abs(float(outer.rate) - mode.real) / abs(mode.real))
         assert abs(float(inner.rate) - other.real) < 0.02 * abs(other.real)
         assert abs(float(nutation_damping(top, 0.0, J)) - other.real) < 0.02 * abs(other.real)
@@ -282,7 +281,8 @@ def test_fixed_points_and_stability(group):
         sm = slow_manifold(top, jnp.asarray(thetas), J)
         x = np.cos(thetas)
         h = float(top.R) - float(top.eps) * x
-        scale = J**2 + 4 * float(top.A * top.m * top.g * top.eps) * h * np.abs(float(top.R) * x - float(top.eps))
+        lever = np.abs(float(top.R) * x - float(top.eps))
+        scale = J**2 + 4 * float(top.A * top.m * top.g * top.eps) * h * lever
         ok = _np(sm.discriminant) / scale > BALANCE_MARGIN
         rate = _np(sm.rate)
         changes = np.nonzero(ok[1:] & ok[:-1] & (np.sign(rate[1:]) != np.sign(rate[:-1])))[0]
@@ -357,7 +357,7 @@ def test_run_fields_and_invariants(top):
     E = _np(sol.energy)
     assert np.all(np.diff(E) <= 1e-12 * np.abs(E[1:]))  # friction only takes energy
     rn = _np(sol.normal_force) / float(top.m * top.g)
-    assert np.max(np.abs(rn - 1)) < 2e-3  # R_n = m g on the slow manifold, up to O(thd)
+    assert np.max(np.abs(rn - 1)) < 0.03  # R_n = m g on the slow manifold, up to O(thd)
     assert np.all(_np(sol.position) == 0) and np.all(_np(sol.velocity) == 0)
     assert 5.0 < float(sol.t_invert) < 6.5
 
@@ -427,7 +427,7 @@ def test_iib_between_j1_and_j2_settles_on_the_intermediate_state(top):
     print(f"IIb, J = (J1 + J2)/2: theta(30 s) = {float(sol.theta[-1]):.6f}, intermediate state "
           f"{target[0][0]:.6f}")
     assert abs(float(sol.theta[-1]) - target[0][0]) < 1e-6
-    assert np.isnan(float(sol.t_invert))
+    assert np.isfinite(float(sol.t_invert)) == (target[0][0] > np.pi / 2)
 
 
 def test_launch_without_gyroscopic_balance_is_refused(top):
@@ -461,4 +461,4 @@ def test_growing_nutation_stops_the_run(top):
     before = _np(sol.ts) <= t_final
     assert np.all(np.isfinite(_np(sol.theta)[before])) and np.all(np.isnan(_np(sol.theta)[~before]))
     theta_end = float(_np(sol.theta)[before][-1])
-    assert float(validity(top, theta_end, J, np.log(NUTATION_MAX))) < 0.05
+    assert float(nutation_damping(top, theta_end, J)) > 0  # stopped while the nutation grows

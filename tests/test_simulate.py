@@ -523,8 +523,6 @@ def test_max_steps_reached(top, y_std):
 def test_bad_arguments(top, y_std):
     with pytest.raises(ValueError):
         tj.simulate(top, y_std, 1.0, model="euler")
-    with pytest.raises(NotImplementedError):
-        tj.simulate(top, y_std, 1.0, model="gyroscopic")
     for t0, t1 in [(0.0, 0.0), (0.0, -1.0), (2.0, 1.0)]:
         with pytest.raises(ValueError):
             tj.simulate(top, y_std, t1, t0=t0)

@@ -17,8 +17,16 @@ standard top by more than a second, and a least-squares fit over the whole recor
 a flat, curved valley. The default strategy (`"levels"`) first fits slow observables: the times
 at which the kernel-smoothed tilt first crosses a ladder of levels, the same smoothing applied to
 data and model. Time residuals are nearly linear in the parameters (a 1 s shift is a 1 s
-residual, not a flat plateau), so this stage converges from far; the record itself is fitted
-from there. `benchmarks/fitting.py` measures it against plain and window-continuation fits.
+residual, not a flat plateau), so this stage converges from far. The nutation is the second
+trap: its phase error grows with time and with the error in the spin (1% in the spin slips it
+by a cycle over the standard top's rise), so the record is then fitted in windows that double
+from 1/64 of its length, the level times kept in the loss, and last the whole record alone (the
+loss the covariance describes). `benchmarks/fitting.py` measures this against plain fits and
+window continuation without levels (`"windows"`).
+
+Each optimiser step costs one simulation with $p$ tangents: the residual function has a custom
+JVP that returns the materialised Jacobian, so `jax.linearize` inside optimistix does not run
+the ODE solve again for each Jacobian-vector product.
 """
 
 from __future__ import annotations
@@ -232,7 +240,10 @@ def _physical(u: Float[Array, " p"], base: _Base, free: tuple[str, ...]) -> dict
     for name, floor in (("theta_dot", 1.0), ("phi_dot", 1.0), ("vx", 0.01), ("vy", 0.01)):
         if name in z:
             out[name] = lau[name] + jnp.maximum(jnp.abs(lau[name]), floor) * z[name]
-    return out
+    # The coordinates u are in the optimiser's precision (float64 when enabled); the physical
+    # values in the top's (float32 tops simulate in float32).
+    dtype = jnp.result_type(t["m"])
+    return {k: jnp.asarray(v, dtype) for k, v in out.items()}
 
 
 def _assemble(values: dict[str, Array], base: _Base) -> tuple[TippeTop, State]:
@@ -297,14 +308,19 @@ class _Data(eqx.Module):
 
 
 def _simulated(values, data: _Data, cfg: _Config):
-    top, y0 = _assemble(values, data.base)
+    # A trial with a non-finite value (an optimiser step that overflowed) runs the guess
+    # instead, and all its samples are marked failed: simulate must not see a NaN state.
+    finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(v)) for v in values.values()]))
+    guess = {k: data.base.top[k] if k in TOP_FIELDS else data.base.launch[k] for k in values}
+    safe = {k: jnp.where(finite, v, guess[k]) for k, v in values.items()}
+    top, y0 = _assemble(safe, data.base)
     saves = jnp.minimum(data.ts, data.t_end)
     sol = simulate(
         top, y0, data.t_end, t0=data.t0, saveat=saves, model=cfg.model, rtol=data.rtol,
         atol=data.atol, solver=cfg.solver, max_steps=cfg.sim_max_steps, throw=False,
         adjoint=diffrax.ForwardMode(), on_contact_loss="continue",
     )
-    return sol
+    return eqx.tree_at(lambda s: s.theta, sol, jnp.where(finite, sol.theta, jnp.nan))
 
 
 def _first_crossings(smooth, grid, levels):
@@ -356,7 +372,8 @@ def _residuals_of_values(values, data: _Data, cfg: _Config):
 
 
 def _residuals(u, data: _Data, cfg: _Config):
-    return _residuals_of_values(_physical(u, data.base, cfg.free), data, cfg)[0]
+    r = _residuals_of_values(_physical(u, data.base, cfg.free), data, cfg)[0]
+    return r.astype(u.dtype)  # the optimiser works in its own precision
 
 
 def _value_and_jacobian(u, data, cfg):
@@ -875,7 +892,9 @@ def fit(
         stages.append(with_stage(everything, ts_np[-1], 0.0, tol))
 
     p = len(free)
-    u = jnp.zeros((bsize, p) if batched else (p,), dtype)
+    # The optimiser runs in float64 when JAX has it, whatever the top's precision (optimistix's
+    # damping terms are float64 then, and must match the coordinates).
+    u = jnp.zeros((bsize, p) if batched else (p,), jnp.result_type(float))
     histories, counts = [], []
     code = None
     for stage_data in stages:

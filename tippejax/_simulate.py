@@ -220,9 +220,10 @@ def simulate(
     - `model`: `"full"` (translation included), `"so3"` (translation dropped in the friction),
       `"routhian"` (reduced system with $J$ fixed; leaves the chart for the SO(3) level when
       $|\sin\theta| <$ `CHART_SIN_MIN`, reported as `"routhian->so3"`), `"gyroscopic"` (the
-      slow flow for $\theta$ alone with the nutation averaged out, `tippejax/_models/gyroscopic.py`:
-      `y0` is first projected onto the slow manifold; the solution is the state on it, with no
-      nutation and no translation; where gyroscopic balance is lost it stops with
+      slow flow for $\theta$ alone with the nutation averaged out, see
+      `tippejax/_models/gyroscopic.py`: `y0` is first projected onto the slow manifold; the
+      solution is the state on it, with no nutation and no translation; where gyroscopic
+      balance is lost, or the nutation it drops grows large, it stops with
       `RESULTS.no_gyroscopic_balance`, and a launch it cannot describe is not integrated), or
       `"auto"` (the cheapest level whose measured error is below `tolerance`).
     - `saveat`: save times within `[t0, t1]`, non-decreasing (default: 1001 points from `t0`

@@ -45,8 +45,9 @@ class RESULTS(eqxi.Enumeration):
         "has no real root here (the spin is too slow, e.g. |n_pi| < n_* = 2 sqrt(A m g eps)/C "
         "near the inverted position), or the nutation the level averages out has grown past "
         "0.05 rad and is still growing (at fast spins the slow manifold repels during the rise; "
-        "a contact loss may follow). The run stopped at `t_final` (a launch outside was not "
-        "integrated; values from there on are nan). Use model='so3' (or 'routhian', 'full')."
+        "a contact loss may follow), or the launch has more than 0.25 rad of nutation (too far "
+        "from the slow manifold to project). The run stopped at `t_final` (a launch outside was "
+        "not integrated; values from there on are nan). Use model='so3' (or 'routhian', 'full')."
     )
 
 

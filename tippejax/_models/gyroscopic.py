@@ -18,8 +18,9 @@ $D = R^2A\sin^2\theta + C(Rx-\epsilon)^2$.
 
    $$\sin\theta\,\big(A\Omega^2\cos\theta - C n\Omega - m g\epsilon\big) = 0. \tag{G1}$$
 
-   This is the gyroscopic balance: the gyroscopic torque $\Omega\sin\theta\,(Cn - A\Omega\cos\theta)$
-   balances the torque of the normal force about the centre of mass, $R_n\,\epsilon\sin\theta$.
+   This is the gyroscopic balance: the gyroscopic torque
+   $\Omega\sin\theta\,(Cn - A\Omega\cos\theta)$ balances the torque of the normal force about
+   the centre of mass, $R_n\,\epsilon\sin\theta$.
    On (G1) eq. reactie gives exactly $R'_n = m g$ (at $\dot\theta = 0$); the flow uses $R_n = mg$.
 3. Eliminating $n$ with eq. jello, (G1) becomes a quadratic for the precession rate:
 
@@ -39,7 +40,7 @@ top, $n_0 = 60$ rad/s: $0.760 + 71.3i$ against $0.764$ here), while the other ro
 classical slow precession, $\Omega \approx -mg\epsilon(R-\epsilon)/J$) decays about five times
 faster ($-4.77 - 4.64i$): that mode is the "nutation" a launch with $\omega = n a$ sheds in the
 first half second (ERRATA.md, useful facts). Along the small root the slip is large ($p \approx
-Rn$) and the motion leaves it. Where the relative equilibria lie on the small root (tops with
+Rn$) and the motion leaves it. Where relative equilibria lie on the small root (tops with
 $A/C < (1 + \epsilon/R)/2$, near $\theta = \pi$), this level does not follow them (see below).
 
 **The slip and the friction torque.** With $\dot\theta$ slow the slip velocity of $Q$ is
@@ -49,9 +50,9 @@ $$p = R\dot\psi + \epsilon\dot\varphi = R n - \Omega(R\cos\theta - \epsilon) = \
 
 The $\psi$-equation of $L'$ with the force $Q'$ (Sec. 2.2; equivalently eq. reducedeqs2, since
 $Cn = R\,\partial\mathcal R/\partial\dot{\bar\varphi} - \epsilon J/S$) is exact:
-$\tfrac{d}{dt}(Cn) = Q'_\psi = -\mu R'_n R\sin^2\theta\, p$. On the slow manifold $n = n(\theta; J)$,
-so $\dot\theta = \dot n/(dn/d\theta)$, and with $F_\Omega = 2Ah\Omega - J$ ($= \pm\sqrt\Delta$)
-and $dn/dx$ from implicit differentiation of (G2),
+$\tfrac{d}{dt}(Cn) = Q'_\psi = -\mu R'_n R\sin^2\theta\, p$. On the slow manifold
+$n = n(\theta; J)$, so $\dot\theta = \dot n/(dn/d\theta)$, and with $F_\Omega = 2Ah\Omega - J$
+($= \pm\sqrt\Delta$) and $dn/dx$ from implicit differentiation of (G2),
 
 $$\dot\theta = \frac{\mu m g R\,\sin\theta\; p\, F_\Omega}
 {A\Omega F_\Omega + \epsilon(A\Omega^2 + m g R)\,(A\cos\theta + m g\epsilon/\Omega^2)}. \tag{G3}$$
@@ -64,7 +65,11 @@ without slipping, which on (G1) is $W'(\theta) = 0$ (eq. crit_amendedpot) -- the
 states of eq. define_intstates. At such a state the slope of (G3) is
 $-\mu m g\sin^2\theta\, W''/(\beta'^2 + M_{\bar\varphi}W'')$, and the denominator is
 $M_\theta M_{\bar\varphi}\nu^2 > 0$ with $\nu$ the nutation frequency below: stable exactly where
-$W'' > 0$ (eq. stabilityba). At the poles the slope changes sign at $J_1$, $J_2$ (eqs. n1, n2).
+$W'' > 0$ (eq. stabilityba). At the poles the slope changes sign where $W''$ does, at $J_1$,
+$J_2$ (eqs. n1, n2), wherever the relative equilibria branching off there lie on this root:
+always at $\theta = 0$, and at $\theta = \pi$ if $A/C > (1 + \epsilon/R)/2$. Otherwise (as in
+Group IIa near $\theta = \pi$) the other root carries the change of stability: there the
+nutation about this root grows ($\sigma > 0$ below), which the level watches and reports.
 
 **Large spin.** As $J \to \infty$, (G3) tends to
 $\dot\theta = (\mu m g R^2/A)\,(1 - \tfrac{\epsilon}{R}\cos\theta)\sin\theta\,
@@ -84,22 +89,29 @@ $\Delta < 0$, which at $\theta = \pi$ is the sleeping-top condition $|n_\pi| < n
 
 **The nutation it drops.** About the slow manifold the top nutates at frequency $\nu$,
 $\nu^2 = ((Cn - 2A\Omega\cos\theta)^2 + A^2\Omega^2\sin^2\theta)/(A M_\theta) > 0$
-($M_\theta = A + m\epsilon^2\sin^2\theta$; $U''/M_\theta$ of the heavy top at fixed momenta), and its
-amplitude $a$ grows at the rate $\sigma = (\operatorname{tr} - \lambda)/2$, with
-$\lambda = \partial\dot\theta/\partial\theta$ the slope of (G3) and
+($M_\theta = A + m\epsilon^2\sin^2\theta$; $U''/M_\theta$ of the heavy top at fixed momenta). Its
+amplitude $a$ (in $\theta$) changes at the rate $\sigma$, found by averaging the reduced system
+(eqs. reducedeqs, reducedeqs2) linearised about the slow manifold over a period: with
+$K = \partial_p(\tfrac12 M_{\bar\varphi}'p^2 + \beta'p) = M_{\bar\varphi}'p + \beta'$, the momentum
+$q = \delta(M_{\bar\varphi}\dot{\bar\varphi} + \beta)$ is driven by the nutation as
+$\dot q = \alpha\,\delta\theta + \dots$ with
 
-$$\operatorname{tr} = -\mu mg\Big(\frac{h^2}{M_\theta} + \frac{D}{AC}\Big) + \frac{\mu m\epsilon
-\sin^2\theta\, p}{M_\theta}\Big((2\Omega\cos\theta - \tfrac{Cn}{A})(R\cos\theta - \epsilon)
-+ R\Omega\sin^2\theta\Big)$$
+$$\alpha = \mu\sin^2\theta\,(R'_n + p\,\partial_p R'_n)\frac{K}{M_{\bar\varphi}}
+ - \mu p\,\partial_\theta(R'_n\sin^2\theta),$$
 
-the trace of the reduced system (eqs. reducedeqs, reducedeqs2) linearised at the balance point
-(the last term is the friction modulated by $R'_n$, which depends on $\dot{\bar\varphi}$). At a
-pole $\sigma$ is the decay rate of the other root's mode. $\sigma$ is negative for slow spins
-but turns positive during the rise at fast ones (standard top: for $n_0 \gtrsim 140$ rad/s,
-$\sigma \approx +9$/s at $\theta = 1.4$ for $n_0 = 200$): the slow manifold then repels and the
-nutation, first damped, grows again -- the route to the contact loss of ERRATA.md, 6. The level
-carries $\ln a$ ($\dot{\ln a} = \sigma$, from the launch's own nutation, see below) so that it
-can say when the dropped nutation has become large.
+and feeds back as the force $(K/M_{\bar\varphi})q$, a damping
+$c_q = K\alpha/(M_{\bar\varphi}\nu^2)$. Hence
+
+$$\sigma = -\frac{\mu R'_n h^2 + c_q}{2M_\theta} - \frac12\frac{d\ln(M_\theta\nu)}{dt}$$
+
+(the last term: the adiabatic invariant of the oscillator). Every term is regular at the poles,
+where $\sigma$ is the growth rate of the other root's mode; at the relative equilibria it is the
+real part of the nutation pair of the paper's characteristic polynomial. $\sigma$ is negative
+for slow spins but turns positive during the rise at fast ones (standard top: for
+$n_0 \gtrsim 140$ rad/s; $\sigma \approx +9$/s at $\theta = 1.2$ for $n_0 = 200$): the slow
+manifold then repels and the nutation, first damped, grows again -- the route to the contact
+loss of ERRATA.md, 6. The level carries $\ln a$ ($\dot{\ln a} = \sigma$, from the launch's own
+nutation, see below) so that it can say when the dropped nutation has become large.
 
 **Where the level stops** (`Conditions.chart`, terminating; the run ends with
 `RESULTS.no_gyroscopic_balance`, and a launch outside is not integrated):
@@ -108,7 +120,10 @@ can say when the dropped nutation has become large.
   real root of (G2): the spin is too slow for gyroscopic balance at this $\theta$ (near the fold
   $\Delta = 0$ the two roots merge and (G3) is not Lipschitz);
 - the nutation is larger than `NUTATION_MAX` and growing ($a >$ `NUTATION_MAX` and
-  $\sigma > 0$): $\max(\ln(a_{\max}/a), -\sigma/\nu)$ falls through zero.
+  $\sigma > 0$): $\max(\ln(a_{\max}/a), -\sigma/\nu)$ falls through zero;
+- the nutation exceeds `NUTATION_LAUNCH_MAX` (in practice only at launch: it decays, or the
+  previous condition stops the run first): the launch is too far from the slow manifold for
+  its linear projection.
 
 **Projection of a launch** (`from_state`). A launch with $\omega = n a$ is not on the slow
 manifold (ERRATA.md): the slow flow must start from the launch's slow-mode content, not its
@@ -124,6 +139,23 @@ from both (large tilt and large nutation) it is an estimate.
 **What is dropped.** The nutation (and with it any contact loss it causes: $R_n = mg$ on the
 slow manifold), and the translation of the centre of mass (position and velocity are reported
 as zero, as by the SO(3) and Routhian levels).
+
+**Accuracy** (standard top, against the SO(3) model, rtol $10^{-8}$). Launched on the slow
+manifold at $\theta = 0.02$: $|\Delta t_{\rm invert}| = 0.064, 0.013, 0.0019$ s at
+$n_0 = 50, 100, 200$ rad/s (about $n_0^{-2.5}$). Launched with $\omega = n a$ at
+$\theta_0 = 0.1$: $\Delta t_{\rm invert} = -0.008, +0.007, -0.017, -0.064$ s at
+$n_0 = 60, 100, 150, 200$ (the SO(3) and full models differ by $0.02$-$0.04$ s). The linear
+projection is the limit: the error grows as $\theta_0^2$ and with the spin ($\theta_0 = 0.2$:
+$+0.09, -0.01, -0.27, -0.58$ s). About 50 steps for a 20 s run, against about 2000 for the full
+model at $n_0 = 100$.
+
+**Not for:** the nutation, the translation, or a contact loss; launches with much nutation
+($\omega = n a$ with $n_0\theta_0 \gtrsim 20$ rad/s on the standard top errs by more than 0.1 s
+in $t_{\rm invert}$; beyond `NUTATION_LAUNCH_MAX` it refuses them); slow spins (it is an
+expansion in $1/J$); tops with $A/C < (1 + \epsilon/R)/2$ near $\theta = \pi$ (Group IIa),
+whose relative equilibria there lie on the other root; fast spins where the slow manifold repels
+during the rise (it stops: standard top, $\theta_0 = 0.1$, $n_0 \gtrsim 300$ rad/s); and
+$\mu = 0$ ($\theta$ is then constant on the slow manifold and the nutation never decays).
 """
 
 from __future__ import annotations
@@ -140,10 +172,14 @@ from .base import AbstractLevel, Conditions
 from .routhian import routhian_normal_force
 
 BALANCE_MARGIN = 0.01
-r"""The level stops where $\Delta/(J^2 + 4Ahmg\epsilon|R\cos\theta - \epsilon|)$ falls below this."""
+r"""The level stops where $\Delta/(J^2 + 4Ahmg\epsilon|R\cos\theta - \epsilon|)$ falls below
+this."""
 
 NUTATION_MAX = 0.05
 r"""The level stops where the nutation amplitude it drops exceeds this (rad) while growing."""
+
+NUTATION_LAUNCH_MAX = 0.25
+r"""A launch with more nutation than this (rad) is refused: its projection is not trusted."""
 
 NUTATION_FLOOR = 1e-12
 r"""Nutation amplitude (rad) given to a launch that has none (on the slow manifold)."""
@@ -153,8 +189,15 @@ def _sign(J):
     return jnp.where(J >= 0, 1.0, -1.0).astype(jnp.result_type(J))
 
 
+def _safe_sqrt(x):
+    """sqrt(x) for x > 0, else 0, with a finite derivative everywhere."""
+    positive = x > 0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, 1.0)), 0.0)
+
+
 def balance_discriminant(top: TippeTop, x, J) -> Array:
-    r"""$\Delta = J^2 + 4Ah\,mg\epsilon(Rx - \epsilon)$ of (G2); $x = \cos\theta$. $< 0$: no balance."""
+    r"""$\Delta = J^2 + 4Ah\,mg\epsilon(Rx - \epsilon)$ of (G2), $x = \cos\theta$; $< 0$: no
+    balance."""
     h = top.R - top.eps * x
     return J**2 + 4 * top.A * h * top.m * top.g * top.eps * (top.R * x - top.eps)
 
@@ -168,7 +211,7 @@ def precession_rate(top: TippeTop, x, J, *, branch: int = 1) -> Array:
     $\Delta < 0$.
     """
     h = top.R - top.eps * x
-    root = _sign(J) * jnp.sqrt(jnp.maximum(balance_discriminant(top, x, J), 0.0))
+    root = _sign(J) * _safe_sqrt(balance_discriminant(top, x, J))
     if branch == 1:
         return (J + root) / (2 * top.A * h)
     if branch == -1:
@@ -229,8 +272,8 @@ def gyroscopic_theta_dot(top: TippeTop, theta, J) -> Array:
 
 
 def limit_theta_dot(top: TippeTop, theta) -> Array:
-    r"""The $J \to \infty$ limit of (G3):
-    $(\mu mgR^2/A)(1 - \tfrac\epsilon R\cos\theta)\sin\theta\,((\tfrac AC - 1)\cos\theta + \tfrac\epsilon R)$."""
+    r"""The $J \to \infty$ limit of (G3): $(\mu mgR^2/A)(1 - \tfrac\epsilon R\cos\theta)
+    \sin\theta\,((\tfrac AC - 1)\cos\theta + \tfrac\epsilon R)$."""
     x, s = jnp.cos(theta), jnp.sin(theta)
     a, e = top.A / top.C, top.eps / top.R
     return top.mu * top.m * top.g * top.R**2 / top.A * (1 - e * x) * s * ((a - 1) * x + e)
@@ -247,28 +290,68 @@ def nutation_frequency(top: TippeTop, theta, J) -> Array:
     return jnp.sqrt(nu2)
 
 
-def nutation_damping(top: TippeTop, theta, J) -> Array:
-    r"""$\sigma = (\operatorname{tr} - \lambda)/2$: growth rate of the nutation about the slow
-    manifold (negative: it decays). See the module docstring."""
-    theta = jnp.asarray(theta, dtype=jnp.result_type(theta, top.m))
-    x, s = jnp.cos(theta), jnp.sin(theta)
-    sm, slope = jax.jvp(
-        lambda th: slow_manifold(top, th, J), (theta,), (jnp.ones_like(theta),)
-    )
+def _normal_force_at_rest(top: TippeTop, x, p, J):
+    r"""$R'_n$ (eq. reactie, $\dot x = \dot y = \dot\theta = 0$) at $x = \cos\theta$ and
+    $\dot{\bar\varphi} = p$, with $\dot\varphi$ and $n$ from eq. routh1; a function of $x$."""
     m, g, eps, R, A, C = top.m, top.g, top.eps, top.R, top.A, top.C
+    s2 = 1 - x**2
+    big_s = eps**2 + R**2
+    d = R**2 * A * s2 + C * (R * x - eps) ** 2
+    kappa = R * A * eps * s2 + C * (R * x - eps) * (R + eps * x)
+    c_dot = (J * big_s - kappa * p) / d
+    omega = (eps * p + R * c_dot) / big_s
+    n = (R * p - eps * c_dot) / big_s + omega * x
+    return m * (g + eps * s2 * omega * (omega * x - C * n / A)) / (1 + m * eps**2 * s2 / A)
+
+
+def nutation_damping(top: TippeTop, theta, J) -> Array:
+    r"""$\sigma$: growth rate of the amplitude of the nutation about the slow manifold (negative:
+    it decays), averaged over a nutation period. See the module docstring."""
+    theta = jnp.asarray(theta, dtype=jnp.result_type(theta, top.m))
+    m, eps, R, A, C, mu = top.m, top.eps, top.R, top.A, top.C, top.mu
+    x, s2 = jnp.cos(theta), jnp.sin(theta) ** 2
+    one = jnp.ones_like(x)
+    sm = slow_manifold(top, theta, J)
+    p = sm.slip
+    big_s = eps**2 + R**2
+
+    def d_of(x):
+        return R**2 * A * (1 - x**2) + C * (R * x - eps) ** 2
+
+    def m_phibar(x):  # M_phibar = A C sin^2 / D
+        return A * C * (1 - x**2) / d_of(x)
+
+    def beta(x):
+        return J / big_s * (R * eps * A * (1 - x**2) + C * (R + eps * x) * (R * x - eps)) / d_of(x)
+
+    rn, rn_x = jax.jvp(lambda xx: _normal_force_at_rest(top, xx, p, J), (x,), (one,))
+    _, rn_p = jax.jvp(lambda pp: _normal_force_at_rest(top, x, pp, J), (p,), (one,))
+    _, dm_x = jax.jvp(m_phibar, (x,), (one,))
+    _, dbeta_x = jax.jvp(beta, (x,), (one,))
+    coupling = -(dm_x * p + dbeta_x)  # B_p / sin(theta)
+    inertia_phibar = A * C / d_of(x)  # M_phibar / sin^2(theta)
+    inertia = A + m * eps**2 * s2
+
+    def nu_squared(xx):
+        omega = precession_rate(top, xx, J)
+        n = (A * omega**2 * xx - top.m * top.g * eps) / (C * omega)
+        return ((C * n - 2 * A * omega * xx) ** 2 + A**2 * omega**2 * (1 - xx**2)) / (
+            A * (A + m * eps**2 * (1 - xx**2))
+        )
+
+    nu2, nu2_x = jax.jvp(nu_squared, (x,), (one,))
+    drive = (mu * (rn + p * rn_p) * coupling / inertia_phibar + mu * s2 * p * rn_x
+             - 2 * mu * p * rn * x)  # alpha / sin(theta)
     h = R - eps * x
-    d = R**2 * A * s**2 + C * (R * x - eps) ** 2
-    inertia = A + m * eps**2 * s**2
-    omega, n, p = sm.precession, sm.spin, sm.slip
-    trace = -top.mu * m * g * (h**2 / inertia + d / (A * C)) + top.mu * m * eps * s**2 * p * (
-        (2 * omega * x - C * n / A) * (R * x - eps) + R * omega * s**2
-    ) / inertia
-    return 0.5 * (trace - slope.theta_dot)
+    friction = -(mu * rn * h**2 + coupling * drive / (inertia_phibar * nu2)) / (2 * inertia)
+    log_m_nu_x = -2 * m * eps**2 * x / inertia + 0.5 * nu2_x / nu2  # d ln(M_theta nu)/dx
+    adiabatic = 0.5 * sm.rate * s2 * log_m_nu_x  # -(1/2) d ln(M_theta nu)/dt
+    return friction + adiabatic
 
 
 def validity(top: TippeTop, theta, J, log_amplitude) -> Array:
     r"""`Conditions.chart` of the level: $\min(\Delta_{\rm rel} - $ `BALANCE_MARGIN`$,
-    \max(\ln(a_{\max}/a), -\sigma/\nu))$, with $\ln a$ = `log_amplitude`.
+    \max(\ln(a_{\max}/a), -\sigma/\nu), \ln(a_{\rm launch}/a))$, with $\ln a$ = `log_amplitude`.
 
     Positive where (G2) has a real root with margin and the nutation is small or decaying; the
     level stops where it falls through zero (see the module docstring).
@@ -279,7 +362,8 @@ def validity(top: TippeTop, theta, J, log_amplitude) -> Array:
     balance = balance_discriminant(top, x, J) / scale - BALANCE_MARGIN
     decaying = -nutation_damping(top, theta, J) / nutation_frequency(top, theta, J)
     small = jnp.log(NUTATION_MAX) - log_amplitude
-    return jnp.minimum(balance, jnp.maximum(small, decaying))
+    projectable = jnp.log(NUTATION_LAUNCH_MAX) - log_amplitude
+    return jnp.minimum(jnp.minimum(balance, jnp.maximum(small, decaying)), projectable)
 
 
 def _complex_ratio(top, theta, J, branch):
