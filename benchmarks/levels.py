@@ -3,10 +3,15 @@
 Scenes of the standard IIb top (and variants), grouped by the regime `model="auto"` reads off a
 launch (`tippejax._auto.launch_regime`: stiff friction, moving centre of mass, or where the
 launch's Jellet sends the top). For each scene, runs the full, SO(3) and Routhian levels from the
-same state (default solver, rtol 1e-8) and reports max |theta_level(t) - theta_full(t)| (rad),
+same state (default solver, rtol 1e-8), and the gyroscopic level (slow flow for theta alone; it may
+refuse a launch or stop where gyroscopic balance fails: "refused"/"stopped", unusable, error inf),
+and reports max |theta_level(t) - theta_full(t)| (rad),
 the difference in inversion time, and the median wall time after compilation relative to the
-full model (one jitted function per level, all scenes through it). Writes benchmarks/LEVELS.md;
-the worst error and median cost per regime go into `tippejax/_auto.py` (`MEASURED`).
+full model (one jitted function per level, all scenes through it). Then, for the gyroscopic
+level: its error against the SO(3) and full models as a function of the spin (with the fitted
+power law of the t_invert error) and of mu, and its speed against the full model over a 20 s run.
+Writes benchmarks/LEVELS.md; the worst error and median cost per regime go into
+`tippejax/_auto.py` (`MEASURED`).
 
     python benchmarks/levels.py
 """
@@ -27,7 +32,7 @@ import tippejax as tj
 from tippejax._auto import launch_regime
 
 HERE = pathlib.Path(__file__).parent
-LEVELS = ("so3", "routhian")
+LEVELS = ("so3", "routhian", "gyroscopic")
 N_SAVE = 2001
 REPEATS = 5
 
@@ -104,34 +109,202 @@ def batch_costs():
     return out
 
 
+INF = float("inf")
+
+
+def _fmt(x, spec=".2e"):
+    return "inf" if x == INF else format(x, spec)
+
+
+def _py(x):
+    return 'float("inf")' if x == INF else format(x, ".3g")
+
+
+def scene_row(runs, name, top, y0, t1):
+    regime = launch_regime(top, y0)
+    ts = jnp.linspace(0.0, t1, N_SAVE)
+    t1_ = jnp.asarray(t1)
+    ref, t_ref = timed(runs["full"], top, y0, t1_, ts)
+    row = dict(scene=name, regime=regime, t_invert_full=float(ref.t_invert),
+               ok_full=bool(ref.result == tj.RESULTS.successful), steps_full=int(ref.num_steps))
+    for level in LEVELS:
+        sol, t_level = timed(runs[level], top, y0, t1_, ts)
+        both = np.isfinite(np.asarray(sol.theta)) & np.isfinite(np.asarray(ref.theta))
+        err = float(np.max(np.abs(np.asarray(sol.theta)[both] - np.asarray(ref.theta)[both]),
+                           initial=0.0)) if both.any() else INF
+        switched = bool(np.isfinite(float(sol.t_chart_switch)))
+        label = f"{level}->so3" if switched else level
+        if bool(sol.result == tj.RESULTS.no_gyroscopic_balance):
+            # refused at launch (nothing integrated) or stopped on the way: unusable here
+            if int(sol.num_steps) == 0:
+                label = "refused"
+            else:
+                t_stop = float(np.max(np.asarray(ts)[np.isfinite(np.asarray(sol.theta))],
+                                      initial=0.0))
+                label = f"stopped at t={t_stop:.2f}"
+            err = INF
+        row[level] = dict(
+            theta_err=err,
+            t_invert_err=INF if err == INF else abs(float(sol.t_invert) - float(ref.t_invert)),
+            cost=t_level / t_ref,
+            model=label,
+            steps=int(sol.num_steps),
+            ok=bool(sol.result == tj.RESULTS.successful),
+        )
+    return row
+
+
+# --- the gyroscopic level against the SO(3) and full models --------------------------------
+
+GYRO_THETA0 = 0.1
+GYRO_SPINS = (60.0, 80.0, 100.0, 140.0, 200.0)
+GYRO_MUS = (0.1, 0.3, 1.0, 3.0)
+SMOOTH_PERIODS = 3
+
+
+def on_slow_manifold(top, theta, J):
+    """The state on the gyroscopic slow manifold at theta for the Jellet J (no nutation)."""
+    from tippejax._models.gyroscopic import GyroscopicLevel, GyroscopicLevelState
+
+    z = jnp.zeros((), jnp.float64)
+    y = GyroscopicLevelState(theta=jnp.asarray(theta, jnp.float64), phi=z, psi=z,
+                             nutation=jnp.log(jnp.asarray(1e-12)), jellet=jnp.asarray(J))
+    return GyroscopicLevel().to_state(top, y)
+
+
+def smoothed(theta, dt, period):
+    """Moving average of theta over SMOOTH_PERIODS nutation periods; nan where the window
+    does not fit (edges, or nan inside it)."""
+    w = max(1, int(round(SMOOTH_PERIODS * period / dt)))
+    out = np.full_like(theta, np.nan)
+    if w >= len(theta):
+        return out
+    c = np.convolve(theta, np.ones(w) / w, mode="valid")
+    start = w // 2
+    out[start:start + len(c)] = c
+    return out
+
+
+def gyro_compare(runs, top, y0, t1):
+    """Errors of the gyroscopic level against so3 and full from y0 (single runs)."""
+    from tippejax._models.gyroscopic import nutation_frequency
+
+    ts = jnp.linspace(0.0, t1, N_SAVE)
+    dt = t1 / (N_SAVE - 1)
+    t1_ = jnp.asarray(t1)
+    sols = {m: runs[m](top, y0, t1_, ts) for m in ("gyroscopic", "so3", "full")}
+    g = sols["gyroscopic"]
+    stopped = bool(g.result == tj.RESULTS.no_gyroscopic_balance)
+    status = "ok" if bool(g.result == tj.RESULTS.successful) else (
+        ("refused" if int(g.num_steps) == 0 else "stopped") if stopped else "failed")
+    out = dict(result=status, steps=int(g.num_steps),
+               t_invert={m: float(s.t_invert) for m, s in sols.items()})
+    J = float(tj.jellet(top, y0))
+    theta0 = float(np.arccos(np.clip(float(y0.axis[2]), -1.0, 1.0)))
+    nu = float(nutation_frequency(top, theta0, J))
+    period = 2 * np.pi / nu
+    out["nutation_period"] = period
+    th_g = np.asarray(g.theta)
+    for ref in ("so3", "full"):
+        th_r = np.asarray(sols[ref].theta)
+        both = np.isfinite(th_g) & np.isfinite(th_r)
+        out[f"theta_err_{ref}"] = float(np.max(np.abs(th_g - th_r)[both])) if both.any() else INF
+        sm = smoothed(th_r, dt, period)
+        both = np.isfinite(th_g) & np.isfinite(sm)
+        out[f"theta_err_avg_{ref}"] = float(np.max(np.abs(th_g - sm)[both])) if both.any() else INF
+        out[f"t_invert_err_{ref}"] = out["t_invert"]["gyroscopic"] - out["t_invert"][ref]
+    out["ok"] = bool(g.result == tj.RESULTS.successful)
+    return out
+
+
+def power_law(xs, errs):
+    xs, errs = np.asarray(xs, float), np.abs(np.asarray(errs, float))
+    good = np.isfinite(errs) & (errs > 0)
+    if good.sum() < 2:
+        return float("nan")
+    return float(np.polyfit(np.log(xs[good]), np.log(errs[good]), 1)[0])
+
+
+def with_mu(top, mu):
+    return eqx.tree_at(lambda t: t.mu, top, jnp.asarray(mu, jnp.asarray(top.mu).dtype))
+
+
+def gyro_vs_spin(runs):
+    top = tj.default_top()
+    rows = []
+    for n0 in GYRO_SPINS:
+        launch = tj.initial_state(top, GYRO_THETA0, n0)
+        J = float(tj.jellet(top, launch))
+        a = gyro_compare(runs, top, launch, 10.0)
+        b = gyro_compare(runs, top, on_slow_manifold(top, GYRO_THETA0, J), 10.0)
+        rows.append(dict(n0=n0, launch=a, manifold=b))
+        print("spin", n0, a, b, flush=True)
+    return rows
+
+
+def gyro_vs_mu(runs):
+    base = tj.default_top()
+    rows = []
+    for mu in GYRO_MUS:
+        top = with_mu(base, mu)
+        t1 = max(10.0, 2.0 * 5.7 * 0.3 / mu)  # the rise time scales as 1/mu
+        launch = tj.initial_state(top, GYRO_THETA0, 100.0)
+        J = float(tj.jellet(top, launch))
+        a = gyro_compare(runs, top, launch, t1)
+        b = gyro_compare(runs, top, on_slow_manifold(top, GYRO_THETA0, J), t1)
+        rows.append(dict(mu=mu, t1=t1, regime=launch_regime(top, launch), launch=a, manifold=b))
+        print("mu", mu, a, b, flush=True)
+    return rows
+
+
+SPEED_T1 = 20.0
+SPEED_REPEATS = 7
+
+
+def gyro_speed():
+    """Wall time of a jitted summary-mode run, gyroscopic against full, 20 s, rtol 1e-8,
+    default top, theta0 0.1, spin 100 (interleaved repeats), and the split into a fixed
+    per-call cost and a per-step cost (from a short run of each)."""
+    top = tj.default_top()
+    y0 = tj.initial_state(top, GYRO_THETA0, 100.0)
+    fns = {}
+    for model in ("gyroscopic", "full"):
+        @eqx.filter_jit
+        def run(top, y0, t1, model=model):
+            sol = tj.simulate(top, y0, t1, model=model, summary=True, rtol=1e-8, throw=False)
+            return sol.t_invert, sol.num_steps
+        fns[model] = run
+    out = {}
+    for t1 in (SPEED_T1, 0.01):
+        t1_ = jnp.asarray(t1)
+        times = {m: [] for m in fns}
+        steps = {}
+        for m, f in fns.items():
+            _, steps[m] = jax.block_until_ready(f(top, y0, t1_))
+        for _ in range(SPEED_REPEATS):
+            for m, f in fns.items():
+                start = time.perf_counter()
+                jax.block_until_ready(f(top, y0, t1_))
+                times[m].append(time.perf_counter() - start)
+        out[t1] = {m: (statistics.median(times[m]), int(steps[m])) for m in fns}
+    print("speed", out, flush=True)
+    return out
+
+
 def main():
+    t_start = time.perf_counter()
     batch = batch_costs()
     print("batch", batch, flush=True)
     runs = {m: make_run(m) for m in ("full", *LEVELS)}
     rows = []
     for name, top, y0, t1 in scenes():
-        regime = launch_regime(top, y0)
-        ts = jnp.linspace(0.0, t1, N_SAVE)
-        t1_ = jnp.asarray(t1)
-        ref, t_ref = timed(runs["full"], top, y0, t1_, ts)
-        row = dict(scene=name, regime=regime, t_invert_full=float(ref.t_invert),
-                   ok_full=bool(ref.result == tj.RESULTS.successful), steps_full=int(ref.num_steps))
-        for level in LEVELS:
-            sol, t_level = timed(runs[level], top, y0, t1_, ts)
-            both = np.isfinite(np.asarray(sol.theta)) & np.isfinite(np.asarray(ref.theta))
-            err = float(np.max(np.abs(np.asarray(sol.theta)[both] - np.asarray(ref.theta)[both])))
-            switched = bool(np.isfinite(float(sol.t_chart_switch)))
-            row[level] = dict(
-                theta_err=err,
-                t_invert_err=abs(float(sol.t_invert) - float(ref.t_invert)),
-                cost=t_level / t_ref,
-                model=f"{level}->so3" if switched else level,
-                steps=int(sol.num_steps),
-                ok=bool(sol.result == tj.RESULTS.successful),
-            )
+        row = scene_row(runs, name, top, y0, t1)
         rows.append(row)
-        print(name, regime, {k: v for k, v in row.items() if k not in ("scene", "regime")},
+        print(name, row["regime"], {k: v for k, v in row.items() if k not in ("scene", "regime")},
               flush=True)
+    spin_rows = gyro_vs_spin(runs)
+    mu_rows = gyro_vs_mu(runs)
+    speed = gyro_speed()
     regimes = sorted({r["regime"] for r in rows}, key=[r["regime"] for r in rows].index)
     measured = {}
     for regime in regimes:
@@ -150,31 +323,35 @@ def main():
         "t_invert_full| (s, nan when neither inverts); cost: median wall time of "
         f"{REPEATS} runs after compilation, relative to the full model in the same run (a "
         "ratio; absolute times on this shared machine mean little). Regime: what "
-        "`tippejax._auto.launch_regime` reads off the launch.",
+        "`tippejax._auto.launch_regime` reads off the launch. The gyroscopic level refuses a "
+        "launch it cannot describe, or stops where gyroscopic balance fails or the nutation "
+        "it drops grows (`RESULTS.no_gyroscopic_balance`): shown as refused/stopped, and its "
+        "error there counts as inf (unusable in that regime).",
         "",
-        "| scene | regime | t_invert full (s) | so3 theta err | so3 t_invert err | so3 cost | routhian theta err | routhian t_invert err | routhian cost | steps full/so3/routhian | routhian used |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| scene | regime | t_invert full (s) | so3 theta err | so3 t_invert err | so3 cost | routhian theta err | routhian t_invert err | routhian cost | gyro theta err | gyro t_invert err | gyro cost | steps full/so3/routhian/gyro | routhian used | gyro used |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for row in rows:
-        s, r = row["so3"], row["routhian"]
+        s, r, g = row["so3"], row["routhian"], row["gyroscopic"]
         lines.append(
             f"| {row['scene']} | {row['regime']} | {row['t_invert_full']:.4f} | "
             f"{s['theta_err']:.2e} | {s['t_invert_err']:.2e} | {s['cost']:.2f} | "
             f"{r['theta_err']:.2e} | {r['t_invert_err']:.2e} | {r['cost']:.2f} | "
-            f"{row['steps_full']}/{s['steps']}/{r['steps']} | {r['model']} |"
+            f"{_fmt(g['theta_err'])} | {_fmt(g['t_invert_err'])} | {g['cost']:.2f} | "
+            f"{row['steps_full']}/{s['steps']}/{r['steps']}/{g['steps']} | {r['model']} | {g['model']} |"
         )
     lines += [
         "",
         "Per regime (worst theta error over its scenes, median cost), as copied into "
         "`tippejax/_auto.py` `MEASURED`:",
         "",
-        "| regime | so3 worst err | so3 cost | routhian worst err | routhian cost |",
-        "|---|---|---|---|---|",
+        "| regime | so3 worst err | so3 cost | routhian worst err | routhian cost | gyro worst err | gyro cost |",
+        "|---|---|---|---|---|---|---|",
     ]
     for regime, m in measured.items():
         lines.append(
             f"| {regime} | {m['so3'][0]:.3g} | {m['so3'][1]:.2f} | {m['routhian'][0]:.3g} | "
-            f"{m['routhian'][1]:.2f} |"
+            f"{m['routhian'][1]:.2f} | {_fmt(m['gyroscopic'][0], '.3g')} | {m['gyroscopic'][1]:.2f} |"
         )
     lines += [
         "",
@@ -191,13 +368,19 @@ def main():
         "states buy little; in a batch its right-hand side (autodiff of the Routhian terms, "
         "about twice the SO(3) one) makes it dearer than the SO(3) level. Under stiff friction "
         "it is the cheapest level (fewer stability-limited steps), and `auto` uses it there "
-        "when the tolerance allows.",
+        "when the tolerance allows. The gyroscopic level drops the nutation, so its steps "
+        "follow the slow rise of theta alone (tens of steps instead of thousands); what it "
+        "costs here is mostly the fixed cost of a call and of writing the save points.",
+    ]
+    lines += gyro_sections(spin_rows, mu_rows, speed)
+    lines += [
         "",
         "```python",
         "MEASURED = {",
         *[
-            f'    "{regime}": {{"so3": ({m["so3"][0]:.3g}, {m["so3"][1]:.2f}), '
-            f'"routhian": ({m["routhian"][0]:.3g}, {m["routhian"][1]:.2f})}},'
+            f'    "{regime}": {{'
+            + ", ".join(f'"{lv}": ({_py(m[lv][0])}, {m[lv][1]:.2f})' for lv in LEVELS)
+            + "},"
             for regime, m in measured.items()
         ],
         "}",
@@ -205,6 +388,93 @@ def main():
     ]
     (HERE / "LEVELS.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
+    print(f"elapsed {time.perf_counter() - t_start:.0f} s")
+
+
+def gyro_sections(spin_rows, mu_rows, speed):
+    lines = [
+        "",
+        "## The gyroscopic level against the SO(3) and full models",
+        "",
+        f"Standard top (`tj.default_top()`), theta0 = {GYRO_THETA0}, 10 s, {N_SAVE} save points, "
+        "rtol 1e-8. Two launches at each spin: **launch** = `tj.initial_state` (omega = n a, "
+        "which carries nutation: the level starts from its linear projection onto the slow "
+        "manifold), and **on manifold** = the state on the gyroscopic slow manifold at theta0 "
+        "for the same Jellet J (no nutation to drop: the error is the slow flow's own). "
+        "dt_inv = t_invert_gyro - t_invert_ref (s). theta err = max |theta_gyro - theta_ref|, "
+        "dominated by the nutation the slow flow drops; theta err (avg) = max |theta_gyro - "
+        f"<theta_ref>| against the reference smoothed by a moving average over {SMOOTH_PERIODS} "
+        "nutation periods (2 pi/nu at the launch), over the times where the window fits: the "
+        "fair comparison. so3-full: the difference of the two reference models in t_invert, "
+        "the floor below which the gyroscopic error against either means little.",
+        "",
+        "| n0 (rad/s) | launch | gyro steps | result | dt_inv vs so3 | dt_inv vs full | so3-full dt_inv | theta err vs so3 | theta err (avg) vs so3 | theta err (avg) vs full |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+
+    def res(x):
+        return x["result"]
+
+    for r in spin_rows:
+        for key, label in (("launch", "omega = n a"), ("manifold", "on manifold")):
+            x = r[key]
+            ti = x["t_invert"]
+            lines.append(
+                f"| {r['n0']:.0f} | {label} | {x['steps']} | {res(x)} | {x['t_invert_err_so3']:+.2e} | "
+                f"{x['t_invert_err_full']:+.2e} | {ti['so3'] - ti['full']:+.2e} | "
+                f"{_fmt(x['theta_err_so3'])} | {_fmt(x['theta_err_avg_so3'])} | "
+                f"{_fmt(x['theta_err_avg_full'])} |"
+            )
+    spins = [r["n0"] for r in spin_rows]
+    rates = {
+        (key, ref): power_law(spins, [r[key][f"t_invert_err_{ref}"] for r in spin_rows])
+        for key in ("launch", "manifold") for ref in ("so3", "full")
+    }
+    avg_rates = {
+        key: power_law(spins, [r[key]["theta_err_avg_so3"] for r in spin_rows])
+        for key in ("launch", "manifold")
+    }
+    lines += [
+        "",
+        "Fitted power law |dt_inv| ~ n0^k (least squares in log-log over the spins above): "
+        f"on manifold k = {rates[('manifold', 'so3')]:.2f} vs so3, "
+        f"{rates[('manifold', 'full')]:.2f} vs full; launch (omega = n a) "
+        f"k = {rates[('launch', 'so3')]:.2f} vs so3, {rates[('launch', 'full')]:.2f} vs full. "
+        f"Averaged theta error: k = {avg_rates['manifold']:.2f} (on manifold), "
+        f"{avg_rates['launch']:.2f} (launch), vs so3.",
+        "",
+        f"Error vs mu at n0 = 100 rad/s, theta0 = {GYRO_THETA0} (t1 = max(10, 3.4/mu) s, the "
+        "rise time scales as 1/mu), same columns:",
+        "",
+        "| mu (s/m) | regime | launch | gyro steps | result | t_invert so3 (s) | dt_inv vs so3 | dt_inv vs full | so3-full dt_inv | theta err vs so3 | theta err (avg) vs so3 | theta err (avg) vs full |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in mu_rows:
+        for key, label in (("launch", "omega = n a"), ("manifold", "on manifold")):
+            x = r[key]
+            ti = x["t_invert"]
+            lines.append(
+                f"| {r['mu']:g} | {r['regime']} | {label} | {x['steps']} | {res(x)} | {ti['so3']:.3f} | "
+                f"{x['t_invert_err_so3']:+.2e} | {x['t_invert_err_full']:+.2e} | "
+                f"{ti['so3'] - ti['full']:+.2e} | {_fmt(x['theta_err_so3'])} | "
+                f"{_fmt(x['theta_err_avg_so3'])} | {_fmt(x['theta_err_avg_full'])} |"
+            )
+    long, short = speed[SPEED_T1], speed[0.01]
+    (tg, ng), (tf, nf) = long["gyroscopic"], long["full"]
+    (sg, _), (sf, _) = short["gyroscopic"], short["full"]
+    per_step_g = (tg - sg) / max(ng, 1)
+    per_step_f = (tf - sf) / max(nf, 1)
+    lines += [
+        "",
+        f"**Speed** (goal: >= 50x cheaper than the full model at rtol 1e-8 over a {SPEED_T1:.0f} s "
+        "run). Default top, theta0 0.1, n0 100 rad/s, jitted `simulate(..., summary=True)`, median "
+        f"of {SPEED_REPEATS} interleaved runs after compilation, one CPU core: full "
+        f"{tf * 1e3:.2f} ms ({nf} steps), gyroscopic {tg * 1e3:.3f} ms ({ng} steps): "
+        f"**{tf / tg:.0f}x** cheaper. Split (from a 0.01 s run of each): fixed cost per call "
+        f"{sg * 1e3:.3f} ms (gyroscopic), {sf * 1e3:.3f} ms (full); per step "
+        f"{per_step_g * 1e6:.1f} us (gyroscopic), {per_step_f * 1e6:.1f} us (full).",
+    ]
+    return lines
 
 
 if __name__ == "__main__":

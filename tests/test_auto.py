@@ -42,14 +42,16 @@ def test_choose_model():
     y0 = tj.initial_state(top, 0.1, 100.0)
     assert choose_model(top, y0, tolerance=None) == "full"
     # below every level's measured error: the full model; above: the cheapest qualifying level
-    errors = [err for err, _ in MEASURED["inverts"].values()]
+    # levels that refused a scene of the regime have error inf: never chosen there
+    finite = {lv: ec for lv, ec in MEASURED["inverts"].items() if np.isfinite(ec[0])}
+    errors = [err for err, _ in finite.values()]
     assert choose_model(top, y0, tolerance=0.5 * min(errors)) == "full"
-    cost, level = min((c, lv) for lv, (e, c) in MEASURED["inverts"].items())
+    cost, level = min((c, lv) for lv, (e, c) in finite.items())
     expected = level if cost < COST_MARGIN else "full"
     assert choose_model(top, y0, tolerance=2 * max(errors)) == expected
     stiff = tj.TippeTop.from_ratios(0.9, 0.3, mu=300.0)
     y_stiff = tj.initial_state(stiff, 0.1, 100.0)
-    cost, level = min((c, lv) for lv, (e, c) in MEASURED["stiff"].items())
+    cost, level = min((c, lv) for lv, (e, c) in MEASURED["stiff"].items() if np.isfinite(e))
     err = MEASURED["stiff"][level][0]
     assert choose_model(stiff, y_stiff, tolerance=2 * err) == (level if cost < COST_MARGIN else "full")
     # a level whose measured cost is not below the margin is never chosen
@@ -69,7 +71,7 @@ def test_auto_keeps_its_promise_on_a_new_launch():
     top = tj.default_top()
     y0 = tj.initial_state(top, 0.15, 120.0)
     assert launch_regime(top, y0) == "inverts"
-    tolerance = 1.25 * max(err for err, _ in MEASURED["inverts"].values())
+    tolerance = 1.25 * max(err for err, _ in MEASURED["inverts"].values() if np.isfinite(err))
     expected = choose_model(top, y0, tolerance=tolerance)
     cheaper = [lv for lv, (e, c) in MEASURED["inverts"].items() if e <= tolerance and c < COST_MARGIN]
     assert (expected != "full") == bool(cheaper)
@@ -78,7 +80,8 @@ def test_auto_keeps_its_promise_on_a_new_launch():
     auto = tj.simulate(top, y0, 8.0, model="auto", tolerance=tolerance, saveat=ts)
     assert auto.model.startswith(expected)
     full = tj.simulate(top, y0, 8.0, model="full", saveat=ts)
-    for level in ("so3", "routhian"):  # whichever the table picks, the promise holds for both
+    # whichever the table picks (and the cheap levels it could pick), the promise holds
+    for level in dict.fromkeys(("so3", "routhian", expected) if expected != "full" else ("so3", "routhian")):
         sol = tj.simulate(top, y0, 8.0, model=level, saveat=ts)
         err = float(np.max(np.abs(np.asarray(sol.theta) - np.asarray(full.theta))))
         print(f"{level} vs full on a new inverting launch: max |dtheta| = {err:.3g} rad "

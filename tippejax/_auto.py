@@ -1,9 +1,14 @@
 """`model="auto"`: the cheapest level whose measured error is below what the caller asks.
 
+The levels it can pick: `"full"`, `"so3"`, `"routhian"` and `"gyroscopic"` (the slow flow for
+theta alone; it is only picked for a launch it accepts, i.e. inside its own chart: gyroscopic
+balance holds and the launch's nutation is small enough to project, see `choose_model`).
+
 The numbers in `MEASURED` are copied from `benchmarks/LEVELS.md`, made by
 `python benchmarks/levels.py`: for each regime, the worst error in theta(t) of each level
 against the full model over the benchmark's scenes of that regime, and the median cost (wall
-time relative to the full model in the same run). Re-run the benchmark and update them together
+time relative to the full model in the same run). A level that refused or stopped on one of a
+regime's scenes has error `inf` there (never picked in that regime). Re-run the benchmark and update them together
 when a model or solver changes (`tests/test_auto.py` checks they agree).
 
 A launch's regime is read off the algebra level, before anything is integrated: stiff friction,
@@ -23,13 +28,14 @@ from ._state import State
 from ._top import TippeTop
 
 MEASURED = {
-    "inverts": {"so3": (0.234, 0.95), "routhian": (0.234, 0.87)},
-    "intermediate": {"so3": (0.385, 0.87), "routhian": (0.385, 0.89)},
-    "stays upright": {"so3": (0.0453, 0.79), "routhian": (0.0453, 1.19)},
-    "stiff": {"so3": (0.536, 0.59), "routhian": (0.536, 0.36)},
-    "moving": {"so3": (0.311, 0.92), "routhian": (0.311, 1.08)},
+    "inverts": {"so3": (0.234, 0.81), "routhian": (0.234, 0.90), "gyroscopic": (float("inf"), 0.14)},
+    "intermediate": {"so3": (0.385, 0.85), "routhian": (0.385, 0.65), "gyroscopic": (float("inf"), 0.15)},
+    "stays upright": {"so3": (0.0453, 0.91), "routhian": (0.0453, 1.00), "gyroscopic": (float("inf"), 0.41)},
+    "stiff": {"so3": (0.536, 0.54), "routhian": (0.536, 0.37), "gyroscopic": (0.928, 0.02)},
+    "moving": {"so3": (0.311, 0.79), "routhian": (0.311, 1.05), "gyroscopic": (float("inf"), 0.17)},
 }
-"""Per regime and level: (worst theta error in rad, median cost relative to the full model)."""
+"""Per regime and level: (worst theta error in rad, median cost relative to the full model);
+error `inf` where the level refused or stopped on one of the regime's scenes."""
 
 MEASURED_GROUPS = ("IIb",)
 """Groups of tops the benchmark's scenes cover; for other groups `auto` keeps the full model."""
@@ -66,7 +72,10 @@ def choose_model(top: TippeTop, y0: State, *, tolerance: float | None) -> str:
     `tolerance=None` means "as accurate as the package can": the full model. Otherwise, in the
     regime of this launch (`launch_regime`), the level with the lowest measured cost among those
     whose measured worst error is at most `tolerance` and whose cost is below `COST_MARGIN` (the
-    full model, cost 1, always qualifies). Tops of groups the benchmark did not measure, regimes
+    full model, cost 1, always qualifies). A level that ends where its chart ends with no
+    fallback (the gyroscopic level: `RESULTS.no_gyroscopic_balance`) qualifies only if it
+    accepts this launch (`in_chart` of the launch), so that auto never picks a level that would
+    refuse it; it can still stop later on the way (the measured scenes say how often). Tops of groups the benchmark did not measure, regimes
     it did not measure, and traced arguments (no regime can be read) keep the full model.
     """
     if tolerance is None:
@@ -80,8 +89,14 @@ def choose_model(top: TippeTop, y0: State, *, tolerance: float | None) -> str:
         return "full"
     if group not in MEASURED_GROUPS or regime not in MEASURED:
         return "full"
+    from ._models.levels import LEVELS
+
     candidates = [(1.0, 0.0, "full")]
     for level, (error, cost) in MEASURED[regime].items():
-        if error <= tolerance and cost < COST_MARGIN:
-            candidates.append((cost, error, level))
+        if not (np.isfinite(error) and error <= tolerance and cost < COST_MARGIN):
+            continue
+        lvl = LEVELS[level]
+        if lvl.chart_end_result is not None and not bool(np.asarray(lvl.in_chart(top, y0))):
+            continue  # the level would refuse this launch
+        candidates.append((cost, error, level))
     return min(candidates)[2]

@@ -225,7 +225,9 @@ def simulate(
       solution is the state on it, with no nutation and no translation; where gyroscopic
       balance is lost, or the nutation it drops grows large, it stops with
       `RESULTS.no_gyroscopic_balance`, and a launch it cannot describe is not integrated), or
-      `"auto"` (the cheapest level whose measured error is below `tolerance`).
+      `"auto"` (the cheapest of `"full"`, `"so3"`, `"routhian"`, `"gyroscopic"` whose measured
+      error in the launch's regime, `benchmarks/LEVELS.md`, is below `tolerance`; the
+      gyroscopic level only for a launch it accepts).
     - `saveat`: save times within `[t0, t1]`, non-decreasing (default: 1001 points from `t0`
       to `t1`). Events (inversion, contact loss, the $R_n$ singularity, the chart edge) are
       located inside the solve, whatever the save grid.
