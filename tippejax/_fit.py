@@ -515,7 +515,11 @@ def _finish(u, code, data: _Data, cfg: _Config):
         top=top, y0=y0, values=vector, std_errors=std, covariance=cov, correlation=corr,
         theta_fit=theta_fit, residuals=residuals, phi_fit=phi_fit, phi_residuals=phi_residuals,
         rms=jnp.sqrt(jnp.nanmean(jnp.where(used, residuals, jnp.nan) ** 2)),
-        result=FIT_RESULTS.where(failed, FIT_RESULTS.simulation_failed, code),
+        result=FIT_RESULTS.where(
+            jnp.all(jnp.isfinite(u)),
+            FIT_RESULTS.where(failed, FIT_RESULTS.simulation_failed, code),
+            FIT_RESULTS.optimiser_failed,  # (Gauss-Newton can accept a step to nan)
+        ),
     )
 
 
