@@ -19,7 +19,7 @@ from scipy.integrate import solve_ivp
 
 HERE = pathlib.Path(__file__).resolve().parent
 RESULTS = HERE / "RESULTS.md"
-SCRIPTS = ("engine.py", "batch.py", "gradients.py", "float32.py", "fitting.py")
+SCRIPTS = ("engine.py", "batch.py", "gradients.py", "float32.py", "fitting.py", "maps.py")
 HEADER_MARK = "<!-- header -->"
 
 

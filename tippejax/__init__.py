@@ -37,6 +37,12 @@ from ._invariants import (
     normal_force_denominator as normal_force_denominator,
     slip_velocity as slip_velocity,
 )
+from ._maps import (
+    OUTCOMES as OUTCOMES,
+    OutcomeMap as OutcomeMap,
+    outcome_map as outcome_map,
+    outcome_map_tops as outcome_map_tops,
+)
 from ._models.routhian import CHART_SIN_MIN as CHART_SIN_MIN
 from ._simulate import MODELS as MODELS, simulate as simulate
 from ._solution import RESULTS as RESULTS, Solution as Solution

@@ -6,6 +6,10 @@
 - `fit`: fit parameters of a top and its launch to a measured tilt theta(t) read from a CSV file
   (columns `t`, `theta` and optionally `phi`; see `read_fit_csv`), with `tippejax.fit`; prints
   the fitted values and writes `fit.png` (`fit_figure`) and `fit.csv`.
+- `map`: outcome maps of a top (`tippejax.outcome_map`): where a grid of launches ends, with the
+  linear-theory boundaries, and a map over (A/C, eps/R) beside the group map.
+- `animate`: simulate a launch (default: the demo's) and write a 3-D animation with
+  `tippejax.animate` (GIF, or MP4 with ffmpeg).
 
 Run as `tippejax ...` (console script) or `python -m tippejax._cli ...`.
 """
@@ -425,6 +429,125 @@ def _cmd_fit(args) -> int:
         return 2
 
 
+# ---------------------------------------------------------------------------------------------
+# tippejax animate
+
+ANIMATE_DEFAULT_OUT = os.path.join(DEFAULT_OUT, "animation.gif")
+ANIMATE_SAVES_PER_SECOND = 200  # save times of the simulation (frames are resampled from them)
+
+
+def _cmd_animate(args) -> int:
+    """Simulate one launch (the top of `fit_guess`, default: the demo's) and render it."""
+    import numpy as np
+
+    import tippejax as tj
+
+    try:
+        top = fit_guess(args)
+        spin = args.spin if args.spin is not None else default_spin(top)
+        y0 = tj.initial_state(top, args.theta0, spin)
+        ts = np.linspace(0.0, args.t1, max(2, int(round(args.t1 * ANIMATE_SAVES_PER_SECOND)) + 1))
+        print(f"simulating: theta0 = {args.theta0:g} rad, spin = {spin:g} rad/s, "
+              f"t1 = {args.t1:g} s, model {args.model} ...")
+        sol = tj.simulate(top, y0, args.t1, model=args.model, saveat=ts, throw=False)
+        print(f"  model used: {sol.model}; inversion time: {_fmt(sol.t_invert, '.4g')} s")
+        start = time.perf_counter()
+        path = tj.animate(
+            sol, top, args.out, fps=args.fps, speed=args.speed, duration=args.duration,
+            frames=args.frames, t_start=args.t_start, t_end=args.t_end, dpi=args.dpi,
+            follow=args.follow,
+        )
+    except (ValueError, TypeError, OSError, RuntimeError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    print(f"wrote {path} ({os.path.getsize(path) / 1e6:.2f} MB, "
+          f"{time.perf_counter() - start:.1f} s to render)")
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# tippejax map
+
+MAP_GROUP_TOPS = ("standard", *REPRESENTATIVES)
+
+
+def _map_top(args):
+    """The top of `tippejax map`: `--group` (a representative of a group, or the standard top),
+    then the fields given on the command line (as `fit_guess`)."""
+    import tippejax as tj
+
+    if args.group not in (None, "standard"):
+        a_over_c, eps_over_r = REPRESENTATIVES[args.group]
+        args.A_over_C = a_over_c if args.A_over_C is None else args.A_over_C
+        args.eps_over_R = eps_over_r if args.eps_over_R is None else args.eps_over_R
+    for name in ("m", "R", "eps"):
+        setattr(args, name, getattr(args, name, None))
+    top = fit_guess(args)
+    return top, tj.classify(top)
+
+
+def _cmd_map(args) -> int:
+    """Outcome maps of one top: launch plane (theta0 x spin) and the plane of (A/C, eps/R)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    import tippejax as tj
+    from tippejax._plot import outcome_map_figure
+
+    try:
+        top, group = _map_top(args)
+        if min(args.n_theta, args.n_spin) < 2:
+            raise ValueError("--n-theta and --n-spin must be at least 2.")
+        theta0 = np.linspace(args.theta_min, args.theta_max, args.n_theta)
+        spin_max = args.spin_max if args.spin_max is not None else 6.0 * float(tj.thresholds(top).n1)
+        spin = np.linspace(args.spin_min, spin_max, args.n_spin)
+        os.makedirs(args.out, exist_ok=True)
+        print(f"top: Group {group}, A/C = {float(top.A_over_C):.4g}, "
+              f"eps/R = {float(top.eps_over_R):.4g}, mu = {float(top.mu):.4g} s/m")
+        start = time.perf_counter()
+        om = tj.outcome_map(top, theta0, spin, t1=args.t1, model=args.model,
+                            tolerance=args.tolerance)
+        elapsed = time.perf_counter() - start
+        n = theta0.size * spin.size
+        print(om.summary())
+        print(f"{n} launches in {elapsed:.1f} s ({n / elapsed:.1f} launches/s, compilation "
+              f"included) on {len(__import__('jax').devices())} device(s)")
+        paths = []
+        fig = outcome_map_figure(om)
+        paths.append(os.path.join(args.out, "outcome_map.png"))
+        fig.savefig(paths[-1], dpi=110)
+        plt.close(fig)
+        np.savez(
+            os.path.join(args.out, "outcome_map.npz"), theta0=theta0, spin=spin,
+            outcome=np.asarray(om.outcome), settled=np.asarray(om.settled),
+            theta_final=np.asarray(om.theta_final), t_invert=np.asarray(om.t_invert),
+            jellet=np.asarray(om.jellet), outcomes=np.array(tj.OUTCOMES),
+        )
+        paths.append(os.path.join(args.out, "outcome_map.npz"))
+        if args.tops:
+            a = np.linspace(0.55, 1.6, args.n_tops)
+            e = np.linspace(0.04, 0.7, max(2, (3 * args.n_tops) // 4))
+            spin_tops = args.spin_tops if args.spin_tops is not None else float(spin[len(spin) // 2])
+            start = time.perf_counter()
+            omt = tj.outcome_map_tops(top, a, e, theta0=args.theta0_tops, spin=spin_tops,
+                                      t1=args.t1, model="full" if args.model == "auto" else args.model)
+            print(omt.summary())
+            print(f"{a.size * e.size} tops in {time.perf_counter() - start:.1f} s")
+            fig = outcome_map_figure(omt)
+            paths.append(os.path.join(args.out, "outcome_map_tops.png"))
+            fig.savefig(paths[-1], dpi=110)
+            plt.close(fig)
+    except (ValueError, TypeError, OSError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    for path in paths:
+        print(f"wrote {path}")
+    return 0
+
+
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="tippejax", description="Steady states and groups of the tippe top (tippejax)."
@@ -513,6 +636,94 @@ def _parser() -> argparse.ArgumentParser:
                    help="ignore a phi column (fit theta only)")
     out_option(p)
     p.set_defaults(func=_cmd_fit)
+
+    from ._simulate import MODELS
+
+    p = sub.add_parser(
+        "animate",
+        help="simulate a launch and write a 3-D animation (GIF or MP4)",
+        description=(
+            "Simulate one launch (default: the default top of `tippejax demo`, theta0 0.1 rad, "
+            "spin 1.5 x the inversion threshold) and render it with tippejax.animate: the sphere, "
+            "its stem, the spin marker and the contact-point trace. Real time by default; the "
+            "spin (~100 rad/s) aliases at any frame rate a GIF can show, so pass --speed 0.2 "
+            "(slow motion) to watch it."
+        ),
+    )
+    top_group = p.add_argument_group("the top (default: the default top)")
+    top_group.add_argument("--m", type=float, default=None, help="mass (kg), default 0.02")
+    top_group.add_argument("--R", type=float, default=None, help="radius (m), default 0.025")
+    top_group.add_argument("--eps", type=float, default=None,
+                           help="centre of sphere to centre of mass (m), default 0.0075")
+    top_group.add_argument("--A-over-C", dest="A_over_C", metavar="X", type=float, default=None,
+                           help="A/C, default 0.9 (rebuilds the top with TippeTop.from_ratios)")
+    top_group.add_argument("--eps-over-R", dest="eps_over_R", metavar="Y", type=float,
+                           default=None, help="eps/R in (0, 1), default 0.3")
+    top_group.add_argument("--mu", type=float, default=None,
+                           help="viscous friction coefficient (s/m), default 0.3")
+    p.add_argument("--theta0", type=float, default=0.1, help="launch tilt (rad), default 0.1")
+    p.add_argument("--spin", type=float, default=None,
+                   help="launch spin n0 (rad/s); default 1.5 x the inversion threshold")
+    p.add_argument("--t1", type=float, default=12.0, help="simulated time (s), default 12")
+    p.add_argument("--model", default="full", choices=MODELS, help="level of model (default full)")
+    p.add_argument("--fps", type=float, default=20.0, help="frames per second (default 20)")
+    timing = p.add_mutually_exclusive_group()
+    timing.add_argument("--speed", type=float, default=None,
+                        help="seconds simulated per second shown (default 1; < 1: slow motion)")
+    timing.add_argument("--duration", type=float, default=None,
+                        help="seconds of animation for the whole span")
+    timing.add_argument("--frames", type=int, default=None, help="number of frames")
+    p.add_argument("--t-start", dest="t_start", type=float, default=None,
+                   help="first time shown (s), default 0")
+    p.add_argument("--t-end", dest="t_end", type=float, default=None,
+                   help="last time shown (s), default the end of the run")
+    p.add_argument("--dpi", type=float, default=80.0, help="dots per inch (5 x 5 in frames)")
+    p.add_argument("--follow", action="store_true",
+                   help="keep the sphere in the middle of the view")
+    p.add_argument("--out", metavar="PATH", default=ANIMATE_DEFAULT_OUT,
+                   help=f"output file, .gif or .mp4 (needs ffmpeg); default {ANIMATE_DEFAULT_OUT}")
+    p.set_defaults(func=_cmd_animate)
+
+    p = sub.add_parser(
+        "map",
+        help="outcome maps: where launches end over theta0 x spin, and over (A/C, eps/R)",
+        description=(
+            "Simulate a grid of launches theta0 x spin of one top with tippejax.outcome_map and "
+            "plot where each ends (upright, inverted, intermediate, contact lost, failed) with "
+            "the linear-theory boundaries; then a grid of tops over (A/C, eps/R) for one launch "
+            "beside the group map. Writes outcome_map.png, outcome_map.npz and "
+            "outcome_map_tops.png to --out."
+        ),
+    )
+    p.add_argument("--group", choices=MAP_GROUP_TOPS, default="standard",
+                   help="the top: the standard top (default) or a representative of a group")
+    p.add_argument("--A-over-C", dest="A_over_C", metavar="X", type=float, default=None,
+                   help="A/C (replaces the group's)")
+    p.add_argument("--eps-over-R", dest="eps_over_R", metavar="Y", type=float, default=None,
+                   help="eps/R (replaces the group's)")
+    p.add_argument("--mu", type=float, default=None, help="friction (s/m), default 0.3")
+    p.add_argument("--n-theta", dest="n_theta", type=int, default=12, help="launch tilts (12)")
+    p.add_argument("--n-spin", dest="n_spin", type=int, default=24, help="launch spins (24)")
+    p.add_argument("--theta-min", dest="theta_min", type=float, default=0.02)
+    p.add_argument("--theta-max", dest="theta_max", type=float, default=1.5)
+    p.add_argument("--spin-min", dest="spin_min", type=float, default=10.0)
+    p.add_argument("--spin-max", dest="spin_max", type=float, default=None,
+                   help="default 6 x n1 of the top")
+    p.add_argument("--t1", type=float, default=30.0, help="simulated time (s), default 30")
+    p.add_argument("--model", default="full", choices=MODELS, help="level of model (full)")
+    p.add_argument("--tolerance", type=float, default=None,
+                   help="for --model auto: largest theta error (rad) a level may make")
+    p.add_argument("--no-tops", dest="tops", action="store_false",
+                   help="skip the map over (A/C, eps/R)")
+    p.add_argument("--n-tops", dest="n_tops", type=int, default=16,
+                   help="A/C values of the top map (eps/R gets 3/4 as many)")
+    p.add_argument("--theta0-tops", dest="theta0_tops", type=float, default=0.1,
+                   help="launch tilt of the top map (rad), default 0.1")
+    p.add_argument("--spin-tops", dest="spin_tops", type=float, default=None,
+                   help="launch spin of the top map (default: the middle of the spin range)")
+    p.add_argument("--out", metavar="DIR", default=DEFAULT_OUT,
+                   help=f"output folder, default {DEFAULT_OUT}")
+    p.set_defaults(func=_cmd_map)
     return parser
 
 

@@ -1,0 +1,454 @@
+r"""Outcome maps: where thousands of launches end, batched, sharded, and across processes.
+
+A map simulates a grid of launches in summary mode (`simulate(..., summary=True)`: only the
+state where each run ended is kept, so memory per launch does not grow with `t1`) and
+classifies each end state against the analysis level.
+
+**Classification.** The Jellet integral $J$ of a launch is exactly conserved, so the steady
+states it can end in are those of the analysis level for that $J$ (`steady_states`): the
+vertical states $\theta = 0, \pi$ and up to two intermediate states on the branch of
+eq. (Exist), each stable when $W''(\theta; J) > 0$ (eq. stabilityba). Energy decreases along
+the motion, so a launch that does not leave the table ends near a stable one. The outcome of a
+launch is the stable state of its $J$ nearest to the final tilt $\theta(t_1)$:
+
+- `"upright"` ($\theta = 0$), `"inverted"` ($\theta = \pi$), `"intermediate"` (an
+  intermediate state; `theta_expected` holds its tilt);
+- `"contact_lost"`: $R_n$ reached 0 (the model stops there, ERRATA.md point 6);
+- `"failed"`: any other failure of the solve (max steps, the $R_n$ singularity, NaN, a
+  level that cannot describe the launch), and a $J$ with no stable state.
+
+`settled` says whether the final tilt is within `settle_tol` of that state: a launch still on
+its way at $t_1$ is classified by the stable state it is nearest to, which in the bistable
+groups (Ib, IIa) need not be the one it will reach. Choose `t1` long enough that the map is
+settled where it matters (`OutcomeMap.counts()` reports the unsettled fraction).
+
+**Scale.** The launches are flattened and run in chunks of `chunk_size` (one compilation per
+level of model); each chunk is one array sharded over every device JAX sees
+(`jax.devices()`). Under `jax.distributed.initialize` that is every device of every process:
+each process simulates only the launches on its own devices (`jax.make_array_from_callback`),
+and the results are gathered on every process. The same call runs on one CPU, on a GPU, on
+all local devices, or on a cluster; see `examples/distributed_map.py` for the launch command.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
+from ._analysis.potential import effective_potential_d2_closed_form
+from ._analysis.steady_states import _branch_pieces, _find_root
+from ._engine.solver_choice import default_solver
+from ._invariants import jellet
+from ._simulate import MODELS, simulate
+from ._solution import RESULTS
+from ._state import initial_state
+from ._top import TippeTop
+
+OUTCOMES = ("upright", "inverted", "intermediate", "contact_lost", "failed")
+"""Outcome codes of `outcome_map`: `tj.OUTCOMES[int(om.outcome[i, j])]`."""
+
+UPRIGHT, INVERTED, INTERMEDIATE, CONTACT_LOST, FAILED = range(len(OUTCOMES))
+
+_CONTACT_CODES = ("contact_lost", "contact_loss_missed")
+
+
+class OutcomeMap(eqx.Module):
+    r"""Where each launch of a map ended (returned by `outcome_map` and `outcome_map_tops`).
+
+    The map's two axes are named in `axes`: `("theta0", "spin")` for `outcome_map` (grid of
+    launch tilt x launch spin for one top), `("A_over_C", "eps_over_R")` for
+    `outcome_map_tops` (grid of tops for one launch). Every per-launch field has the grid's
+    shape `(len(first axis), len(second axis))`.
+
+    **Fields:**
+
+    - `top`: the top (`outcome_map`) or the base top whose ratios are varied.
+    - `theta0`, `spin`, `A_over_C`, `eps_over_R`: the axes' values (1-d) or the fixed value (0-d).
+    - `outcome`: index into `OUTCOMES` (int8).
+    - `settled`: the final tilt is within `settle_tol` of the state it is classified into.
+    - `theta_final`: $\theta$ where the run ended (at `t1`, or where it stopped).
+    - `theta_expected`: the tilt of the stable state it is classified into (nan if none).
+    - `t_invert`: first upward crossing of $\pi/2$ (nan if none).
+    - `t_contact_loss`, `t_final`: time $R_n$ reached 0 (nan if never), time the run ended.
+    - `jellet`: $J$ of the launch.
+    - `result`: the `RESULTS` code of each run (`RESULTS[int]` is its message).
+    - `num_steps`: solver steps of each run.
+    - `model_index`: index into `models`, the level each launch was simulated with.
+    - `t1`, `rtol`, `atol`, `settle_tol`: the settings.
+    """
+
+    top: TippeTop
+    axes: tuple[str, str] = eqx.field(static=True)
+    theta0: Float[Array, "..."]
+    spin: Float[Array, "..."]
+    A_over_C: Float[Array, "..."]
+    eps_over_R: Float[Array, "..."]
+    outcome: Int[Array, "n1 n2"]
+    settled: Bool[Array, "n1 n2"]
+    theta_final: Float[Array, "n1 n2"]
+    theta_expected: Float[Array, "n1 n2"]
+    t_invert: Float[Array, "n1 n2"]
+    t_contact_loss: Float[Array, "n1 n2"]
+    t_final: Float[Array, "n1 n2"]
+    jellet: Float[Array, "n1 n2"]
+    result: Int[Array, "n1 n2"]
+    num_steps: Int[Array, "n1 n2"]
+    model_index: Int[Array, "n1 n2"]
+    models: tuple[str, ...] = eqx.field(static=True)
+    t1: float = eqx.field(static=True)
+    rtol: float = eqx.field(static=True)
+    atol: float = eqx.field(static=True)
+    settle_tol: float = eqx.field(static=True)
+
+    def counts(self) -> dict[str, int]:
+        """Number of launches per outcome, and of unsettled ones (key `"unsettled"`)."""
+        outcome = np.asarray(self.outcome)
+        out = {name: int(np.sum(outcome == k)) for k, name in enumerate(OUTCOMES)}
+        ended = outcome <= INTERMEDIATE
+        out["unsettled"] = int(np.sum(ended & ~np.asarray(self.settled)))
+        return out
+
+    def summary(self) -> str:
+        """A few lines: the grid, the levels used, and the counts."""
+        n = int(np.asarray(self.outcome).size)
+        counts = self.counts()
+        lines = [
+            f"outcome map over {self.axes[0]} x {self.axes[1]}: {np.shape(self.outcome)} = {n} "
+            f"launches, t1 = {self.t1:g} s, rtol = {self.rtol:g}",
+            "levels: " + ", ".join(
+                f"{name} ({int(np.sum(np.asarray(self.model_index) == k))})"
+                for k, name in enumerate(self.models)
+            ),
+        ]
+        lines += [f"  {name:>13}: {counts[name]:7d} ({100 * counts[name] / n:5.1f}%)"
+                  for name in (*OUTCOMES, "unsettled")]
+        return "\n".join(lines)
+
+
+def stable_states(top: TippeTop, J) -> tuple[Float[Array, "4"], Bool[Array, "4"], Int[Array, "4"]]:
+    r"""The steady states of `top` at Jellet `J` and whether each is stable ($W'' > 0$).
+
+    The lean part of `steady_states` that a map needs (no eigenvalues): four slots, the
+    vertical states $\theta = 0$ and $\pi$ and the two intermediate slots (roots of eq.
+    (Exist) on the two monotone pieces of the branch).
+
+    **Returns:** `(theta, stable, kind)`: tilts (nan for an empty slot), stability (False for an
+    empty slot), and the outcome code of each slot (`UPRIGHT`, `INVERTED`, `INTERMEDIATE`).
+    """
+    dtype = jnp.result_type(top.m)
+    J = jnp.asarray(J, dtype)
+    roots = [_find_root(top, J, lo, hi) for lo, hi in _branch_pieces(top)]
+    theta = jnp.stack([jnp.zeros((), dtype), jnp.asarray(jnp.pi, dtype)] + [r[0] for r in roots])
+    exists = jnp.stack([jnp.array(True), jnp.array(True)] + [r[1] for r in roots])
+    safe = jnp.where(exists, theta, 1.0)
+    d2w = effective_potential_d2_closed_form(top, safe, J)
+    stable = exists & (d2w > 0)
+    kind = jnp.array([UPRIGHT, INVERTED, INTERMEDIATE, INTERMEDIATE])
+    return jnp.where(exists, theta, jnp.nan), stable, kind
+
+
+def classify_end(top: TippeTop, J, theta_final, result, *, settle_tol):
+    """Outcome code, settled flag and expected tilt of one run (see the module docstring)."""
+    theta, stable, kind = stable_states(top, J)
+    distance = jnp.where(stable, jnp.abs(theta_final - theta), jnp.inf)
+    nearest = jnp.argmin(distance)
+    any_stable = jnp.any(stable)
+    outcome = jnp.where(any_stable, kind[nearest], FAILED)
+    expected = jnp.where(any_stable, theta[nearest], jnp.nan)
+    settled = any_stable & (distance[nearest] <= settle_tol)
+    contact = jnp.zeros((), bool)
+    for code in _CONTACT_CODES:
+        contact = contact | (result == getattr(RESULTS, code))
+    ok = (result == RESULTS.successful) & jnp.isfinite(theta_final)
+    outcome = jnp.where(contact, CONTACT_LOST, jnp.where(ok, outcome, FAILED))
+    return outcome.astype(jnp.int8), settled & ok, jnp.where(ok, expected, jnp.nan)
+
+
+@eqx.filter_jit
+def _run_chunk(top_fields, top_static, thetas, spins, t1, options):
+    """Simulate and classify one sharded chunk of launches (summary outputs only)."""
+    model, rtol, atol, solver, max_steps, settle_tol = options
+
+    def one(fields, theta0, spin):
+        top = eqx.combine(fields, top_static)
+        y0 = initial_state(top, theta0, spin)
+        sol = simulate(
+            top, y0, t1, model=model, summary=True, throw=False, rtol=rtol, atol=atol,
+            solver=solver, max_steps=max_steps,
+        )
+        J = jellet(top, y0)
+        theta_f = sol.theta[0]
+        outcome, settled, expected = classify_end(
+            top, J, theta_f, sol.result, settle_tol=settle_tol
+        )
+        return dict(
+            outcome=outcome, settled=settled, theta_final=theta_f, theta_expected=expected,
+            t_invert=sol.t_invert, t_contact_loss=sol.t_contact_loss, t_final=sol.t_final,
+            jellet=J, result=sol.result._value.astype(jnp.int8),
+            num_steps=sol.num_steps.astype(jnp.int32),
+        )
+
+    field_axes = jax.tree_util.tree_map(lambda x: 0 if x.ndim == 1 else None, top_fields)
+    return jax.vmap(one, in_axes=(field_axes, 0, 0))(top_fields, thetas, spins)
+
+
+def _gather(x) -> np.ndarray:
+    """A (possibly multi-process) sharded array as a numpy array on every process."""
+    if jax.process_count() > 1 and not x.is_fully_addressable:
+        from jax.experimental import multihost_utils
+
+        return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+    return np.asarray(x)
+
+
+def _run_flat(top: TippeTop, thetas, spins, t1, *, batched_top: bool, model, rtol, atol,
+              solver, max_steps, settle_tol, chunk_size, devices):
+    """Run the flat launches in chunks sharded over `devices`; returns numpy arrays."""
+    size = thetas.shape[0]
+    n_dev = len(devices)
+    chunk = max(1, min(int(chunk_size), size))
+    chunk = -(-chunk // n_dev) * n_dev
+    mesh = Mesh(np.array(devices), ("launch",))
+    sharded = NamedSharding(mesh, PartitionSpec("launch"))
+    dtype = jnp.result_type(top.m)
+    fields, static = eqx.partition(top, eqx.is_array)
+    options = (model, rtol, atol, solver, max_steps, settle_tol)
+    t1 = jnp.asarray(t1, dtype)
+
+    def put(values):
+        # Each process builds only the shards on its own devices.
+        return jax.make_array_from_callback(
+            values.shape, sharded, lambda index: np.asarray(values[index], dtype=dtype)
+        )
+
+    if not batched_top:
+        # Replicated scalars (uncommitted host values are replicated onto every device).
+        fields = jax.tree_util.tree_map(lambda x: np.asarray(x, dtype=dtype), fields)
+    parts = []
+    for start in range(0, size, chunk):
+        stop = min(start + chunk, size)
+        pad = chunk - (stop - start)
+
+        def padded(x):
+            x = x[start:stop]
+            return np.concatenate([x, np.repeat(x[-1:], pad, axis=0)]) if pad else x
+
+        th, sp = put(padded(thetas)), put(padded(spins))
+        if batched_top:
+            chunk_fields = jax.tree_util.tree_map(lambda x: put(padded(x)), fields)
+        else:
+            chunk_fields = fields
+        out = _run_chunk(chunk_fields, static, th, sp, t1, options)
+        parts.append({k: _gather(v)[: stop - start] for k, v in out.items()})
+    return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+
+def _check_common(model, t1, rtol, atol, settle_tol, chunk_size):
+    if model not in MODELS:
+        raise ValueError(f"outcome_map: unknown model {model!r}; choose one of {MODELS}.")
+    if not (isinstance(t1, (int, float, np.number)) and math.isfinite(t1) and t1 > 0):
+        raise ValueError(f"outcome_map: t1 must be a positive finite time (s), got {t1!r}.")
+    for name, value in (("rtol", rtol), ("atol", atol), ("settle_tol", settle_tol)):
+        if not (isinstance(value, (int, float, np.number)) and value > 0):
+            raise ValueError(f"outcome_map: {name} must be a positive number, got {value!r}.")
+    if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
+        raise ValueError(f"outcome_map: chunk_size must be a positive integer, got {chunk_size!r}.")
+
+
+def _axis(name, values, *, low=-np.inf, high=np.inf, what=""):
+    values = np.atleast_1d(np.asarray(values, dtype=float))
+    if values.ndim != 1 or values.size == 0:
+        raise ValueError(f"outcome_map: {name} must be a non-empty 1-d list, got shape {values.shape}.")
+    if not np.all(np.isfinite(values)):
+        raise ValueError(f"outcome_map: {name} must be finite (got NaN or inf).")
+    if np.any(values < low) or np.any(values > high):
+        raise ValueError(f"outcome_map: {name} must lie in [{low}, {high}]{what}; got "
+                         f"{values.min():g} to {values.max():g}.")
+    return values
+
+
+def _auto_models(top: TippeTop, flat_theta, flat_spin, tolerance) -> tuple[list[str], np.ndarray]:
+    """The level `model="auto"` picks for each launch: `choose_model`'s rule, evaluated once
+    per class of launches that it cannot tell apart (regime x whether the gyroscopic level
+    accepts the launch), since the rule depends on nothing else."""
+    from ._auto import choose_model
+    from ._models.levels import LEVELS
+
+    if tolerance is None:
+        return ["full"], np.zeros(flat_theta.size, int)
+    y0s = initial_state(top, jnp.asarray(flat_theta), jnp.asarray(flat_spin))
+    J = np.asarray(jax.vmap(lambda y: jellet(top, y))(y0s))
+    up = np.asarray(effective_potential_d2_closed_form(top, 0.0, J)) > 0
+    down = np.asarray(effective_potential_d2_closed_form(top, np.pi, J)) > 0
+    accepts = np.asarray(jax.vmap(lambda y: LEVELS["gyroscopic"].in_chart(top, y))(y0s))
+    key = up.astype(int) * 4 + down.astype(int) * 2 + accepts.astype(int)
+    models: list[str] = []
+    index = np.zeros(flat_theta.size, int)
+    for k in np.unique(key):
+        members = np.flatnonzero(key == k)
+        y_rep = jax.tree_util.tree_map(lambda x: x[members[0]], y0s)
+        name = choose_model(top, y_rep, tolerance=tolerance)
+        if name not in models:
+            models.append(name)
+        index[members] = models.index(name)
+    return models, index
+
+
+def outcome_map(
+    top: TippeTop,
+    theta0: ArrayLike,
+    spin: ArrayLike,
+    *,
+    t1: float,
+    model: Literal["full", "so3", "routhian", "gyroscopic", "auto"] = "auto",
+    tolerance: float | None = None,
+    rtol: float = 1e-6,
+    atol: float = 1e-9,
+    solver: diffrax.AbstractSolver | None = None,
+    max_steps: int = 200_000,
+    settle_tol: float = 0.1,
+    chunk_size: int = 4096,
+    devices=None,
+) -> OutcomeMap:
+    r"""Simulate `top` launched from every pair of `theta0` x `spin` and classify where each ends.
+
+    Each launch is `initial_state(top, theta0, spin)`, run to `t1` in summary mode and
+    classified against the stable steady states of its Jellet $J$ (module docstring): codes
+    in `OUTCOMES`.
+
+    **Arguments:**
+
+    - `top`: one `TippeTop`.
+    - `theta0`: launch tilts (rad), 1-d, in $[0, \pi]$; `spin`: launch spins (rad/s), 1-d.
+    - `t1`: simulated time (s) of every launch; long enough for the map to settle.
+    - `model`: a level of `simulate`, or `"auto"` (default): for each launch the level
+      `simulate(..., model="auto", tolerance=tolerance)` would use (`tolerance=None`: the
+      full model). Launches on different levels are run as separate batches.
+    - `rtol`, `atol`: solver tolerances. The defaults are looser than `simulate`'s: a map needs
+      the end state, not the path (`benchmarks/maps.py` measures how many outcomes change
+      against rtol 1e-9).
+    - `solver`: a diffrax solver (default `default_solver(top)`).
+    - `max_steps`: per launch; a launch that needs more is `"failed"`.
+    - `settle_tol`: tilt distance (rad) within which a launch counts as `settled`.
+    - `chunk_size`: launches per compiled batch (rounded up to a multiple of the device count);
+      memory grows with it, not with the grid.
+    - `devices`: devices to shard over (default `jax.devices()`: all devices of all processes).
+
+    **Returns:** an `OutcomeMap` with grid shape `(len(theta0), len(spin))`.
+    """
+    _check_common(model, t1, rtol, atol, settle_tol, chunk_size)
+    if not isinstance(top, TippeTop) or np.ndim(top.m) != 0:
+        raise ValueError("outcome_map: top must be one TippeTop (not a batch).")
+    theta0 = _axis("theta0", theta0, low=0.0, high=np.pi, what=" rad")
+    spin = _axis("spin", spin)
+    grid_theta, grid_spin = np.meshgrid(theta0, spin, indexing="ij")
+    flat_theta, flat_spin = grid_theta.ravel(), grid_spin.ravel()
+    if model == "auto":
+        models, index = _auto_models(top, flat_theta, flat_spin, tolerance)
+    else:
+        models, index = [model], np.zeros(flat_theta.size, int)
+    solver = default_solver(top) if solver is None else solver
+    devices = jax.devices() if devices is None else list(devices)
+    out = None
+    for k, name in enumerate(models):
+        members = np.flatnonzero(index == k)
+        part = _run_flat(
+            top, flat_theta[members], flat_spin[members], t1, batched_top=False, model=name,
+            rtol=rtol, atol=atol, solver=solver, max_steps=max_steps, settle_tol=settle_tol,
+            chunk_size=chunk_size, devices=devices,
+        )
+        if out is None:
+            out = {key: np.empty((flat_theta.size,) + v.shape[1:], v.dtype) for key, v in part.items()}
+        for key, v in part.items():
+            out[key][members] = v
+    shape = grid_theta.shape
+    dtype = jnp.result_type(top.m)
+    return OutcomeMap(
+        top=top, axes=("theta0", "spin"), theta0=jnp.asarray(theta0, dtype),
+        spin=jnp.asarray(spin, dtype), A_over_C=top.A_over_C, eps_over_R=top.eps_over_R,
+        model_index=jnp.asarray(index.reshape(shape), jnp.int8), models=tuple(models),
+        t1=float(t1), rtol=float(rtol), atol=float(atol), settle_tol=float(settle_tol),
+        **{key: jnp.asarray(v.reshape(shape)) for key, v in out.items()},
+    )
+
+
+def outcome_map_tops(
+    top: TippeTop,
+    A_over_C: ArrayLike,
+    eps_over_R: ArrayLike,
+    *,
+    theta0: float,
+    spin: float,
+    t1: float,
+    model: Literal["full", "so3", "routhian"] = "full",
+    rtol: float = 1e-6,
+    atol: float = 1e-9,
+    solver: diffrax.AbstractSolver | None = None,
+    max_steps: int = 200_000,
+    settle_tol: float = 0.1,
+    chunk_size: int = 4096,
+    devices=None,
+) -> OutcomeMap:
+    r"""Where one launch ends for a grid of tops in the plane of $(A/C, \epsilon/R)$.
+
+    Every top is `top` with $A = (A/C)\,C$ and $\epsilon = (\epsilon/R)\,R$ (its `m`, `R`, `C`,
+    `g`, `mu` kept), launched with `initial_state(top_ij, theta0, spin)`; the outcomes are
+    classified as in `outcome_map`, each against the steady states of its own top. The group
+    map of the analysis level (`tippejax._plot.group_map`) is the linear theory's prediction
+    for the same plane.
+
+    `model` is one level for the whole grid (`"auto"` reads a regime per top and is not offered
+    here). The solver is chosen for the base top (`default_solver(top)`): keep `mu` moderate.
+
+    **Returns:** an `OutcomeMap` with axes `("A_over_C", "eps_over_R")` and grid shape
+    `(len(A_over_C), len(eps_over_R))`.
+    """
+    _check_common(model, t1, rtol, atol, settle_tol, chunk_size)
+    if model not in ("full", "so3", "routhian"):
+        raise ValueError(
+            f"outcome_map_tops: model must be 'full', 'so3' or 'routhian', got {model!r}."
+        )
+    if not isinstance(top, TippeTop) or np.ndim(top.m) != 0:
+        raise ValueError("outcome_map_tops: top must be one TippeTop (not a batch).")
+    a = _axis("A_over_C", A_over_C, low=0.5, high=np.inf, what=" (no rigid body has A/C < 1/2)")
+    e = _axis("eps_over_R", eps_over_R, low=0.0, high=1.0, what=" (0 < eps < R)")
+    if np.any(e <= 0) or np.any(e >= 1):
+        raise ValueError("outcome_map_tops: eps_over_R must lie strictly between 0 and 1.")
+    if not (0.0 <= float(theta0) <= math.pi) or not math.isfinite(float(spin)):
+        raise ValueError("outcome_map_tops: theta0 must lie in [0, pi] and spin be finite.")
+    grid_a, grid_e = np.meshgrid(a, e, indexing="ij")
+    size = grid_a.size
+    dtype = jnp.result_type(top.m)
+    tops = TippeTop(
+        m=np.full(size, float(top.m)), R=np.full(size, float(top.R)),
+        eps=grid_e.ravel() * float(top.R), A=grid_a.ravel() * float(top.C),
+        C=np.full(size, float(top.C)), g=np.full(size, float(top.g)),
+        mu=np.full(size, float(top.mu)),
+    ).astype(dtype)
+    solver = default_solver(top) if solver is None else solver
+    devices = jax.devices() if devices is None else list(devices)
+    out = _run_flat(
+        tops, np.full(size, float(theta0)), np.full(size, float(spin)), t1, batched_top=True,
+        model=model, rtol=rtol, atol=atol, solver=solver, max_steps=max_steps,
+        settle_tol=settle_tol, chunk_size=chunk_size, devices=devices,
+    )
+    shape = grid_a.shape
+    return OutcomeMap(
+        top=top, axes=("A_over_C", "eps_over_R"), theta0=jnp.asarray(theta0, dtype),
+        spin=jnp.asarray(spin, dtype), A_over_C=jnp.asarray(a, dtype),
+        eps_over_R=jnp.asarray(e, dtype), model_index=jnp.zeros(shape, jnp.int8),
+        models=(model,), t1=float(t1), rtol=float(rtol), atol=float(atol),
+        settle_tol=float(settle_tol),
+        **{key: jnp.asarray(v.reshape(shape)) for key, v in out.items()},
+    )
+
+
+__all__ = ["OUTCOMES", "OutcomeMap", "outcome_map", "outcome_map_tops", "stable_states"]
