@@ -90,3 +90,33 @@ def test_auto_keeps_its_promise_on_a_new_launch():
     # and the full model is what a tight tolerance gets
     tight = tj.simulate(top, y0, 8.0, model="auto", tolerance=1e-3, saveat=ts)
     assert tight.model == "full"
+
+
+def test_auto_picks_the_gyroscopic_level_for_a_fast_launch_on_its_manifold():
+    """A fast launch on the gyroscopic slow manifold (no nutation to drop): at a tolerance above
+    the level's measured error auto runs the slow flow, says so, and keeps within it of the full
+    model; at a tight tolerance it runs the full model; a launch the level refuses (much
+    nutation) never gets it."""
+    from tippejax._models.gyroscopic import GyroscopicLevel, GyroscopicLevelState
+
+    top = tj.default_top()
+    J = tj.jellet(top, tj.initial_state(top, 0.1, 150.0))
+    y0 = GyroscopicLevel().to_state(
+        top, GyroscopicLevelState.from_theta(0.1, phi=0.0, psi=0.0, nutation=-30.0, jellet=J))
+    assert launch_regime(top, y0) == "inverts"
+    error, cost = MEASURED["inverts"]["gyroscopic"]
+    assert np.isfinite(error) and cost < COST_MARGIN
+    loose = 1.5 * error
+    ts = jnp.linspace(0.0, 8.0, 201)
+    auto = tj.simulate(top, y0, 8.0, model="auto", tolerance=loose, saveat=ts)
+    assert auto.model == "gyroscopic"
+    full = tj.simulate(top, y0, 8.0, model="full", saveat=ts)
+    err = float(np.max(np.abs(np.asarray(auto.theta) - np.asarray(full.theta))))
+    print(f"gyroscopic (auto) vs full, on-manifold launch n0 = 150: max |dtheta| = {err:.3g} rad "
+          f"(tolerance {loose:.3g})")
+    assert err < loose
+    tight = tj.simulate(top, y0, 8.0, model="auto", tolerance=1e-3, saveat=ts)
+    assert tight.model == "full"
+    nutating = tj.initial_state(top, 0.5, 80.0, theta_dot=2.0)
+    assert not bool(GyroscopicLevel().in_chart(top, nutating))
+    assert choose_model(top, nutating, tolerance=10.0) != "gyroscopic"

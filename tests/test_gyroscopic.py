@@ -24,6 +24,7 @@ from tippejax._models.gyroscopic import (
     limit_theta_dot,
     nutation_damping,
     nutation_frequency,
+    precession_rate,
     project_launch,
     slow_manifold,
 )
@@ -51,9 +52,8 @@ def jellet_of(top, spin, theta=0.0):
 
 def on_manifold(top, theta, spin):
     """A state on the slow manifold at `theta`, with the Jellet of a vertical launch at `spin`."""
-    y = GyroscopicLevelState(
-        theta=jnp.asarray(theta), phi=jnp.asarray(0.0), psi=jnp.asarray(0.0),
-        nutation=jnp.asarray(-30.0), jellet=jnp.asarray(jellet_of(top, spin)),
+    y = GyroscopicLevelState.from_theta(
+        theta, phi=0.0, psi=0.0, nutation=-30.0, jellet=jellet_of(top, spin)
     )
     return LEVEL.to_state(top, y)
 
@@ -168,6 +168,75 @@ def test_nutation_frequency_sympy():
             nu2 = U2(theta, *pars, p_phi, p_psi) / inertia
             nu = float(nutation_frequency(top, theta, J))
             np.testing.assert_allclose(nu**2, nu2, rtol=1e-8)
+
+
+def _nutation_damping_by_autodiff(top, theta, J):
+    """sigma of the module docstring with every x-derivative taken by jax.jvp of its
+    definition (the level writes them out in closed form)."""
+    m, g, eps, R, A, C, mu = (top.m, top.g, top.eps, top.R, top.A, top.C, top.mu)
+    x, s2 = jnp.cos(theta), jnp.sin(theta) ** 2
+    one = jnp.ones_like(x)
+    sm = slow_manifold(top, theta, J)
+    p = sm.slip
+    big_s = eps**2 + R**2
+
+    def d_of(x):
+        return R**2 * A * (1 - x**2) + C * (R * x - eps) ** 2
+
+    def kappa_of(x):
+        return R * A * eps * (1 - x**2) + C * (R * x - eps) * (R + eps * x)
+
+    def normal_force_at_rest(x, p):  # eq. reactie at rest, phi_dot and n from eq. routh1
+        c_dot = (J * big_s - kappa_of(x) * p) / d_of(x)
+        w = (eps * p + R * c_dot) / big_s
+        n = (R * p - eps * c_dot) / big_s + w * x
+        return m * (g + eps * (1 - x**2) * w * (w * x - C * n / A)) / (
+            1 + m * eps**2 * (1 - x**2) / A)
+
+    def nu_squared(x):
+        omega = precession_rate(top, x, J)
+        n = (A * omega**2 * x - m * g * eps) / (C * omega)
+        return ((C * n - 2 * A * omega * x) ** 2 + A**2 * omega**2 * (1 - x**2)) / (
+            A * (A + m * eps**2 * (1 - x**2)))
+
+    rn, rn_x = jax.jvp(lambda xx: normal_force_at_rest(xx, p), (x,), (one,))
+    _, rn_p = jax.jvp(lambda pp: normal_force_at_rest(x, pp), (p,), (one,))
+    _, dm_x = jax.jvp(lambda xx: A * C * (1 - xx**2) / d_of(xx), (x,), (one,))
+    _, dbeta_x = jax.jvp(lambda xx: J / big_s * kappa_of(xx) / d_of(xx), (x,), (one,))
+    nu2, nu2_x = jax.jvp(nu_squared, (x,), (one,))
+    coupling = -(dm_x * p + dbeta_x)
+    inertia_phibar = A * C / d_of(x)
+    inertia = A + m * eps**2 * s2
+    drive = (mu * (rn + p * rn_p) * coupling / inertia_phibar + mu * s2 * p * rn_x
+             - 2 * mu * p * rn * x)
+    h = R - eps * x
+    friction = -(mu * rn * h**2 + coupling * drive / (inertia_phibar * nu2)) / (2 * inertia)
+    log_m_nu_x = -2 * m * eps**2 * x / inertia + 0.5 * nu2_x / nu2
+    return friction + 0.5 * sm.rate * s2 * log_m_nu_x
+
+
+def test_nutation_damping_closed_form_matches_autodiff():
+    """The level's closed-form derivatives in sigma against jax.jvp of their definitions, all six
+    groups, both signs of J, wherever (G2) has a real root."""
+    thetas = jnp.linspace(0.0, np.pi, 23)
+
+    @jax.jit
+    def both(top, J):
+        one = jax.vmap(lambda th: (_nutation_damping_by_autodiff(top, th, J),
+                                   nutation_damping(top, th, J),
+                                   slow_manifold(top, th, J).discriminant))
+        return one(thetas)
+
+    checked = 0
+    for name in GROUP_RATIOS:
+        top = tj.TippeTop.from_ratios(*GROUP_RATIOS[name], mu=0.7)
+        for spin in (15.0, 40.0, 100.0, 400.0, -80.0):
+            expected, got, discriminant = (np.asarray(v) for v in both(top, jellet_of(top, spin)))
+            real = discriminant > 0
+            np.testing.assert_allclose(got[real], expected[real], rtol=1e-8, atol=1e-10,
+                                       err_msg=f"{name}, n0 = {spin}")
+            checked += int(real.sum())
+    assert checked > 500
 
 
 def test_nutation_against_the_linearisations():

@@ -7,9 +7,21 @@ balance holds and the launch's nutation is small enough to project, see `choose_
 The numbers in `MEASURED` are copied from `benchmarks/LEVELS.md`, made by
 `python benchmarks/levels.py`: for each regime, the worst error in theta(t) of each level
 against the full model over the benchmark's scenes of that regime, and the median cost (wall
-time relative to the full model in the same run). A level that refused or stopped on one of a
-regime's scenes has error `inf` there (never picked in that regime). Re-run the benchmark and update them together
-when a model or solver changes (`tests/test_auto.py` checks they agree).
+time relative to the full model in the same run). For the gyroscopic level, which refuses
+launches it cannot describe, both are over the scenes of the regime it accepts, since auto
+only picks it for a launch it accepts; a scene where it was accepted and then stopped on the way
+counts as error `inf` (never picked in that regime), and so does a regime where it accepted
+none. Re-run the benchmark and update them together when a model or solver changes
+(`tests/test_auto.py` checks they agree).
+
+**What `tolerance` means.** The largest acceptable max |theta(t) - theta_full(t)| over the run
+(rad), the same metric for every level. The gyroscopic level drops the nutation, so its error
+on this metric is mostly the nutation amplitude of the full model's motion (0.1-0.3 rad for the
+benchmark's launches with omega = n a, which carry nutation); its slow drift alone (theta
+against the nutation-averaged full model, and t_invert) is far closer (`benchmarks/LEVELS.md`).
+Auto therefore uses it only where a caller accepts an error of the size of the nutation (or in
+the stiff regime, where the others err as much); a caller who wants the averaged motion
+cheaply asks for `model="gyroscopic"` directly.
 
 A launch's regime is read off the algebra level, before anything is integrated: stiff friction,
 a moving centre of mass, or else where the Jellet $J$ of the launch sends the top (which of the
@@ -28,14 +40,15 @@ from ._state import State
 from ._top import TippeTop
 
 MEASURED = {
-    "inverts": {"so3": (0.234, 0.81), "routhian": (0.234, 0.90), "gyroscopic": (float("inf"), 0.14)},
-    "intermediate": {"so3": (0.385, 0.85), "routhian": (0.385, 0.65), "gyroscopic": (float("inf"), 0.15)},
-    "stays upright": {"so3": (0.0453, 0.91), "routhian": (0.0453, 1.00), "gyroscopic": (float("inf"), 0.41)},
-    "stiff": {"so3": (0.536, 0.54), "routhian": (0.536, 0.37), "gyroscopic": (0.928, 0.02)},
-    "moving": {"so3": (0.311, 0.79), "routhian": (0.311, 1.05), "gyroscopic": (float("inf"), 0.17)},
+    "inverts": {"so3": (0.234, 0.97), "routhian": (0.234, 0.87), "gyroscopic": (0.285, 0.06)},
+    "intermediate": {"so3": (0.385, 0.83), "routhian": (0.385, 0.81), "gyroscopic": (0.62, 0.11)},
+    "stays upright": {"so3": (0.0453, 0.89), "routhian": (0.0453, 1.16), "gyroscopic": (0.075, 0.13)},
+    "stiff": {"so3": (0.536, 0.48), "routhian": (0.536, 0.32), "gyroscopic": (0.928, 0.01)},
+    "moving": {"so3": (0.311, 0.89), "routhian": (0.311, 0.96), "gyroscopic": (0.192, 0.09)},
 }
 """Per regime and level: (worst theta error in rad, median cost relative to the full model);
-error `inf` where the level refused or stopped on one of the regime's scenes."""
+for the gyroscopic level over the scenes it accepts (`inf`: it stopped on one, or accepted
+none)."""
 
 MEASURED_GROUPS = ("IIb",)
 """Groups of tops the benchmark's scenes cover; for other groups `auto` keeps the full model."""

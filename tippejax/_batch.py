@@ -10,6 +10,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import ArrayLike
 
 from ._engine.solver_choice import default_solver
+from ._models.levels import LEVELS
 from ._simulate import simulate
 from ._solution import Solution
 from ._state import initial_state
@@ -76,7 +77,8 @@ def simulate_batch(
     flat_theta, flat_spin = grid_theta.ravel(), grid_spin.ravel()
     size = flat_theta.size
     if kwargs.get("solver") is None:
-        kwargs["solver"] = default_solver(top)
+        level = LEVELS.get(kwargs.get("model", "full"))
+        kwargs["solver"] = default_solver(top, slow_flow=level is not None and level.slow_flow)
     dtype = jnp.result_type(top.m)
     devices = jax.devices()
     n_dev = len(devices) if shard else 1

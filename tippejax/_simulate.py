@@ -236,7 +236,8 @@ def simulate(
     - `rtol`, `atol`: tolerances of the PID step-size controller. For float32 tops `rtol` is
       raised to at least `1e-5` and `atol` to `1e-7`.
     - `solver`: any diffrax solver with an error estimate; default `default_solver(top)`:
-      Dopri8, Tsit5 under strong friction, Kvaerno5 under very stiff friction.
+      Dopri8 (Dopri5 for the gyroscopic level), Tsit5 under strong friction, Kvaerno5 under
+      very stiff friction.
     - `max_steps`: maximum number of steps per segment.
     - `adjoint`: how to differentiate through the solve: `diffrax.RecursiveCheckpointAdjoint()`
       (default, reverse mode, for `jax.grad`) or `diffrax.ForwardMode()` (for `jax.jacfwd`,
@@ -292,7 +293,7 @@ def simulate(
         y0 = eqx.error_if(y0, ~(defect < _STATE_TOL), _STATE_MESSAGE)
     guard_stiff = solver is None and not _concrete(top)
     if solver is None:
-        solver = default_solver(top)
+        solver = default_solver(top, slow_flow=LEVELS[model].slow_flow)
     if adjoint is None:
         adjoint = diffrax.RecursiveCheckpointAdjoint()
     out = _run(

@@ -5,6 +5,10 @@ same error and is faster at every rtol from 1e-4 to 1e-10 (`benchmarks/RESULTS.m
 steps no longer hide events: `WatchedSolver` checks the conditions on each step's dense output.
 Stiff friction: explicit steps are limited by stability, and Tsit5's cheaper steps win until
 the friction is very stiff; above `IMPLICIT_RATE` only an implicit solver (Kvaerno5) finishes.
+A level whose steps follow a slow flow (the gyroscopic level: tens of steps a run) runs Dopri5
+where Dopri8 would be the default: with so few steps a step's fixed cost (Dopri8's is several
+times Dopri5's on a CPU) outweighs the steps saved, and Dopri5's dense output, which the event
+watch evaluates several times a step, is cheaper than Tsit5's (`benchmarks/LEVELS.md`).
 """
 
 from __future__ import annotations
@@ -31,17 +35,20 @@ def is_traced(x) -> bool:
     return isinstance(x, jax.core.Tracer)
 
 
-def default_solver(top: TippeTop) -> diffrax.AbstractSolver:
-    """Dopri8; Tsit5 above a friction rate of `STIFF_RATE`; Kvaerno5 above `IMPLICIT_RATE`.
+def default_solver(top: TippeTop, *, slow_flow: bool = False) -> diffrax.AbstractSolver:
+    """Dopri8 (Dopri5 for a `slow_flow` level); Tsit5 above a friction rate of `STIFF_RATE`;
+    Kvaerno5 above `IMPLICIT_RATE`.
 
     Needs a concrete top. For a traced top (under `jit` or `vmap`) the stiffness cannot be read:
-    `simulate` then uses Dopri8 and reports members whose friction is too stiff for an explicit
-    solver (`RESULTS.stiff_under_trace`) at once instead of running them into `max_steps`.
+    `simulate` then uses Dopri8 (Dopri5 for a `slow_flow` level) and reports members whose
+    friction is too stiff for an explicit solver (`RESULTS.stiff_under_trace`) at once instead
+    of running them into `max_steps`.
     """
+    explicit = diffrax.Dopri5() if slow_flow else diffrax.Dopri8()
     if any(is_traced(x) for x in jax.tree_util.tree_leaves(top)):
-        return diffrax.Dopri8()
+        return explicit
     numpy_top = jax.tree_util.tree_map(lambda x: np.asarray(x, dtype=float), top)
     rate = float(np.max(friction_rate(numpy_top)))
     if rate > IMPLICIT_RATE:
         return diffrax.Kvaerno5()
-    return diffrax.Tsit5() if rate > STIFF_RATE else diffrax.Dopri8()
+    return diffrax.Tsit5() if rate > STIFF_RATE else explicit

@@ -67,6 +67,7 @@ class AbstractLevel(eqx.Module):
     friction_model: ClassVar[str]
     has_chart: ClassVar[bool] = False
     chart_end_result: ClassVar[str | None] = None
+    slow_flow: ClassVar[bool] = False
 
     @abc.abstractmethod
     def from_state(self, top: TippeTop, state: State) -> PyTree:

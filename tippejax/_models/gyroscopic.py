@@ -113,6 +113,16 @@ manifold then repels and the nutation, first damped, grows again -- the route to
 loss of ERRATA.md, 6. The level carries $\ln a$ ($\dot{\ln a} = \sigma$, from the launch's own
 nutation, see below) so that it can say when the dropped nutation has become large.
 
+**The level's coordinate.** The level integrates $u = \ln\tan(\theta/2)$ (the Mercator
+coordinate of the axis), not $\theta$: $\dot u = \dot\theta/\sin\theta$ is the `rate` of (G3),
+regular, and nearly constant near the poles, where $\theta$ itself grows or decays
+exponentially; the steps then follow only the turn of the top (54 Dopri5 steps for a 20 s
+inverting run, against 118 in $\theta$). $\cos\theta = -\tanh u$, $\sin\theta = 1/\cosh u$, so
+no trigonometric function is evaluated along the run. A pole itself is $|u| \geq$ `POLE`,
+where $\theta$ is exactly $0$ or $\pi$ and $u$ does not move (a vertical launch stays
+vertical). The step size is controlled on $u$: an absolute error in $u$ is a relative error in
+$\tan(\theta/2)$.
+
 **Where the level stops** (`Conditions.chart`, terminating; the run ends with
 `RESULTS.no_gyroscopic_balance`, and a launch outside is not integrated):
 
@@ -146,8 +156,9 @@ $n_0 = 50, 100, 200$ rad/s (about $n_0^{-2.5}$). Launched with $\omega = n a$ at
 $\theta_0 = 0.1$: $\Delta t_{\rm invert} = -0.008, +0.007, -0.017, -0.064$ s at
 $n_0 = 60, 100, 150, 200$ (the SO(3) and full models differ by $0.02$-$0.04$ s). The linear
 projection is the limit: the error grows as $\theta_0^2$ and with the spin ($\theta_0 = 0.2$:
-$+0.09, -0.01, -0.27, -0.58$ s). About 50 steps for a 20 s run, against about 2000 for the full
-model at $n_0 = 100$.
+$+0.09, -0.01, -0.27, -0.58$ s). About 55 steps for a 20 s run, against about 2000 for the full
+model at $n_0 = 100$: about 55x cheaper in wall time on a quiet machine, 80x under load
+(`benchmarks/LEVELS.md`; the ratio moves with the machine's load).
 
 **Not for:** the nutation, the translation, or a contact loss; launches with much nutation
 ($\omega = n a$ with $n_0\theta_0 \gtrsim 20$ rad/s on the standard top errs by more than 0.1 s
@@ -161,7 +172,6 @@ $\mu = 0$ ($\theta$ is then constant on the slow manifold and the nutation never
 from __future__ import annotations
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
@@ -169,7 +179,6 @@ from .._invariants import jellet
 from .._state import State, euler_angles, state_from_euler
 from .._top import TippeTop
 from .base import AbstractLevel, Conditions
-from .routhian import routhian_normal_force
 
 BALANCE_MARGIN = 0.01
 r"""The level stops where $\Delta/(J^2 + 4Ahmg\epsilon|R\cos\theta - \epsilon|)$ falls below
@@ -184,6 +193,10 @@ r"""A launch with more nutation than this (rad) is refused: its projection is no
 NUTATION_FLOOR = 1e-12
 r"""Nutation amplitude (rad) given to a launch that has none (on the slow manifold)."""
 
+POLE = 750.0
+r"""$|u| \geq$ `POLE` ($u = \ln\tan(\theta/2)$) is a pole: $e^{-|u|}$ is then exactly zero (in
+float32 and float64), $\theta$ is exactly $0$ or $\pi$, and $u$ does not move."""
+
 
 def _sign(J):
     return jnp.where(J >= 0, 1.0, -1.0).astype(jnp.result_type(J))
@@ -193,6 +206,36 @@ def _safe_sqrt(x):
     """sqrt(x) for x > 0, else 0, with a finite derivative everywhere."""
     positive = x > 0
     return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, 1.0)), 0.0)
+
+
+def _safe_log(x, floor):
+    """log(x) for x > 0, else `floor`, with a finite derivative everywhere."""
+    positive = x > 0
+    return jnp.where(positive, jnp.log(jnp.where(positive, x, 1.0)), floor)
+
+
+def cos_sin(u) -> tuple[Array, Array]:
+    r"""$(\cos\theta, \sin\theta) = (-\tanh u, 1/\cosh u)$ for $u = \ln\tan(\theta/2)$; exact
+    (and with finite derivatives) at the poles $|u| \geq$ `POLE`."""
+    e = jnp.exp(-jnp.abs(u))
+    return -jnp.tanh(u), 2 * e / (1 + e * e)
+
+
+def theta_of(u) -> Array:
+    r"""$\theta = 2\arctan e^u$ of $u = \ln\tan(\theta/2)$."""
+    x, s = cos_sin(u)
+    return jnp.arctan2(s, x)
+
+
+def log_tan_half(theta) -> Array:
+    r"""$u = \ln\tan(\theta/2)$, clipped to $[-$`POLE`$, $`POLE`$]$ (the poles)."""
+    theta = jnp.asarray(theta, dtype=jnp.result_type(theta, float))
+    x, s = jnp.cos(theta), jnp.abs(jnp.sin(theta))
+    north = x >= 0
+    # tan(theta/2) = s/(1 + x) = (1 - x)/s: the form without cancellation on each side
+    tangent = jnp.where(north, s / (1 + x), s / (1 - x))
+    u = _safe_log(tangent, -POLE)
+    return jnp.clip(jnp.where(north, u, -u), -POLE, POLE)
 
 
 def balance_discriminant(top: TippeTop, x, J) -> Array:
@@ -225,7 +268,7 @@ class SlowManifold(eqx.Module):
     - `precession`: $\Omega = \dot\varphi$, a root of (G2).
     - `spin`: $n = (A\Omega^2\cos\theta - mg\epsilon)/(C\Omega)$.
     - `slip`: $p = Rn - \Omega(R\cos\theta - \epsilon)$ (slip across $\Pi$ is $p\sin\theta$).
-    - `rate`: $\dot\theta/\sin\theta$ of (G3) (regular at the poles).
+    - `rate`: $\dot\theta/\sin\theta$ of (G3) (regular at the poles; $= \dot u$).
     - `theta_dot`: $\dot\theta$ of (G3).
     - `discriminant`: $\Delta$ of (G2).
     """
@@ -238,22 +281,25 @@ class SlowManifold(eqx.Module):
     discriminant: Array
 
 
-def slow_manifold(top: TippeTop, theta, J, *, branch: int = 1) -> SlowManifold:
-    r"""Precession, spin, slip and the slow flow (G3) at $\theta$ on one root of (G2).
-
-    `branch=1` is the level's slow manifold; `branch=-1` (the other root) is singular at
-    $\cos\theta = \epsilon/R$ and serves the projection at the poles and the analysis.
-    """
-    theta = jnp.asarray(theta, dtype=jnp.result_type(theta, top.m))
-    x, s = jnp.cos(theta), jnp.sin(theta)
+def _slow_manifold(top: TippeTop, x, s, J, branch: int = 1) -> SlowManifold:
+    """`slow_manifold` at $x = \\cos\\theta$, $s = \\sin\\theta$ (the level's own evaluations)."""
     m, g, eps, R, A, C = top.m, top.g, top.eps, top.R, top.A, top.C
+    weight = m * g * eps  # m g eps
     h = R - eps * x
-    omega = precession_rate(top, x, J, branch=branch)
-    spin = (A * omega**2 * x - m * g * eps) / (C * omega)
-    slip = R * spin - omega * (R * x - eps)
+    lever = R * x - eps
+    discriminant = J**2 + 4 * A * h * weight * lever
+    root = _sign(J) * _safe_sqrt(discriminant)
+    if branch == 1:
+        omega = (J + root) / (2 * A * h)
+    elif branch == -1:
+        omega = -2 * weight * lever / (J + root)
+    else:
+        raise ValueError(f"branch must be 1 or -1, got {branch!r}.")
+    spin = (A * omega**2 * x - weight) / (C * omega)
+    slip = R * spin - omega * lever
     f_omega = 2 * A * h * omega - J
     denominator = A * omega * f_omega + eps * (A * omega**2 + m * g * R) * (
-        A * x + m * g * eps / omega**2
+        A * x + weight / omega**2
     )
     rate = top.mu * m * g * R * slip * f_omega / denominator
     return SlowManifold(
@@ -262,8 +308,18 @@ def slow_manifold(top: TippeTop, theta, J, *, branch: int = 1) -> SlowManifold:
         slip=slip,
         rate=rate,
         theta_dot=rate * s,
-        discriminant=balance_discriminant(top, x, J),
+        discriminant=discriminant,
     )
+
+
+def slow_manifold(top: TippeTop, theta, J, *, branch: int = 1) -> SlowManifold:
+    r"""Precession, spin, slip and the slow flow (G3) at $\theta$ on one root of (G2).
+
+    `branch=1` is the level's slow manifold; `branch=-1` (the other root) is singular at
+    $\cos\theta = \epsilon/R$ and serves the projection at the poles and the analysis.
+    """
+    theta = jnp.asarray(theta, dtype=jnp.result_type(theta, top.m))
+    return _slow_manifold(top, jnp.cos(theta), jnp.sin(theta), J, branch)
 
 
 def gyroscopic_theta_dot(top: TippeTop, theta, J) -> Array:
@@ -279,74 +335,98 @@ def limit_theta_dot(top: TippeTop, theta) -> Array:
     return top.mu * top.m * top.g * top.R**2 / top.A * (1 - e * x) * s * ((a - 1) * x + e)
 
 
+class Nutation(eqx.Module):
+    r"""The nutation about the slow manifold at one $\theta$: `frequency_squared` $\nu^2$ and
+    `damping` $\sigma$ (see the module docstring)."""
+
+    frequency_squared: Array
+    damping: Array
+
+
+def _nutation(top: TippeTop, x, s, J, sm: SlowManifold) -> Nutation:
+    r"""$\nu^2$ and $\sigma$ at $x = \cos\theta$, $s = \sin\theta$, in closed form.
+
+    The derivatives in $x$ (at fixed $\dot{\bar\varphi} = p$, and along the manifold) are
+    written out; `tests/test_gyroscopic.py` checks them against autodiff of the definitions.
+    """
+    m, g, eps, R, A, C, mu = top.m, top.g, top.eps, top.R, top.A, top.C, top.mu
+    weight = m * g * eps
+    omega, n, p = sm.precession, sm.spin, sm.slip
+    s2 = s * s
+    big_s = eps**2 + R**2
+    lever = R * x - eps
+    h = R - eps * x
+    # D, kappa (eq. routh1) and their x-derivatives
+    d = R**2 * A * s2 + C * lever**2
+    d_x = -2 * R**2 * A * x + 2 * C * R * lever
+    kappa = R * A * eps * s2 + C * lever * (R + eps * x)
+    kappa_x = -2 * R * A * eps * x + C * (R**2 - eps**2 + 2 * R * eps * x)
+    # R'_n at rest as a function of (x, p) with phi_dot, n from eq. routh1:
+    # R'_n = m N / Q, N = g + eps s^2 w (w x - C n/A), Q = 1 + m eps^2 s^2/A
+    c_dot = R * omega - eps * (n - omega * x)  # the cyclic rate, c = R phi - eps psi
+    gyro = omega * x - C * n / A
+    q = 1 + m * eps**2 * s2 / A
+    numerator = g + eps * s2 * omega * gyro
+    rn = m * numerator / q  # = m g on the manifold
+    w_p = (eps - R * kappa / d) / big_s
+    n_p = (R + eps * kappa / d) / big_s + w_p * x
+    rn_p = m * eps * s2 * (w_p * gyro + omega * (w_p * x - C * n_p / A)) / q
+    c_x = -(kappa_x * p + c_dot * d_x) / d
+    w_x = R * c_x / big_s
+    n_x = -eps * c_x / big_s + w_x * x + omega
+    numerator_x = eps * (-2 * x * omega * gyro
+                         + s2 * (w_x * gyro + omega * (w_x * x + omega - C * n_x / A)))
+    q_x = -2 * x * m * eps**2 / A
+    rn_x = m * (numerator_x * q - numerator * q_x) / q**2
+    # M_phibar / sin^2 = A C / D, and B_p / sin(theta) = -(dM_phibar/dx p + dbeta/dx)
+    inertia_phibar = A * C / d
+    dm_x = A * C * (-2 * x * d - s2 * d_x) / d**2
+    dbeta_x = J / big_s * (kappa_x * d - kappa * d_x) / d**2
+    coupling = -(dm_x * p + dbeta_x)
+    inertia = A + m * eps**2 * s2  # M_theta
+    # nu^2 = P/(A M_theta), P = (C n - 2 A Omega x)^2 + A^2 Omega^2 sin^2, along the manifold
+    omega_x = (weight * R + A * eps * omega**2) / (2 * A * h * omega - J)  # from (G2)
+    n_x_manifold = A / C * (omega + x * omega_x) + weight * omega_x / (C * omega**2)
+    lead = C * n - 2 * A * omega * x
+    lead_x = C * n_x_manifold - 2 * A * (omega + x * omega_x)
+    big_p = lead**2 + (A * omega) ** 2 * s2
+    big_p_x = 2 * lead * lead_x + A**2 * (2 * omega * omega_x * s2 - 2 * x * omega**2)
+    nu2 = big_p / (A * inertia)
+    inertia_x = -2 * x * m * eps**2
+    log_m_nu_x = 0.5 * (inertia_x / inertia + big_p_x / big_p)  # d ln(M_theta nu)/dx
+    drive = (mu * (rn + p * rn_p) * coupling / inertia_phibar + mu * s2 * p * rn_x
+             - 2 * mu * p * rn * x)  # alpha / sin(theta)
+    friction = -(mu * rn * h**2 + coupling * drive / (inertia_phibar * nu2)) / (2 * inertia)
+    adiabatic = 0.5 * sm.rate * s2 * log_m_nu_x  # -(1/2) d ln(M_theta nu)/dt
+    return Nutation(frequency_squared=nu2, damping=friction + adiabatic)
+
+
 def nutation_frequency(top: TippeTop, theta, J) -> Array:
     r"""$\nu$ of the nutation about the slow manifold:
     $\nu^2 = ((Cn - 2A\Omega\cos\theta)^2 + A^2\Omega^2\sin^2\theta)/(A M_\theta)$."""
+    theta = jnp.asarray(theta, dtype=jnp.result_type(theta, top.m))
     x, s = jnp.cos(theta), jnp.sin(theta)
-    sm = slow_manifold(top, theta, J)
-    inertia = top.A + top.m * top.eps**2 * s**2
-    nu2 = ((top.C * sm.spin - 2 * top.A * sm.precession * x) ** 2
-           + (top.A * sm.precession * s) ** 2) / (top.A * inertia)
-    return jnp.sqrt(nu2)
-
-
-def _normal_force_at_rest(top: TippeTop, x, p, J):
-    r"""$R'_n$ (eq. reactie, $\dot x = \dot y = \dot\theta = 0$) at $x = \cos\theta$ and
-    $\dot{\bar\varphi} = p$, with $\dot\varphi$ and $n$ from eq. routh1; a function of $x$."""
-    m, g, eps, R, A, C = top.m, top.g, top.eps, top.R, top.A, top.C
-    s2 = 1 - x**2
-    big_s = eps**2 + R**2
-    d = R**2 * A * s2 + C * (R * x - eps) ** 2
-    kappa = R * A * eps * s2 + C * (R * x - eps) * (R + eps * x)
-    c_dot = (J * big_s - kappa * p) / d
-    omega = (eps * p + R * c_dot) / big_s
-    n = (R * p - eps * c_dot) / big_s + omega * x
-    return m * (g + eps * s2 * omega * (omega * x - C * n / A)) / (1 + m * eps**2 * s2 / A)
+    return jnp.sqrt(_nutation(top, x, s, J, _slow_manifold(top, x, s, J)).frequency_squared)
 
 
 def nutation_damping(top: TippeTop, theta, J) -> Array:
     r"""$\sigma$: growth rate of the amplitude of the nutation about the slow manifold (negative:
     it decays), averaged over a nutation period. See the module docstring."""
     theta = jnp.asarray(theta, dtype=jnp.result_type(theta, top.m))
-    m, eps, R, A, C, mu = top.m, top.eps, top.R, top.A, top.C, top.mu
-    x, s2 = jnp.cos(theta), jnp.sin(theta) ** 2
-    one = jnp.ones_like(x)
-    sm = slow_manifold(top, theta, J)
-    p = sm.slip
-    big_s = eps**2 + R**2
+    x, s = jnp.cos(theta), jnp.sin(theta)
+    return _nutation(top, x, s, J, _slow_manifold(top, x, s, J)).damping
 
-    def d_of(x):
-        return R**2 * A * (1 - x**2) + C * (R * x - eps) ** 2
 
-    def m_phibar(x):  # M_phibar = A C sin^2 / D
-        return A * C * (1 - x**2) / d_of(x)
-
-    def beta(x):
-        return J / big_s * (R * eps * A * (1 - x**2) + C * (R + eps * x) * (R * x - eps)) / d_of(x)
-
-    rn, rn_x = jax.jvp(lambda xx: _normal_force_at_rest(top, xx, p, J), (x,), (one,))
-    _, rn_p = jax.jvp(lambda pp: _normal_force_at_rest(top, x, pp, J), (p,), (one,))
-    _, dm_x = jax.jvp(m_phibar, (x,), (one,))
-    _, dbeta_x = jax.jvp(beta, (x,), (one,))
-    coupling = -(dm_x * p + dbeta_x)  # B_p / sin(theta)
-    inertia_phibar = A * C / d_of(x)  # M_phibar / sin^2(theta)
-    inertia = A + m * eps**2 * s2
-
-    def nu_squared(xx):
-        omega = precession_rate(top, xx, J)
-        n = (A * omega**2 * xx - top.m * top.g * eps) / (C * omega)
-        return ((C * n - 2 * A * omega * xx) ** 2 + A**2 * omega**2 * (1 - xx**2)) / (
-            A * (A + m * eps**2 * (1 - xx**2))
-        )
-
-    nu2, nu2_x = jax.jvp(nu_squared, (x,), (one,))
-    drive = (mu * (rn + p * rn_p) * coupling / inertia_phibar + mu * s2 * p * rn_x
-             - 2 * mu * p * rn * x)  # alpha / sin(theta)
-    h = R - eps * x
-    friction = -(mu * rn * h**2 + coupling * drive / (inertia_phibar * nu2)) / (2 * inertia)
-    log_m_nu_x = -2 * m * eps**2 * x / inertia + 0.5 * nu2_x / nu2  # d ln(M_theta nu)/dx
-    adiabatic = 0.5 * sm.rate * s2 * log_m_nu_x  # -(1/2) d ln(M_theta nu)/dt
-    return friction + adiabatic
+def _validity(top: TippeTop, x, J, log_amplitude, nutation: Nutation) -> Array:
+    h = top.R - top.eps * x
+    lever = top.R * x - top.eps
+    weight = top.m * top.g * top.eps
+    scale = J**2 + 4 * top.A * h * weight * jnp.abs(lever)
+    balance = (J**2 + 4 * top.A * h * weight * lever) / scale - BALANCE_MARGIN
+    decaying = -nutation.damping / jnp.sqrt(nutation.frequency_squared)
+    small = jnp.log(NUTATION_MAX) - log_amplitude
+    projectable = jnp.log(NUTATION_LAUNCH_MAX) - log_amplitude
+    return jnp.minimum(jnp.minimum(balance, jnp.maximum(small, decaying)), projectable)
 
 
 def validity(top: TippeTop, theta, J, log_amplitude) -> Array:
@@ -356,14 +436,10 @@ def validity(top: TippeTop, theta, J, log_amplitude) -> Array:
     Positive where (G2) has a real root with margin and the nutation is small or decaying; the
     level stops where it falls through zero (see the module docstring).
     """
-    x = jnp.cos(theta)
-    h = top.R - top.eps * x
-    scale = J**2 + 4 * top.A * h * top.m * top.g * top.eps * jnp.abs(top.R * x - top.eps)
-    balance = balance_discriminant(top, x, J) / scale - BALANCE_MARGIN
-    decaying = -nutation_damping(top, theta, J) / nutation_frequency(top, theta, J)
-    small = jnp.log(NUTATION_MAX) - log_amplitude
-    projectable = jnp.log(NUTATION_LAUNCH_MAX) - log_amplitude
-    return jnp.minimum(jnp.minimum(balance, jnp.maximum(small, decaying)), projectable)
+    theta = jnp.asarray(theta, dtype=jnp.result_type(theta, top.m))
+    x, s = jnp.cos(theta), jnp.sin(theta)
+    nutation = _nutation(top, x, s, J, _slow_manifold(top, x, s, J))
+    return _validity(top, x, J, log_amplitude, nutation)
 
 
 def _complex_ratio(top, theta, J, branch):
@@ -372,12 +448,8 @@ def _complex_ratio(top, theta, J, branch):
     return sm.spin - sm.precession * jnp.cos(theta), sm.rate
 
 
-def project_launch(top: TippeTop, state: State):
-    r"""$(\theta_s, \varphi_s, \psi_s, \ln a_0, J)$: a (single) state projected onto the slow
-    manifold, with the amplitude $a_0$ of its nutation.
-
-    See "Projection of a launch" in the module docstring. Regular at the poles.
-    """
+def _projection(top: TippeTop, state: State):
+    """(u, phi_s, psi_s, ln a0, J) of `project_launch`, u = ln tan(theta_s/2)."""
     J = jellet(top, state)
     theta, phi, psi = euler_angles(state)
     a, w = state.axis, state.omega
@@ -394,32 +466,57 @@ def project_launch(top: TippeTop, state: State):
     c_im = (num_im * den_re - num_re * den_im) / den2
     mod2 = c_re**2 + c_im**2
     positive = mod2 > 0
-    modulus = jnp.where(positive, jnp.sqrt(jnp.where(positive, mod2, 1.0)), 0.0)
-    tilt = jnp.arcsin(jnp.clip(modulus, 0.0, 1.0))
-    theta_s = jnp.where(north, tilt, jnp.pi - tilt)
+    modulus = jnp.clip(jnp.where(positive, jnp.sqrt(jnp.where(positive, mod2, 1.0)), 0.0), 0, 1)
+    # sin(tilt) = |xi_s|; tan(tilt/2) = sin/(1 + cos), no cancellation
+    log_tan = _safe_log(modulus / (1 + jnp.sqrt(1 - modulus**2)), -POLE)
+    u = jnp.clip(jnp.where(north, log_tan, -log_tan), -POLE, POLE)
     # xi_s = -i sin(theta_s) e^{i phi_s}: phi_s = atan2(Re xi_s, -Im xi_s); keep phi + psi.
     phi_s = jnp.where(positive, jnp.arctan2(c_re, -c_im), phi)
     # the nutation: what is left of the horizontal axis, xi - xi_s
     rest2 = (a[0] - c_re) ** 2 + (a[1] - c_im) ** 2
     floor2 = jnp.asarray(NUTATION_FLOOR, rest2.dtype) ** 2
     log_amplitude = 0.5 * jnp.log(jnp.maximum(rest2, floor2))
-    return theta_s, phi_s, psi + phi - phi_s, log_amplitude, J
+    return u, phi_s, psi + phi - phi_s, log_amplitude, J
+
+
+def project_launch(top: TippeTop, state: State):
+    r"""$(\theta_s, \varphi_s, \psi_s, \ln a_0, J)$: a (single) state projected onto the slow
+    manifold, with the amplitude $a_0$ of its nutation.
+
+    See "Projection of a launch" in the module docstring. Regular at the poles.
+    """
+    u, phi_s, psi_s, log_amplitude, J = _projection(top, state)
+    return theta_of(u), phi_s, psi_s, log_amplitude, J
 
 
 class GyroscopicLevelState(eqx.Module):
-    r"""State of the gyroscopic level: $\theta$, the precession and spin angles, the log of the
-    nutation amplitude, and $J$.
+    r"""State of the gyroscopic level: $u = \ln\tan(\theta/2)$, the precession and spin angles,
+    the log of the nutation amplitude, and $J$.
 
-    Only $\theta$ is dynamic. $\varphi$ and $\psi$ are integrated from $\dot\varphi = \Omega$ and
-    $\dot\psi = n - \Omega\cos\theta$ to report the orientation, and `nutation` $= \ln a$ from
-    $\sigma$ to watch the nutation that is dropped; none of them feeds back. $J$ is constant.
+    Only $u$ is dynamic: $\dot u = \dot\theta/\sin\theta$, the `rate` of (G3), regular and
+    nearly constant near the poles, where $\theta$ itself grows or decays exponentially (see
+    "The level's coordinate" in the module docstring). $\varphi$ and $\psi$ are integrated from
+    $\dot\varphi = \Omega$ and $\dot\psi = n - \Omega\cos\theta$ to report the orientation, and
+    `nutation` $= \ln a$ from $\sigma$ to watch the nutation that is dropped; none of them feeds
+    back. $J$ is constant.
     """
 
-    theta: Float[Array, ""]
+    log_tan_half_theta: Float[Array, ""]
     phi: Float[Array, ""]
     psi: Float[Array, ""]
     nutation: Float[Array, ""]
     jellet: Float[Array, ""]
+
+    @property
+    def theta(self) -> Array:
+        return theta_of(self.log_tan_half_theta)
+
+    @classmethod
+    def from_theta(cls, theta, phi, psi, nutation, jellet) -> GyroscopicLevelState:
+        """The state at tilt `theta` (the other fields as given)."""
+        return cls(log_tan_half_theta=log_tan_half(theta), phi=jnp.asarray(phi),
+                   psi=jnp.asarray(psi), nutation=jnp.asarray(nutation),
+                   jellet=jnp.asarray(jellet))
 
 
 class GyroscopicLevel(AbstractLevel):
@@ -428,50 +525,63 @@ class GyroscopicLevel(AbstractLevel):
     `to_state` gives the state on the slow manifold: $\theta$, $\dot\theta$ of (G3) (the slow
     drift, no nutation), $\dot\varphi = \Omega$, spin $n$ from (G1), horizontal position and
     velocity zero. `from_state` projects a state onto it (`project_launch`). The step size is
-    controlled on $\theta$ alone. Where (G2) has no real root, or the dropped nutation is large
-    and growing, the run stops with `RESULTS.no_gyroscopic_balance` (no fallback).
+    controlled on $u = \ln\tan(\theta/2)$ alone. Where (G2) has no real root, or the dropped
+    nutation is large and growing, the run stops with `RESULTS.no_gyroscopic_balance` (no
+    fallback).
     """
 
     name = "gyroscopic"
     friction_model = "so3"
     has_chart = True
     chart_end_result = "no_gyroscopic_balance"
+    slow_flow = True
 
     def from_state(self, top, state):
-        theta, phi, psi, log_amplitude, J = project_launch(top, state)
+        u, phi, psi, log_amplitude, J = _projection(top, state)
         return GyroscopicLevelState(
-            theta=theta, phi=phi, psi=psi, nutation=log_amplitude, jellet=J
+            log_tan_half_theta=u, phi=phi, psi=psi, nutation=log_amplitude, jellet=J
         )
 
     def to_state(self, top, y):
-        sm = slow_manifold(top, y.theta, y.jellet)
-        psi_dot = sm.spin - sm.precession * jnp.cos(y.theta)
-        return state_from_euler(y.theta, y.phi, y.psi, sm.theta_dot, sm.precession, psi_dot)
+        x, s = cos_sin(y.log_tan_half_theta)
+        sm = _slow_manifold(top, x, s, y.jellet)
+        psi_dot = sm.spin - sm.precession * x
+        theta = jnp.arctan2(s, x)
+        return state_from_euler(theta, y.phi, y.psi, sm.theta_dot, sm.precession, psi_dot)
 
     def vector_field(self, t, y, top):
-        sm = slow_manifold(top, y.theta, y.jellet)
+        u = y.log_tan_half_theta
+        x, s = cos_sin(u)
+        sm = _slow_manifold(top, x, s, y.jellet)
+        nutation = _nutation(top, x, s, y.jellet, sm)
         return GyroscopicLevelState(
-            theta=sm.theta_dot,
+            log_tan_half_theta=jnp.where(jnp.abs(u) < POLE, sm.rate, 0.0),
             phi=sm.precession,
-            psi=sm.spin - sm.precession * jnp.cos(y.theta),
-            nutation=nutation_damping(top, y.theta, y.jellet),
+            psi=sm.spin - sm.precession * x,
+            nutation=nutation.damping,
             jellet=jnp.zeros_like(y.jellet),
         )
 
     def conditions(self, top, y):
-        sm = slow_manifold(top, y.theta, y.jellet)
-        normal_force, denominator = routhian_normal_force(
-            top, y.theta, sm.theta_dot, sm.precession, sm.spin
+        x, s = cos_sin(y.log_tan_half_theta)
+        sm = _slow_manifold(top, x, s, y.jellet)
+        # R'_n of eq. reactie (as `routhian_normal_force`) on the slow manifold
+        eps_s = top.eps * s
+        h = top.R - top.eps * x
+        numerator = top.g + sm.theta_dot**2 * top.eps * x + eps_s * s * sm.precession * (
+            sm.precession * x - top.C * sm.spin / top.A
         )
+        denominator = 1.0 / top.m + eps_s * (eps_s + top.mu * h**2 * sm.theta_dot) / top.A
+        nutation = _nutation(top, x, s, y.jellet, sm)
         return Conditions(
-            contact=normal_force * denominator,
+            contact=numerator,  # R_n D
             singular=denominator,
-            upright=jnp.cos(y.theta),
-            chart=validity(top, y.theta, y.jellet, y.nutation),
+            upright=x,
+            chart=_validity(top, x, y.jellet, y.nutation, nutation),
         )
 
     def in_chart(self, top, state):
         return self.conditions(top, self.from_state(top, state)).chart > 0
 
     def error_norm(self, scaled_error):
-        return jnp.abs(scaled_error.theta)
+        return jnp.abs(scaled_error.log_tan_half_theta)
