@@ -37,6 +37,7 @@ from ._invariants import (
     normal_force_denominator as normal_force_denominator,
     slip_velocity as slip_velocity,
 )
+from ._inversion import inversion_time as inversion_time
 from ._maps import (
     OUTCOMES as OUTCOMES,
     OutcomeMap as OutcomeMap,

@@ -1,0 +1,132 @@
+r"""`inversion_time`: when a top first turns over, as a differentiable function of the top.
+
+The inversion is the first upward crossing of $\theta = \pi/2$, the first time $t^*$ at which
+the symmetry axis's vertical component $a_Z = \cos\theta$ falls through zero. `simulate`
+already locates it inside the solve (`sol.t_invert`, see `tippejax/_engine/watch.py`); this
+module runs it in summary mode (no save grid, so memory does not grow with the run) and
+decides what a failed solve means for the crossing.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import diffrax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from ._custom_types import RealScalarLike
+from ._engine.solver_choice import is_traced
+from ._simulate import MODELS, simulate
+from ._solution import RESULTS
+from ._state import State
+from ._top import TippeTop
+
+
+def inversion_time(
+    top: TippeTop,
+    y0: State,
+    *,
+    t1: RealScalarLike,
+    model: Literal["full", "so3", "routhian", "gyroscopic", "auto"] = "full",
+    t0: RealScalarLike = 0.0,
+    rtol: RealScalarLike = 1e-8,
+    atol: RealScalarLike = 1e-10,
+    solver: diffrax.AbstractSolver | None = None,
+    max_steps: int = 1_000_000,
+    adjoint: diffrax.AbstractAdjoint | None = None,
+    throw: bool = True,
+    tolerance: float | None = None,
+    event_samples: int = 8,
+) -> Float[Array, ""]:
+    r"""The first upward crossing $t^*$ of $\theta = \pi/2$ after `t0` (nan if none by `t1`).
+
+    $t^*$ is the first root of $a_Z(t) = \cos\theta(t) = 0$ where $\theta$ increases, located
+    by a root find on the dense output of the solver step that holds it, so it does not depend
+    on any save grid (a nutation that crosses $\pi/2$ and back inside one step is still seen,
+    down to `1/event_samples` of a step). A top launched beyond $\pi/2$ has no crossing unless
+    it falls back and rises again.
+
+    **Derivatives.** $t^*$ is differentiable with respect to every field of `top`
+    ($m, R, \epsilon, A, C, g, \mu$) and of `y0` (and so, through `initial_state`, with respect
+    to the launch tilt and spin). With $p$ any of them, $\theta(t^*(p); p) = \pi/2$ and the
+    implicit function theorem give
+    $$\frac{dt^*}{dp} = -\frac{\partial\theta/\partial p}{\dot\theta}\Big|_{t = t^*},$$
+    where $\partial\theta/\partial p$ is the sensitivity of the trajectory, obtained by
+    differentiating the discrete solve (`adjoint`), and the root find is differentiated by
+    the same theorem (`optimistix.root_find`). The derivative grows like $1/\dot\theta(t^*)$:
+    where the crossing is grazing (a nutation that just touches $\pi/2$), $t^*$ jumps and its
+    derivative means little. Where $t^*$ is nan (no crossing) its derivative is returned as
+    0, as for `jnp.where`, so that losses that mask the nan members, e.g.
+    `jnp.where(jnp.isfinite(t), t, penalty)`, differentiate cleanly.
+
+    **Failures.** Only the run up to $t^*$ matters: a solve that fails *after* the crossing
+    (say a contact loss when the top lands on its stem) still returns $t^*$. A solve that
+    fails before any crossing (contact loss, the $R_n$ singularity, `max_steps`, NaN, loss of
+    gyroscopic balance, a very stiff top under trace: the `RESULTS` of `simulate`) cannot say
+    whether or when the top inverts. With `throw=True` (default) that raises: a `RuntimeError`
+    with the `RESULTS` message for concrete arguments, an equinox runtime error under
+    `jit`/`vmap` (any failing member raises). With `throw=False` it returns nan, the same as
+    "no inversion by `t1`"; to tell them apart use
+    `tj.simulate(top, y0, t1, summary=True, throw=False).result`. A contact loss always ends
+    the run (`on_contact_loss="stop"`): past it the model describes no real top.
+
+    **Arguments:**
+
+    - `top`: one `TippeTop` (use `jax.vmap` for a batch of tops).
+    - `y0`: the launch `State` (see `initial_state`).
+    - `t1`: the latest time looked at (s); keyword-only.
+    - `model`: the level of model, as in `simulate`: `"full"`, `"so3"`, `"routhian"`,
+      `"gyroscopic"` (the crossing of the slow flow, nutation averaged out) or `"auto"`
+      (with `tolerance`).
+    - `t0`: the launch time (s).
+    - `rtol`, `atol`: tolerances of the step-size controller (as in `simulate`).
+    - `solver`: any diffrax solver with an error estimate (default `default_solver(top)`).
+    - `max_steps`: maximum number of solver steps per segment.
+    - `adjoint`: how the solve is differentiated, passed to `simulate`:
+      `diffrax.RecursiveCheckpointAdjoint()` (default; reverse mode, for `jax.grad`, the
+      natural choice for one scalar and many parameters) or `diffrax.ForwardMode()` (for
+      `jax.jvp`/`jax.jacfwd`, cheaper with one or two parameters; the default adjoint does
+      not support forward mode).
+    - `throw`: raise where the solve failed before a crossing (see above).
+    - `tolerance`: for `model="auto"`, the largest acceptable error in $\theta(t)$ (rad).
+    - `event_samples`: points per step at which the dense output is checked for crossings.
+
+    **Returns:** $t^*$ (s), a scalar of the top's dtype; nan if no crossing by `t1`.
+    """
+    if model not in MODELS:
+        raise ValueError(f"Unknown model {model!r}; choose one of {MODELS}.")
+    if not isinstance(top, TippeTop):
+        raise TypeError(f"top must be a tippejax.TippeTop, got {type(top).__name__}.")
+    if jnp.shape(top.m) != ():
+        raise ValueError(
+            f"inversion_time takes one top, but this TippeTop has fields of shape "
+            f"{jnp.shape(top.m)}. For a batch use "
+            "jax.vmap(lambda top: tj.inversion_time(top, y0, t1=...))(tops)."
+        )
+    if not isinstance(y0, State):
+        raise TypeError(
+            f"y0 must be a tippejax.State (see tj.initial_state), got {type(y0).__name__}."
+        )
+    sol = simulate(
+        top, y0, t1, model=model, summary=True, t0=t0, rtol=rtol, atol=atol, solver=solver,
+        max_steps=max_steps, adjoint=adjoint, throw=False, on_contact_loss="stop",
+        tolerance=tolerance, event_samples=event_samples,
+    )
+    t_invert = sol.t_invert
+    if not throw:
+        return t_invert
+    # A crossing located before a failure stands; a failure with no crossing before it does not.
+    failed = (sol.result != RESULTS.successful) & jnp.isnan(t_invert)
+    if not is_traced(failed):
+        if bool(np.asarray(failed)):
+            raise RuntimeError(
+                f"tippejax.inversion_time failed before any inversion: {RESULTS[sol.result]} "
+                "(pass throw=False to get nan instead)."
+            )
+        return t_invert
+    return sol.result.error_if(t_invert, failed)
+
+
+__all__ = ["inversion_time"]
