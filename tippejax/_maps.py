@@ -331,7 +331,11 @@ def outcome_map(
     - `t1`: simulated time (s) of every launch; long enough for the map to settle.
     - `model`: a level of `simulate`, or `"auto"` (default): for each launch the level
       `simulate(..., model="auto", tolerance=tolerance)` would use (`tolerance=None`: the
-      full model). Launches on different levels are run as separate batches.
+      full model). Launches on different levels are run as separate batches. The levels
+      without translation (`"so3"`, `"routhian"`) did not see the contact loss of fast
+      launches that the full model sees (`benchmarks/RESULTS.md`, maps.py: 141 of 768 launches
+      of the standard top's map, all "inverted" for them), and `tolerance` bounds the error in
+      theta(t), not this: where contact loss matters keep the full model.
     - `rtol`, `atol`: solver tolerances. The defaults are looser than `simulate`'s: a map needs
       the end state, not the path (`benchmarks/maps.py` measures how many outcomes change
       against rtol 1e-9).
