@@ -486,7 +486,11 @@ def gyro_sections(spin_rows, mu_rows, speed):
         f"{sg * 1e3:.3f} ms (gyroscopic), {sf * 1e3:.3f} ms (full); per step "
         f"{per_step_g * 1e6:.1f} us (gyroscopic), {per_step_f * 1e6:.1f} us (full). The ratio "
         "moves with the machine's load (the full run is 50x longer and suffers more from it): "
-        "compare it within one run only.",
+        "compare it within one run only. With many save points the ratio falls (diffrax "
+        "interpolates each save inside the step loop: 8-40x with 201 saves, "
+        "`benchmarks/RESULTS.md`, engine section). Work-precision of this level against the full "
+        "model at rtol 1e-4..1e-10 (t_invert error against wall time): "
+        "`python benchmarks/gyroscopic_wp.py`, chart `gyroscopic_work_precision.png`.",
         "",
         "What the speed is made of (profile, `jax.make_jaxpr`/compiled HLO and ablations timed "
         "side by side): before, 47 Dopri8 steps of 43 us and 0.32 ms per call (17x). (1) The "

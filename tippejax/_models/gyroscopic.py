@@ -157,7 +157,7 @@ $\theta_0 = 0.1$: $\Delta t_{\rm invert} = -0.008, +0.007, -0.017, -0.064$ s at
 $n_0 = 60, 100, 150, 200$ (the SO(3) and full models differ by $0.02$-$0.04$ s). The linear
 projection is the limit: the error grows as $\theta_0^2$ and with the spin ($\theta_0 = 0.2$:
 $+0.09, -0.01, -0.27, -0.58$ s). About 55 steps for a 20 s run, against about 2000 for the full
-model at $n_0 = 100$: about 55x cheaper in wall time on a quiet machine, 80x under load
+model at $n_0 = 100$: 55-82x cheaper in wall time
 (`benchmarks/LEVELS.md`; the ratio moves with the machine's load).
 
 **Not for:** the nutation, the translation, or a contact loss; launches with much nutation
