@@ -508,6 +508,26 @@ def test_convergence_in_rtol(top, y_std, full_ref, full_default):
 
 
 # ------------------------------------------------------------------------------------------------
+# Rates at the pole
+
+
+@pytest.mark.parametrize("theta0, theta_dot", [(0.0, 1.0), (np.pi, -1.0)])
+def test_theta_dot_at_the_pole_follows_theta(top, theta0, theta_dot):
+    """Launched from a pole with a tilt rate: sol.theta_dot[0] is that rate (theta leaves 0
+    upwards, pi downwards), and agrees with finite differences of theta a moment later."""
+    y0 = tj.initial_state(top, theta0, 100.0, theta_dot=abs(theta_dot))
+    t1 = 0.03
+    sol = tj.simulate(top, y0, t1, model="full", saveat=grid(t1), **DEFAULT)
+    theta, thd = _np(sol.theta), _np(sol.theta_dot)
+    assert thd[0] == theta_dot
+    h = t1 / (N - 1)
+    for k in (2, 10, 50):
+        central = (theta[k + 1] - theta[k - 1]) / (2 * h)
+        np.testing.assert_allclose(thd[k], central, rtol=1e-3)
+    assert np.sign(theta[1] - theta[0]) == np.sign(theta_dot)
+
+
+# ------------------------------------------------------------------------------------------------
 # Failures
 
 

@@ -188,3 +188,68 @@ def test_initial_state_rejects(kwargs, message):
         jax.block_until_ready(
             _initial_state_jit(top, jnp.asarray(kwargs["theta"]), jnp.asarray(kwargs["spin"]))
         )
+
+
+# Poles: rates from the state's own motion, never from the sign of a zero.
+
+
+def _pole_state(axis_z, zero_x, zero_y, omega):
+    return tj.State(
+        position=jnp.zeros(2), velocity=jnp.zeros(2),
+        axis=jnp.array([zero_x, zero_y, axis_z]), omega=jnp.asarray(omega, float),
+        body=jnp.array([1.0, 0.0, 0.0]),
+    )
+
+
+@pytest.mark.parametrize("axis_z", [1.0, -1.0])
+@pytest.mark.parametrize("zero_x, zero_y", [(0.0, 0.0), (-0.0, 0.0), (0.0, -0.0), (-0.0, -0.0)])
+@pytest.mark.parametrize("omega", [[1.0, 0.0, 50.0], [-0.0, 2.0, -3.0], [0.3, -0.4, 7.0],
+                                   [0.0, -0.0, 3.0]])
+def test_euler_rates_at_the_poles(axis_z, zero_x, zero_y, omega):
+    y = _pole_state(axis_z, zero_x, zero_y, omega)
+    theta, phi, psi = (np.asarray(v) for v in tj.euler_angles(y))
+    thd, phid, psid = (np.asarray(v) for v in tj.euler_rates(y))
+    assert np.all(np.isfinite([theta, phi, psi, thd, phid, psid]))
+    np.testing.assert_allclose(theta, 0.0 if axis_z > 0 else np.pi, atol=0)
+    # |theta_dot| is the speed of the axis, |omega x a|; theta can only grow from 0, fall from pi.
+    speed = np.hypot(omega[0], omega[1])
+    np.testing.assert_allclose(thd, speed if axis_z > 0 else -speed, rtol=1e-15, atol=0)
+    np.testing.assert_allclose(psid - phid * np.cos(theta), np.dot(omega, [0, 0, axis_z]),
+                               rtol=1e-15)
+    # The angles and rates rebuild the state (independent check: the rotation matrix).
+    axis, body, omega_ref = _reference_state(theta, phi, psi, thd, phid, psid)
+    np.testing.assert_allclose(axis, [0.0, 0.0, axis_z], atol=1e-15)
+    np.testing.assert_allclose(body, [1.0, 0.0, 0.0], atol=1e-15)
+    np.testing.assert_allclose(omega_ref, omega, atol=1e-14)
+    # The same answer whatever the signs of the zeros.
+    ref = [np.asarray(v) for v in (*tj.euler_angles(_pole_state(axis_z, 0.0, 0.0, omega)),
+                                    *tj.euler_rates(_pole_state(axis_z, 0.0, 0.0, omega)))]
+    np.testing.assert_array_equal(_wrap(np.array([theta, phi, psi, thd, phid, psid]) - ref), 0.0)
+
+
+@pytest.mark.parametrize("axis_z", [1.0, -1.0])
+def test_pole_angles_are_the_limit_along_the_motion(axis_z):
+    """phi and theta_dot at the pole equal their values a moment later (axis moved by omega x a)."""
+    omega = np.array([0.7, -1.9, 40.0])
+    y = _pole_state(axis_z, 0.0, 0.0, omega)
+    _, phi0, _ = tj.euler_angles(y)
+    thd0, _, _ = tj.euler_rates(y)
+    for dt in (1e-4, 1e-6):
+        a = np.array([0.0, 0.0, axis_z])
+        a = a + dt * np.cross(omega, a)
+        a = a / np.linalg.norm(a)
+        body = np.cross(a, [0.0, 1.0, 0.0])
+        body /= np.linalg.norm(body)
+        y_later = eqx.tree_at(lambda s: (s.axis, s.body), y, (jnp.asarray(a), jnp.asarray(body)))
+        _, phi1, _ = tj.euler_angles(y_later)
+        thd1, _, _ = tj.euler_rates(y_later)
+        np.testing.assert_allclose(_wrap(float(phi1) - float(phi0)), 0.0, atol=1e-12)
+        np.testing.assert_allclose(float(thd1), float(thd0), rtol=1e-6)
+
+
+def test_initial_state_at_pole_round_trips_theta_dot():
+    top = tj.default_top()
+    for theta, thd in ((0.0, 1.0), (np.pi, -1.0)):
+        y = tj.initial_state(top, theta, 100.0, theta_dot=thd)
+        got = [float(v) for v in tj.euler_rates(y)]
+        np.testing.assert_allclose(got, [thd, 0.0, 100.0], rtol=1e-14, atol=1e-14)

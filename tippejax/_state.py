@@ -1,6 +1,6 @@
 r"""State of the top in the global vector form, and conversions to and from Euler angles.
 
-Conventions (paper, Sec. 2, and ERRATA.md): inertial frame with $Z$ up, ZXZ Euler angles
+Conventions (paper, Sec. 2, and `docs/notes.md`): inertial frame with $Z$ up, ZXZ Euler angles
 $(\varphi, \theta, \psi)$; symmetry axis $a = (\sin\theta\sin\varphi, -\sin\theta\cos\varphi,
 \cos\theta)$, pointing from the centre of mass $O$ to the centre of the sphere; line of nodes
 $N = (\cos\varphi, \sin\varphi, 0)$; $\omega = \dot\varphi e_Z + \dot\theta N + \dot\psi a$;
@@ -82,16 +82,51 @@ def state_from_euler(
     return State(position=position, velocity=velocity, axis=axis, omega=omega, body=body)
 
 
+def _pole_tolerance(dtype):
+    """Horizontal length of the axis below which it is taken to be vertical (rounding level)."""
+    return 8 * jnp.finfo(dtype).eps
+
+
+def _tilt_and_nodes(y: State):
+    r"""$\theta$, $\varphi$ and whether the axis is at a pole, with $\varphi$ read from the motion there.
+
+    Away from the poles $\varphi = \operatorname{atan2}(a_X, -a_Y)$. At a pole
+    ($|a_{XY}| \le 8\,\varepsilon_{\rm mach}$) the axis has no horizontal direction, and
+    $\varphi$ is the direction in which it is leaving the pole: the line of nodes $N$ is taken
+    along the horizontal part of $\dot a = \omega \times a$, so that $\varphi$ at the pole is
+    the limit of $\varphi(t)$ along the motion. A state that does not tilt ($\omega \parallel a$)
+    gets $\varphi = 0$. Nothing depends on the sign of a zero.
+    """
+    a = y.axis
+    dtype = jnp.result_type(a)
+    tol = _pole_tolerance(dtype)
+    h2 = a[..., 0] ** 2 + a[..., 1] ** 2
+    at_pole = h2 <= tol**2
+    horizontal = jnp.where(at_pole, 0.0, jnp.sqrt(jnp.where(at_pole, 1.0, h2)))
+    theta = jnp.arctan2(horizontal, a[..., 2])
+    phi_away = jnp.arctan2(a[..., 0], -a[..., 1])
+    # Horizontal part of the axis's velocity, omega x a.
+    w = y.omega
+    tilt_x = w[..., 1] * a[..., 2] - w[..., 2] * a[..., 1]
+    tilt_y = w[..., 2] * a[..., 0] - w[..., 0] * a[..., 2]
+    tilting = tilt_x**2 + tilt_y**2 > 0
+    # (x == 0 -> +0.0: atan2 must not see the sign of a zero.)
+    tilt_x = jnp.where(tilting & (tilt_x != 0), tilt_x, 0.0)
+    tilt_y = jnp.where(tilting, jnp.where(tilt_y != 0, -tilt_y, 0.0), 1.0)
+    phi_pole = jnp.where(tilting, jnp.arctan2(tilt_x, tilt_y), 0.0)
+    phi = jnp.where(at_pole, phi_pole, phi_away)
+    return theta, phi, at_pole
+
+
 def euler_angles(y: State) -> tuple[Array, Array, Array]:
     r"""ZXZ Euler angles $(\theta, \varphi, \psi)$ of a state, each in $(-\pi, \pi]$ ($\theta$ in $[0, \pi]$).
 
-    $\varphi$ and $\psi$ are undefined at the poles $\sin\theta = 0$ (only $\varphi \pm \psi$ is);
-    there they are returned by the `atan2` convention. Use `jnp.unwrap` on time series.
+    At the poles $\sin\theta = 0$ only $\varphi \pm \psi$ is defined by the axis; there
+    $\varphi$ is the direction in which the axis leaves the pole ($\omega \times a$), which is
+    the limit of $\varphi(t)$ along the motion (0 for a top that does not tilt), and $\psi$
+    follows from the body vector. Use `jnp.unwrap` on time series.
     """
-    a = y.axis
-    horizontal = jnp.sqrt(a[..., 0] ** 2 + a[..., 1] ** 2)
-    theta = jnp.arctan2(horizontal, a[..., 2])
-    phi = jnp.arctan2(a[..., 0], -a[..., 1])
+    theta, phi, _ = _tilt_and_nodes(y)
     _, nodes, m_vec = _frame(theta, phi)
     psi = jnp.arctan2(jnp.sum(y.body * m_vec, -1), jnp.sum(y.body * nodes, -1))
     return theta, phi, psi
@@ -106,12 +141,22 @@ def euler_rates(y: State) -> tuple[Array, Array, Array]:
     r"""Euler rates $(\dot\theta, \dot\varphi, \dot\psi)$ of a state.
 
     $\dot\theta = \omega\cdot N$, $\dot\varphi = \omega\cdot M/\sin\theta$,
-    $\dot\psi = n - \dot\varphi\cos\theta$. $\dot\varphi$ and $\dot\psi$ are singular at the poles.
+    $\dot\psi = n - \dot\varphi\cos\theta$, with $N$ the line of nodes and $M = a\times N$.
+
+    At a pole the rates are read from the motion, never from the sign of a zero: $N$ points
+    where the axis is going (see `euler_angles`), so $\dot\theta = \omega\cdot N =
+    \pm|\omega_\perp|$, the speed of the axis ($\omega_\perp$ the part of $\omega$
+    perpendicular to $a$), positive at $\theta = 0$ (where $\theta$ can only grow) and
+    negative at $\theta = \pi$. The split of the rotation about the vertical between
+    $\dot\varphi$ and $\dot\psi$ is not fixed by the state there (it depends on the axis's
+    acceleration); the pole convention is $\dot\varphi = 0$, $\dot\psi = n$, so that
+    $\omega = \dot\varphi e_Z + \dot\theta N + \dot\psi a$ still holds.
     """
-    theta, phi, _ = euler_angles(y)
+    theta, phi, at_pole = _tilt_and_nodes(y)
     _, nodes, m_vec = _frame(theta, phi)
     theta_dot = jnp.sum(y.omega * nodes, -1)
-    phi_dot = jnp.sum(y.omega * m_vec, -1) / jnp.sin(theta)
+    sin_theta = jnp.where(at_pole, 1.0, jnp.sin(theta))
+    phi_dot = jnp.where(at_pole, 0.0, jnp.sum(y.omega * m_vec, -1) / sin_theta)
     psi_dot = spin(y) - phi_dot * jnp.cos(theta)
     return theta_dot, phi_dot, psi_dot
 
