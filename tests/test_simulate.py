@@ -203,6 +203,7 @@ def test_default_top_inverts(top):
     # the refined crossing lies between the bracketing save points
     k = np.argmax(th > np.pi / 2)
     assert float(sol.ts[k - 1]) <= float(sol.t_invert) <= float(sol.ts[k])
+    assert tj.OUTCOMES[int(sol.outcome)] == "inverted" and bool(sol.settled)
 
 
 def test_intermediate_state_attractor(top):
@@ -228,6 +229,7 @@ def test_intermediate_state_attractor(top):
     print(f"intermediate: predicted {theta_i:.6f}, max |theta - theta_i| over last 1 s = {dev:.2e}")
     assert dev < 1e-2
     assert _np(sol.theta)[-1] > 0.5  # it did rise from 0.1
+    assert tj.OUTCOMES[int(sol.outcome)] == "intermediate" and bool(sol.settled)
 
 
 def test_fall_back_from_near_pi(top):
@@ -245,6 +247,23 @@ def test_fall_back_from_near_pi(top):
     assert theta[-1] < np.pi / 2
     assert theta[-1] < 0.05
     assert np.isnan(float(sol.t_invert))  # launched beyond pi/2 and never crosses upwards
+    assert tj.OUTCOMES[int(sol.outcome)] == "upright" and bool(sol.settled)
+
+
+def test_crossing_pi_over_2_is_not_an_inversion():
+    """A Group III top crosses pi/2 (finite t_invert) and settles on its intermediate state
+    beyond pi/2: sol.outcome says "intermediate", the state the analysis level predicts."""
+    top = tj.TippeTop.from_ratios(1.5, 0.3)
+    assert tj.classify(top) == "III"
+    sol = tj.simulate(top, tj.initial_state(top, 0.1, 100.0), 20.0, model="full",
+                      saveat=grid(20.0), **DEFAULT)
+    assert np.isfinite(float(sol.t_invert))
+    assert tj.OUTCOMES[int(sol.outcome)] == "intermediate" and bool(sol.settled)
+    ss = tj.steady_states(top, sol.jellet[0])
+    stable = [t for t, ok in ss.intermediate if ok]
+    assert len(stable) == 1 and np.pi / 2 < stable[0] < np.pi
+    assert abs(float(sol.theta[-1]) - stable[0]) < 0.1
+    assert not bool(ss.vertical_stable[1])  # theta = pi is unstable: no inversion to reach
 
 
 # ------------------------------------------------------------------------------------------------
@@ -258,6 +277,7 @@ def test_contact_loss_stop(contact_stop):
     print(f"t_contact_loss = {t_loss:.4f} s (ERRATA: 5.19 s)")
     assert abs(t_loss - 5.19) < 0.02
     assert abs(float(sol.t_final) - t_loss) < 1e-9
+    assert tj.OUTCOMES[int(sol.outcome)] == "contact_lost" and not bool(sol.settled)
     ts = _np(sol.ts)
     after = ts > t_loss
     assert after.any() and (~after).any()
@@ -536,8 +556,19 @@ def test_max_steps_reached(top, y_std):
                       throw=False, **DEFAULT)
     assert same_result(sol, tj.RESULTS.max_steps_reached)
     assert float(sol.t_final) < 3.0
-    with pytest.raises(RuntimeError, match="maximum number of solver steps"):
+    assert "maximum number of solver steps" in sol.message()
+    # mu = 0.3 is not stiff friction: the error must not send the user to an implicit solver.
+    with pytest.raises(RuntimeError, match="maximum number of solver steps") as info:
         tj.simulate(top, y_std, 3.0, model="full", saveat=grid(3.0), max_steps=16, **DEFAULT)
+    text = str(info.value)
+    assert "not stiff" in text and "would not help" in text
+    assert f"{float(tj.friction_rate(top)):.3g}/s" in text
+    # A stiff top's message does point to an implicit solver.
+    from tippejax._simulate import _max_steps_hint
+
+    stiff = top.replace(mu=3000.0)
+    assert float(tj.friction_rate(stiff)) > 1e3
+    assert "Kvaerno5" in _max_steps_hint(stiff) and "not stiff" not in _max_steps_hint(stiff)
 
 
 def test_bad_arguments(top, y_std):

@@ -1,4 +1,5 @@
-"""Batches of simulations: a grid of launch angles and spins for one top, sharded over devices."""
+"""Batches of simulations: sweeps of any launch quantity and any field of the top, sharded over
+devices."""
 
 from __future__ import annotations
 
@@ -9,21 +10,66 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import ArrayLike
 
-from ._engine.solver_choice import default_solver
+from ._engine.solver_choice import default_solver, is_traced
 from ._models.levels import LEVELS
 from ._simulate import simulate
 from ._solution import Solution
 from ._state import initial_state
-from ._top import TippeTop
+from ._top import _FIELDS, TippeTop
+
+LAUNCH = ("theta0", "spin", "theta_dot", "phi_dot", "phi", "psi", "vx", "vy")
+"""The launch quantities `simulate_batch` sweeps (the arguments of `initial_state`)."""
 
 
 @eqx.filter_jit
-def _batch_run(top, thetas, spins, t1, kwargs):
+def _batch_run(top, launches, t1, kwargs):
     # Module-level and jitted once per (shapes, static options): repeated calls reuse it.
-    def one(theta, s):
-        return simulate(top, initial_state(top, theta, s), t1, throw=False, **kwargs)
+    # `top` has either scalar fields (one top) or fields of the launches' length (a sweep).
+    top_axes = jax.tree_util.tree_map(lambda x: 0 if jnp.ndim(x) == 1 else None, top)
 
-    return jax.vmap(one)(thetas, spins)
+    def one(top, launch):
+        theta0, spin, theta_dot, phi_dot, phi, psi, vx, vy = launch
+        y0 = initial_state(top, theta0, spin, theta_dot=theta_dot, phi_dot=phi_dot, phi=phi,
+                           psi=psi, vx=vx, vy=vy)
+        return simulate(top, y0, t1, throw=False, **kwargs)
+
+    return jax.vmap(one, in_axes=(top_axes, 0))(top, launches)
+
+
+def _concrete_array(name, value):
+    if any(is_traced(x) for x in jax.tree_util.tree_leaves(value)):
+        raise ValueError(
+            f"simulate_batch: {name} is traced (simulate_batch is called outside jax.jit/vmap "
+            "with concrete values); inside a transformation use "
+            "jax.vmap(lambda ...: tj.simulate(top, tj.initial_state(...), t1))."
+        )
+    try:
+        array = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"simulate_batch: {name} must be a number or an array of numbers, got "
+            f"{type(value).__name__}."
+        ) from None
+    if array.size == 0:
+        raise ValueError(f"simulate_batch: {name} is empty.")
+    if not np.all(np.isfinite(array)):
+        raise ValueError(f"simulate_batch: {name} must be finite (got NaN or inf).")
+    return array
+
+
+def check_theta0(name: str, theta) -> None:
+    """A concrete launch tilt must lie in [0, pi] rad; say so, with the degrees hint."""
+    theta = np.asarray(theta, dtype=float)
+    if np.any(theta < 0) or np.any(theta > np.pi):
+        bad = theta[(theta < 0) | (theta > np.pi)].ravel()[0]
+        hint = (
+            f" It looks like degrees: pass np.deg2rad({bad:g}) = {np.deg2rad(bad):.6g} rad."
+            if np.pi < bad <= 180 else ""
+        )
+        raise ValueError(
+            f"{name} must lie in [0, pi] rad (the tilt of the axis from the vertical, in "
+            f"radians); got {bad:g}.{hint}"
+        )
 
 
 def simulate_batch(
@@ -32,50 +78,135 @@ def simulate_batch(
     spin: ArrayLike,
     t1: float,
     *,
+    theta_dot: ArrayLike = 0.0,
+    phi_dot: ArrayLike = 0.0,
+    phi: ArrayLike = 0.0,
+    psi: ArrayLike = 0.0,
+    vx: ArrayLike = 0.0,
+    vy: ArrayLike = 0.0,
+    grid: tuple[str, ...] = ("theta0", "spin"),
     shard: bool = True,
     buckets: int = 1,
     **kwargs,
 ) -> Solution:
-    r"""Simulate one top launched from every pair of `theta0` x `spin` (a grid), in one batch.
+    r"""Simulate a sweep of launches and tops in one compiled batch.
 
-    Each launch is `initial_state(top, theta, spin)`. The grid is flattened, run under one
-    `jax.vmap` (one compilation) with `throw=False`, so a failed member is flagged in
-    `sol.result` without stopping the others, and reshaped to `(len(theta0), len(spin))`.
-    With `shard=True` and more than one device, the batch is split over all devices with
-    `jax.sharding` (padded to a multiple of the device count).
+    Each member is `simulate(top_k, initial_state(top_k, theta0_k, spin_k, theta_dot=...,
+    phi_dot=..., phi=..., psi=..., vx=..., vy=...), t1)`, where `top_k` is the top itself or
+    one member of a batch of tops (`top.replace(mu=np.linspace(0.1, 1, 10))`, a `TippeTop` built
+    from arrays). How the quantities combine:
+
+    - The quantities named in `grid` (launch quantities, or `"top"` for a 1-d batch of tops)
+      are the axes of a grid, in that order: each is 1-d (a scalar counts as length 1) and the
+      result has one axis per name. The default `grid=("theta0", "spin")` is the grid of tilts
+      x spins: `simulate_batch(top, theta0=[...], spin=[...], t1=...)` returns shape
+      `(len(theta0), len(spin))`.
+    - Every other quantity, and the top's fields unless `"top"` is in `grid`, broadcast
+      against the grid's shape (numpy rules). With `grid=()` everything broadcasts:
+      `simulate_batch(top.replace(mu=mus), 0.1, 100.0, t1=10.0, grid=())` has shape
+      `mus.shape`.
+
+    All members run under one `jax.vmap` (one compilation per shape and options) with
+    `throw=False`, so a failed member is flagged in `sol.result` (`sol.message()` reads it)
+    without stopping the others. With `shard=True` and more than one device the batch is split
+    over all devices with `jax.sharding` (padded to a multiple of the device count).
 
     Under `vmap` every member takes as many solver steps as the slowest one. With
-    `buckets > 1` the launches are sorted by $|n|$ (their cost grows with spin x t1, and t1 is
-    common), split into `buckets` equal-size groups (padded with the last launch), and each
-    group is run as its own batch through the same compiled function; the results are put back
-    in grid order. This pays when the members run to `t1` with step counts spread by spin
-    (`benchmarks/batch.py`: 2-4 buckets ran a batch of spins 20..400 ~1.4x faster); it does not
-    when many members stop early (contact loss), and small buckets use the cores less well.
-    Results agree with `buckets=1` to about `rtol` (a member's rounding depends on the batch
-    size).
+    `buckets > 1` the members are sorted by $|n|$ (their cost grows with spin x t1), split
+    into `buckets` equal-size groups (padded with the last member), each run as its own batch
+    through the same compiled function, and put back in order. This pays when the members run
+    to `t1` with step counts spread by spin (`benchmarks/batch.py`: 2-4 buckets ran a batch of
+    spins 20..400 ~1.4x faster); not when many stop early (contact loss). Results agree with
+    `buckets=1` to about `rtol`.
 
-    Other keyword arguments go to `simulate` (`model`, `saveat`, `rtol`, `atol`, `solver`, ...).
+    The default solver is `default_solver` of the stiffest top in the batch.
 
-    **Returns:** a `Solution` with leading batch axes `(len(theta0), len(spin))`.
+    **Arguments:**
+
+    - `top`: a `TippeTop`, one or a batch.
+    - `theta0` (rad, in $[0, \pi]$), `spin` (rad/s), `theta_dot`, `phi_dot` (rad/s), `phi`,
+      `psi` (rad), `vx`, `vy` (m/s): the launch, as in `initial_state`; numbers or arrays.
+    - `t1`: final time (s), common to all members.
+    - `grid`: names forming the axes of a grid (see above).
+    - `shard`, `buckets`: see above.
+    - other keyword arguments go to `simulate` (`model`, `saveat`, `summary`, `rtol`, `atol`,
+      `solver`, ...).
+
+    **Returns:** a `Solution` whose fields have the batch's shape as leading axes.
     """
     if "throw" in kwargs and kwargs["throw"]:
         raise ValueError("simulate_batch always runs with throw=False; inspect sol.result.")
     kwargs.pop("throw", None)
+    for bad in ("y0", "theta"):
+        if bad in kwargs:
+            raise ValueError(
+                f"simulate_batch takes the launch as quantities ({', '.join(LAUNCH)}), not "
+                f"{bad}=."
+            )
     if isinstance(buckets, bool) or not isinstance(buckets, (int, np.integer)) or buckets < 1:
         raise ValueError(f"simulate_batch: buckets must be an integer >= 1, got {buckets!r}.")
-    theta0 = np.atleast_1d(np.asarray(theta0, dtype=float))
-    spin = np.atleast_1d(np.asarray(spin, dtype=float))
-    for name, values in (("theta0", theta0), ("spin", spin)):
-        if values.ndim != 1 or values.size == 0:
-            raise ValueError(
-                f"simulate_batch: {name} must be a non-empty 1-d list of values, got shape "
-                f"{values.shape}."
-            )
-        if not np.all(np.isfinite(values)):
-            raise ValueError(f"simulate_batch: {name} must be finite (got NaN or inf).")
-    grid_theta, grid_spin = np.meshgrid(theta0, spin, indexing="ij")
-    flat_theta, flat_spin = grid_theta.ravel(), grid_spin.ravel()
-    size = flat_theta.size
+    if not isinstance(top, TippeTop):
+        raise TypeError(f"simulate_batch: top must be a tippejax.TippeTop, got {type(top).__name__}.")
+    values = dict(theta0=theta0, spin=spin, theta_dot=theta_dot, phi_dot=phi_dot, phi=phi,
+                  psi=psi, vx=vx, vy=vy)
+    launch = {name: _concrete_array(name, v) for name, v in values.items()}
+    check_theta0("simulate_batch: theta0", launch["theta0"])
+    top_fields = {k: _concrete_array(f"top.{k}", getattr(top, k)) for k in _FIELDS}
+    top_shape = top.batch_shape
+
+    if isinstance(grid, str):
+        grid = (grid,)
+    grid = tuple(grid)
+    allowed = (*LAUNCH, "top")
+    for name in grid:
+        if name not in allowed:
+            raise ValueError(f"simulate_batch: grid names must be among {allowed}, got {name!r}.")
+    if len(set(grid)) != len(grid):
+        raise ValueError(f"simulate_batch: grid names a quantity twice: {grid}.")
+    axes = len(grid)
+    grid_shape = []
+    for i, name in enumerate(grid):
+        if name == "top":
+            if len(top_shape) > 1:
+                raise ValueError(
+                    "simulate_batch: a top on a grid axis must be a 1-d batch of tops, got "
+                    f"batch shape {top_shape}."
+                )
+            size = top_shape[0] if top_shape else 1
+            for k in _FIELDS:
+                top_fields[k] = np.broadcast_to(top_fields[k], (size,))
+        else:
+            x = launch[name]
+            if x.ndim > 1:
+                raise ValueError(
+                    f"simulate_batch: {name} is a grid axis and must be 1-d, got shape {x.shape}."
+                )
+            x = np.atleast_1d(x)
+            size = x.size
+        place = [1] * axes
+        place[i] = size
+        if name == "top":
+            top_fields = {k: v.reshape(place) for k, v in top_fields.items()}
+            top_shape = tuple(place)
+        else:
+            launch[name] = x.reshape(place)
+        grid_shape.append(size)
+    try:
+        shape = np.broadcast_shapes(
+            tuple(grid_shape), top_shape, *(v.shape for v in launch.values())
+        )
+    except ValueError:
+        got = ", ".join(f"{k}: {v.shape}" for k, v in launch.items() if v.shape)
+        raise ValueError(
+            f"simulate_batch: the shapes do not broadcast (grid {tuple(grid_shape)} from "
+            f"{grid}, top {top_shape}{', ' + got if got else ''})."
+        ) from None
+    size = int(np.prod(shape))
+    flat = {k: np.broadcast_to(v, shape).ravel() for k, v in launch.items()}
+    batched_top = top_shape != ()
+    if batched_top:
+        flat_top = {k: np.broadcast_to(v, shape).ravel() for k, v in top_fields.items()}
+
     if kwargs.get("solver") is None:
         level = LEVELS.get(kwargs.get("model", "full"))
         kwargs["solver"] = default_solver(top, slow_flow=level is not None and level.slow_flow)
@@ -83,25 +214,33 @@ def simulate_batch(
     devices = jax.devices()
     n_dev = len(devices) if shard else 1
     buckets = min(int(buckets), size)
-    # Launch order: by |spin| when bucketing, else the grid's. Each bucket holds `per`
-    # launches, a multiple of the device count; the tail is padded with the last launch.
-    order = np.argsort(np.abs(flat_spin), kind="stable") if buckets > 1 else np.arange(size)
+    # Member order: by |spin| when bucketing, else the batch's. Each bucket holds `per`
+    # members, a multiple of the device count; the tail is padded with the last member.
+    order = np.argsort(np.abs(flat["spin"]), kind="stable") if buckets > 1 else np.arange(size)
     per = -(-size // buckets)
     per = -(-per // n_dev) * n_dev
     order = np.concatenate([order, np.repeat(order[-1:], per * buckets - size)])
     sharding = None
     if n_dev > 1:
         sharding = NamedSharding(Mesh(np.array(devices), ("batch",)), PartitionSpec("batch"))
+
+    def put(x):
+        x = jnp.asarray(x, dtype)
+        return x if sharding is None else jax.device_put(x, sharding)
+
     t1 = jnp.asarray(t1, dtype)
     parts = []
     for b in range(buckets):
         idx = order[b * per:(b + 1) * per]
-        thetas = jnp.asarray(flat_theta[idx], dtype)
-        spins = jnp.asarray(flat_spin[idx], dtype)
-        if sharding is not None:
-            thetas = jax.device_put(thetas, sharding)
-            spins = jax.device_put(spins, sharding)
-        parts.append(_batch_run(top, thetas, spins, t1, kwargs))
+        launches = tuple(put(flat[k][idx]) for k in LAUNCH)
+        if batched_top:
+            member_tops = eqx.tree_at(
+                lambda t: tuple(getattr(t, k) for k in _FIELDS), top,
+                tuple(put(flat_top[k][idx]) for k in _FIELDS),
+            )
+        else:
+            member_tops = top
+        parts.append(_batch_run(member_tops, launches, t1, kwargs))
     if buckets == 1:
         sol = parts[0]
         back = None
@@ -111,7 +250,6 @@ def simulate_batch(
         )
         back = np.empty(size, dtype=int)
         back[order[:size]] = np.arange(size)
-    shape = grid_theta.shape
 
     def unflatten(x):
         if not isinstance(x, jax.Array):

@@ -13,7 +13,7 @@ launch is the stable state of its $J$ nearest to the final tilt $\theta(t_1)$:
 
 - `"upright"` ($\theta = 0$), `"inverted"` ($\theta = \pi$), `"intermediate"` (an
   intermediate state; `theta_expected` holds its tilt);
-- `"contact_lost"`: $R_n$ reached 0 (the model stops there, ERRATA.md point 6);
+- `"contact_lost"`: $R_n$ reached 0 (the model stops there; `docs/notes.md`, "Contact loss");
 - `"failed"`: any other failure of the solve (max steps, the $R_n$ singularity, NaN, a
   level that cannot describe the launch), and a $J$ with no stable state.
 
@@ -79,7 +79,8 @@ class OutcomeMap(eqx.Module):
     - `t_invert`: first upward crossing of $\pi/2$ (nan if none).
     - `t_contact_loss`, `t_final`: time $R_n$ reached 0 (nan if never), time the run ended.
     - `jellet`: $J$ of the launch.
-    - `result`: the `RESULTS` code of each run (`RESULTS[int]` is its message).
+    - `result`: the `RESULTS` code of each run (int8); `om.message()` gives the messages
+      (`tj.RESULTS.message(om.result)`, elementwise).
     - `num_steps`: solver steps of each run.
     - `model_index`: index into `models`, the level each launch was simulated with.
     - `t1`, `rtol`, `atol`, `settle_tol`: the settings.
@@ -107,6 +108,11 @@ class OutcomeMap(eqx.Module):
     rtol: float = eqx.field(static=True)
     atol: float = eqx.field(static=True)
     settle_tol: float = eqx.field(static=True)
+
+    def message(self) -> np.ndarray:
+        """The message of each run's `result`, a numpy array of `str` with the grid's shape
+        (`"successful"` where the run succeeded). Same as `tj.RESULTS.message(om.result)`."""
+        return RESULTS.message(self.result)
 
     def counts(self) -> dict[str, int]:
         """Number of launches per outcome, and of unsettled ones (key `"unsettled"`)."""
@@ -263,6 +269,18 @@ def _check_common(model, t1, rtol, atol, settle_tol, chunk_size):
         raise ValueError(f"outcome_map: chunk_size must be a positive integer, got {chunk_size!r}.")
 
 
+def _check_one_top(where: str, top) -> None:
+    if not isinstance(top, TippeTop):
+        raise ValueError(f"{where}: top must be a tippejax.TippeTop, got {type(top).__name__}.")
+    shapes = {np.shape(x) for x in jax.tree_util.tree_leaves(top)}
+    if shapes != {()}:
+        raise ValueError(
+            f"{where} maps one top, but this TippeTop is a batch (field shapes "
+            f"{sorted(shapes)}). Map each top in a loop, use tj.outcome_map_tops for a grid of "
+            "A/C x eps/R, or tj.simulate_batch(tops, ...) with sol.outcome for a sweep of tops."
+        )
+
+
 def _axis(name, values, *, low=-np.inf, high=np.inf, what=""):
     values = np.atleast_1d(np.asarray(values, dtype=float))
     if values.ndim != 1 or values.size == 0:
@@ -349,8 +367,7 @@ def outcome_map(
     **Returns:** an `OutcomeMap` with grid shape `(len(theta0), len(spin))`.
     """
     _check_common(model, t1, rtol, atol, settle_tol, chunk_size)
-    if not isinstance(top, TippeTop) or np.ndim(top.m) != 0:
-        raise ValueError("outcome_map: top must be one TippeTop (not a batch).")
+    _check_one_top("outcome_map", top)
     theta0 = _axis("theta0", theta0, low=0.0, high=np.pi, what=" rad")
     spin = _axis("spin", spin)
     grid_theta, grid_spin = np.meshgrid(theta0, spin, indexing="ij")
@@ -420,8 +437,7 @@ def outcome_map_tops(
         raise ValueError(
             f"outcome_map_tops: model must be 'full', 'so3' or 'routhian', got {model!r}."
         )
-    if not isinstance(top, TippeTop) or np.ndim(top.m) != 0:
-        raise ValueError("outcome_map_tops: top must be one TippeTop (not a batch).")
+    _check_one_top("outcome_map_tops", top)
     a = _axis("A_over_C", A_over_C, low=0.5, high=np.inf, what=" (no rigid body has A/C < 1/2)")
     e = _axis("eps_over_R", eps_over_R, low=0.0, high=1.0, what=" (0 < eps < R)")
     if np.any(e <= 0) or np.any(e >= 1):

@@ -17,7 +17,13 @@ import numpy as np
 from jaxtyping import ArrayLike
 
 from ._engine.chain import run_chain
-from ._engine.solver_choice import IMPLICIT_RATE, default_solver, friction_rate, is_traced
+from ._engine.solver_choice import (
+    IMPLICIT_RATE,
+    STIFF_RATE,
+    default_solver,
+    friction_rate,
+    is_traced,
+)
 from ._invariants import energy, jellet, normal_force, slip_velocity
 from ._models.levels import LEVELS
 from ._solution import RESULTS, Solution
@@ -108,11 +114,25 @@ def _run(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_on
     )
     result = RESULTS.where((result == RESULTS.successful) & nonfinite, RESULTS.nonfinite, result)
     return dict(
+        theta_end=euler_angles(out.state_end)[0], jellet_launch=jellet(top, y0),
         ts=times.astype(dtype), states=states, result=result, t_invert=out.t_invert,
         t_contact_loss=t_contact_loss, t_chart_switch=out.t_chart_switch,
         t_final=out.t_final, num_steps=out.num_steps,
         num_rejected_steps=out.num_rejected_steps, **fields,
     )
+
+
+SETTLE_TOL = 0.1
+"""Tilt distance (rad) within which a run's end counts as `settled` on its outcome."""
+
+
+@eqx.filter_jit
+def _outcome(top, J, theta_end, result):
+    """`sol.outcome`, `sol.settled`: the end state classified as `outcome_map` does."""
+    from ._maps import classify_end  # (_maps imports simulate)
+
+    outcome, settled, _ = classify_end(top, J, theta_end, result, settle_tol=SETTLE_TOL)
+    return outcome, settled
 
 
 def _concrete(*xs) -> bool:
@@ -126,12 +146,12 @@ def _check_top_and_state(top: TippeTop, y0: State):
         raise TypeError(
             f"y0 must be a tippejax.State (see tj.initial_state), got {type(y0).__name__}."
         )
-    shape = jnp.shape(top.m)
-    if shape != ():
+    shapes = {jnp.shape(x) for x in jax.tree_util.tree_leaves(top)}
+    if shapes != {()}:
         raise ValueError(
-            f"simulate takes one top, but this TippeTop has fields of shape {shape}. For a batch "
-            "of tops use jax.vmap(lambda top: tj.simulate(top, ...))(tops); for a grid of "
-            "launches of one top use tj.simulate_batch."
+            f"simulate takes one top, but this TippeTop has fields of shape {sorted(shapes)}. "
+            "For a sweep of tops or launches use tj.simulate_batch(tops, theta0, spin, t1, "
+            "grid=...), or jax.vmap(lambda top: tj.simulate(top, ...))(tops)."
         )
     if y0.axis.shape != (3,):
         raise ValueError(
@@ -312,13 +332,38 @@ def simulate(
                 name = f"{model}->{fallback}"
         else:
             name = f"{model}(->{fallback} where t_chart_switch is finite)"
-    sol = Solution(model=name, **out)
+    theta_end, jellet_launch = out.pop("theta_end"), out.pop("jellet_launch")
+    outcome, settled = _outcome(top, jellet_launch, theta_end, out["result"])
+    sol = Solution(model=name, outcome=outcome, settled=settled, **out)
     if throw:
-        sol = _raise_if_failed(sol, on_contact_loss)
+        sol = _raise_if_failed(sol, on_contact_loss, top)
     return sol
 
 
-def _raise_if_failed(sol: Solution, on_contact_loss: str) -> Solution:
+def _max_steps_hint(top: TippeTop) -> str:
+    """What to do about `max_steps_reached`, for this top's friction (concrete top)."""
+    rate = float(np.max(np.asarray(friction_rate(top))))
+    if rate <= STIFF_RATE:
+        return (
+            f" This top's friction is not stiff (tj.friction_rate(top) = {rate:.3g}/s, below "
+            f"{STIFF_RATE:g}/s), so an implicit solver would not help: the steps are set by the "
+            "nutation (a few per period 2 pi A/(C n)), and their number grows with spin x "
+            "(t1 - t0). Raise max_steps, shorten the run, or loosen rtol/atol."
+        )
+    if rate <= IMPLICIT_RATE:
+        return (
+            f" This top's friction is stiff (tj.friction_rate(top) = {rate:.3g}/s): explicit "
+            "steps are limited by stability. Raise max_steps, or pass an implicit solver "
+            "(solver=diffrax.Kvaerno5())."
+        )
+    return (
+        f" This top's friction is very stiff (tj.friction_rate(top) = {rate:.3g}/s): pass an "
+        "implicit solver (solver=diffrax.Kvaerno5(), the default for such a top) and raise "
+        "max_steps."
+    )
+
+
+def _raise_if_failed(sol: Solution, on_contact_loss: str, top: TippeTop | None = None) -> Solution:
     failed = sol.result != RESULTS.successful
     if on_contact_loss == "continue":
         failed = failed & (sol.result != RESULTS.contact_lost)
@@ -326,8 +371,13 @@ def _raise_if_failed(sol: Solution, on_contact_loss: str) -> Solution:
         if bool(np.any(np.asarray(failed))):
             first = np.argmax(np.asarray(failed).ravel())
             item = jax.tree_util.tree_map(lambda x: jnp.ravel(x)[first], sol.result)
+            message = RESULTS.message(item)
+            if bool(item == RESULTS.max_steps_reached) and top is not None and _concrete(top):
+                message = "The maximum number of solver steps was reached before t1." + (
+                    _max_steps_hint(top)
+                )
             raise RuntimeError(
-                f"tippejax.simulate failed: {RESULTS[item]} "
+                f"tippejax.simulate failed: {message} "
                 "(pass throw=False to get the flagged solution instead)."
             )
         return sol

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import equinox as eqx
 import equinox.internal as eqxi
-from jaxtyping import Array, Float, Int
+import jax
+import numpy as np
+from jaxtyping import Array, Bool, Float, Int
 
 
 class RESULTS(eqxi.Enumeration):
@@ -12,16 +14,20 @@ class RESULTS(eqxi.Enumeration):
 
     successful = ""
     max_steps_reached = (
-        "The maximum number of solver steps was reached before t1. Increase `max_steps`, loosen "
-        "the tolerances, or pass an implicit solver (e.g. diffrax.Kvaerno5()) for stiff friction."
+        "The maximum number of solver steps was reached before t1. Increase `max_steps`, shorten "
+        "the run or loosen the tolerances (the steps follow the nutation: their number grows "
+        "with spin x (t1 - t0)). An implicit solver (diffrax.Kvaerno5()) helps only when the "
+        "friction is stiff, tj.friction_rate(top) above about 1e3/s."
     )
     contact_lost = (
         "The normal force R_n reached 0: the top leaves the table and the contact model no "
-        "longer applies (ERRATA.md, point 6). Values after `t_contact_loss` are not physical."
+        "longer applies (docs/notes.md, 'Contact loss'). Values after `t_contact_loss` are "
+        "not physical."
     )
     normal_force_singular = (
         "The denominator of R_n vanished: a Painleve-type singularity of friction proportional "
-        "to R_n (ERRATA.md, point 5). The model has no solution beyond this time."
+        "to R_n (docs/notes.md, 'The R_n singularity'). The model has no solution beyond this "
+        "time."
     )
     nonfinite = "The solution became NaN or infinite."
     solver_failed = (
@@ -51,6 +57,76 @@ class RESULTS(eqxi.Enumeration):
     )
 
 
+def _is_item(x) -> bool:
+    """An item of an equinox enumeration (e.g. `RESULTS.successful`, or `sol.result`)."""
+    return hasattr(x, "_enumeration") and hasattr(x, "_value")
+
+
+def result_message(code, enumeration=None):
+    """The message of a result code, or of an array of codes elementwise.
+
+    The one way to read a result in tippejax: `tj.RESULTS.message(x)`, or `x.message()` on a
+    `Solution` (single run or batch) and an `OutcomeMap`.
+
+    **Arguments:**
+
+    - `code`: an item of a result enumeration (`sol.result`, scalar or batched), a plain
+      integer code or an integer array of codes (`OutcomeMap.result`), or any object with a
+      `result` field (a `Solution`, an `OutcomeMap`).
+    - `enumeration`: the enumeration whose table reads integer codes (default `RESULTS`). An
+      enumeration item always carries its own.
+
+    **Returns:** a `str` for one code, or a numpy array of `str` with the codes' shape. A
+    successful code reads `"successful"` (its message in the enumeration is empty).
+    """
+    if enumeration is None:
+        enumeration = RESULTS
+    if _is_item(code):
+        enumeration = code._enumeration
+        code = code._value
+    elif not isinstance(code, (int, np.integer, np.ndarray, jax.Array)) and hasattr(
+        code, "result"
+    ):
+        return result_message(code.result, enumeration)
+    if isinstance(code, jax.core.Tracer):
+        raise ValueError(
+            "result messages are read outside jax.jit/vmap: return the result code from the "
+            "jitted function and call tj.RESULTS.message on it afterwards."
+        )
+    if isinstance(code, bool) or not isinstance(code, (int, np.integer, np.ndarray, jax.Array)):
+        raise ValueError(
+            "tj.RESULTS.message takes a result code (sol.result, an integer or an integer "
+            f"array) or an object with a `result` field, got {type(code).__name__}."
+        )
+    values = np.asarray(code)
+    if not np.issubdtype(values.dtype, np.integer):
+        raise ValueError(f"result codes are integers, got an array of dtype {values.dtype}.")
+    names = list(enumeration._name_to_item)
+    table = [""] * len(names)
+    for name, item in enumeration._name_to_item.items():
+        index = int(item._value)
+        table[index] = enumeration._index_to_message[index] or name
+    if np.any(values < 0) or np.any(values >= len(table)):
+        raise ValueError(
+            f"result codes of {enumeration.__name__} lie in [0, {len(table) - 1}], got "
+            f"{values.min()} to {values.max()}."
+        )
+    if values.ndim == 0:
+        return table[int(values)]
+    return np.array(table)[values]
+
+
+def attach_message(enumeration) -> None:
+    """Give an enumeration the method `enumeration.message(code)` (`result_message` with its own
+    table). Enumerations take no methods in their class body: every name there is an item."""
+    type.__setattr__(
+        enumeration, "message", classmethod(lambda cls, code: result_message(code, cls))
+    )
+
+
+attach_message(RESULTS)
+
+
 class Solution(eqx.Module):
     r"""A simulated trajectory, sampled at the save times `ts`.
 
@@ -75,12 +151,23 @@ class Solution(eqx.Module):
     - `model`: the level used (str); "routhian->so3" when a Routhian run left its chart.
       A gyroscopic run that leaves the domain of gyroscopic balance stops there
       (`result == RESULTS.no_gyroscopic_balance`) and stays "gyroscopic".
-    - `result`: a `RESULTS` code (`sol.result == tj.RESULTS.successful`).
+    - `result`: a `RESULTS` code (`sol.result == tj.RESULTS.successful`); `sol.message()`
+      gives its text (an array of texts for a batch).
     - `t_invert`: first upward crossing of $\theta = \pi/2$ (nan if none).
     - `t_contact_loss`: first time $R_n = 0$ (nan if never).
     - `t_chart_switch`: time a Routhian run left its chart near a pole (nan otherwise).
     - `t_final`: the time the integration reached (t1 unless it stopped early).
     - `num_steps`, `num_rejected_steps`: solver statistics (all segments together).
+    - `outcome`: where the run ended, an index into `tj.OUTCOMES` ("upright", "inverted",
+      "intermediate", "contact_lost", "failed"): the stable steady state of the launch's
+      Jellet $J$ nearest to the tilt where the run ended, classified as `tj.outcome_map` does
+      (`tippejax/_maps.py`); "contact_lost" when $R_n$ reached 0, "failed" for any other
+      failure. `tj.OUTCOMES[int(sol.outcome)]` is its name.
+    - `settled`: the final tilt is within 0.1 rad of that state. A run still on its way at
+      `t1` is classified by the state it is nearest to; only `outcome == inverted` with
+      `settled` says that the top turned over and stayed there. (`t_invert`, the first upward
+      crossing of $\pi/2$, is no proof of inversion: a Group III top or a top that settles on
+      an intermediate state beyond $\pi/2$ crosses it too.)
     """
 
     ts: Float[Array, "*batch n"]
@@ -106,6 +193,13 @@ class Solution(eqx.Module):
     num_steps: Int[Array, "*batch"]
     num_rejected_steps: Int[Array, "*batch"]
     model: str = eqx.field(static=True)
+    outcome: Int[Array, "*batch"] | None = None
+    settled: Bool[Array, "*batch"] | None = None
+
+    def message(self):
+        """The message of `result`: a `str`, or a numpy array of `str` for a batch
+        (`"successful"` where the run succeeded). Same as `tj.RESULTS.message(sol.result)`."""
+        return result_message(self.result)
 
     @property
     def succeeded(self):

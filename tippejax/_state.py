@@ -10,7 +10,9 @@ spin $n = \omega\cdot a = \dot\psi + \dot\varphi\cos\theta$ (eq. omega).
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._top import TippeTop
@@ -189,8 +191,32 @@ def initial_state(
     **Returns:** a `State`.
     """
     dtype = jnp.result_type(top.m)
-    args = [jnp.asarray(x, dtype=dtype) for x in (theta, spin, theta_dot, phi_dot, phi, psi, vx, vy)]
+    raw = (theta, spin, theta_dot, phi_dot, phi, psi, vx, vy)
     names = ("theta", "spin", "theta_dot", "phi_dot", "phi", "psi", "vx", "vy")
+    if not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(raw)):
+        # Concrete values: say what is wrong in Python, before any jit.
+        for name, value in zip(names, raw):
+            try:
+                value = np.asarray(value, dtype=float)
+            except (TypeError, ValueError):
+                raise ValueError(
+                    f"initial_state: {name} must be a number or an array of numbers, got "
+                    f"{type(value).__name__}."
+                ) from None
+            if not np.all(np.isfinite(value)):
+                raise ValueError(f"initial_state: {name} must be finite (got NaN or inf).")
+        theta_np = np.asarray(theta, dtype=float)
+        if np.any(theta_np < 0) or np.any(theta_np > np.pi):
+            bad = theta_np[(theta_np < 0) | (theta_np > np.pi)].ravel()[0]
+            hint = (
+                f" It looks like degrees: pass np.deg2rad({bad:g}) = {np.deg2rad(bad):.6g} rad."
+                if np.pi < bad <= 180 else ""
+            )
+            raise ValueError(
+                "initial_state: theta must lie in [0, pi] (the tilt of the axis from the "
+                f"vertical, in radians); got {bad:g}.{hint}"
+            )
+    args = [jnp.asarray(x, dtype=dtype) for x in raw]
     checked = []
     for name, value in zip(names, args):
         value = eqx.error_if(value, ~jnp.isfinite(value), f"initial_state: {name} must be finite (got NaN or inf).")

@@ -100,6 +100,18 @@ class TippeTop(eqx.Module):
     ):
         values = [_as_float(v) for v in (m, R, eps, A, C, g, mu)]
         traced = any(_is_traced(v) for v in values)
+        shapes = [jnp.shape(v) for v in values]
+        if len(set(shapes)) > 1:
+            # A sweep of one field (mu=[...]) makes a batch of tops: every field gets its shape.
+            try:
+                shape = np.broadcast_shapes(*shapes)
+            except ValueError:
+                got = ", ".join(f"{k}: {sh}" for k, sh in zip(_FIELDS, shapes))
+                raise ValueError(
+                    "TippeTop: the fields' shapes do not broadcast to one batch shape "
+                    f"({got}). Give every field the same shape, or scalars."
+                ) from None
+            values = [jnp.broadcast_to(v, shape) for v in values]
         if not traced:
             np_values = [np.asarray(v) for v in values]
             for failed, message in _checks(*np_values):
@@ -119,6 +131,52 @@ class TippeTop(eqx.Module):
                 eqx.branched_error_if(v, jnp.any(failed), index, messages) for v in values
             ]
         self.m, self.R, self.eps, self.A, self.C, self.g, self.mu = values
+
+    @property
+    def batch_shape(self) -> tuple[int, ...]:
+        """Shape of the batch of tops (`()` for one top)."""
+        return tuple(np.broadcast_shapes(*(jnp.shape(getattr(self, k)) for k in _FIELDS)))
+
+    def replace(self, **changes) -> TippeTop:
+        r"""The same top with some fields changed, checked like a new `TippeTop`.
+
+        `top.replace(mu=0.1)`; `top.replace(mu=np.linspace(0.05, 1.0, 20))` is a batch of 20
+        tops (the other fields broadcast), ready for `simulate_batch` or `jax.vmap`. Besides the
+        fields `m, R, eps, A, C, g, mu`, the ratios may be given: `A_over_C` sets $A = (A/C)\,C$
+        at the top's $C$, `eps_over_R` sets $\epsilon = (\epsilon/R)\,R$ at its $R$ (after
+        any new `C` or `R`).
+        """
+        allowed = (*_FIELDS, "A_over_C", "eps_over_R")
+        unknown = sorted(set(changes) - set(allowed))
+        if unknown:
+            raise ValueError(
+                f"TippeTop.replace: unknown field(s) {unknown}; the fields are {allowed}."
+            )
+        for ratio, field in (("A_over_C", "A"), ("eps_over_R", "eps")):
+            if ratio in changes and field in changes:
+                raise ValueError(f"TippeTop.replace: give {ratio} or {field}, not both.")
+        values = {k: changes.get(k, getattr(self, k)) for k in _FIELDS}
+        if "A_over_C" in changes:
+            values["A"] = _as_float(changes["A_over_C"]) * _as_float(values["C"])
+        if "eps_over_R" in changes:
+            values["eps"] = _as_float(changes["eps_over_R"]) * _as_float(values["R"])
+        return TippeTop(**values)
+
+    def __repr__(self) -> str:
+        try:
+            values = {k: np.asarray(getattr(self, k)) for k in _FIELDS}
+        except Exception:  # noqa: BLE001 - traced fields have no values to show
+            return super().__repr__()
+        if all(v.ndim == 0 for v in values.values()):
+            body = ", ".join(f"{k}={v.item():.6g}" for k, v in values.items())
+            return f"TippeTop({body})"
+        parts = []
+        for k, v in values.items():
+            if np.all(v == v.flat[0]):
+                parts.append(f"{k}={v.flat[0].item():.6g}")
+            else:
+                parts.append(f"{k}={np.array2string(v, precision=6, threshold=8)}")
+        return f"TippeTop(batch_shape={self.batch_shape}, {', '.join(parts)})"
 
     @classmethod
     def from_ratios(

@@ -118,6 +118,12 @@ def classify(top: TippeTop):
     Depends only on $A/C$ and $\epsilon/R$. For a batch of tops, returns a numpy array of strings.
     Not jit-able (it returns strings); use `group_index` inside `jit`.
     """
+    if not isinstance(top, TippeTop):
+        raise ValueError(
+            f"classify takes a tippejax.TippeTop, got {type(top).__name__}. Build one with "
+            "tj.TippeTop(m=..., R=..., eps=..., A=..., C=...) or "
+            "tj.TippeTop.from_ratios(A_over_C, eps_over_R) (only the two ratios matter)."
+        )
     index = np.asarray(group_index(top))
     if index.ndim == 0:
         return GROUPS[int(index)]
