@@ -207,11 +207,12 @@ def _dense_eval(x, y_old, F, out):
 
 
 @_jit
-def _dop853(Y0, P, full, t_eval, rtol, atol, max_steps, A, B, C, E3, E5, D):
+def _dop853(Y0, P, full, t_eval, rtol, atol, max_steps, stop_at_contact, A, B, C, E3, E5, D):
     """Integrate K copies from t = 0 to t_eval[-1]; states sampled at t_eval (increasing, >= 0).
 
     Returns (Ys (T, K, 10), status, n_steps, n_fev, t_invert (K,), t_contact (K,)):
-    status 0 success, -1 step size too small, -2 max_steps reached. t_invert: first time a_z
+    status 0 success, 1 stopped at a contact loss (stop_at_contact; later samples nan),
+    -1 step size too small, -2 max_steps reached. t_invert: first time a_z
     crosses 0 downwards (theta passes pi/2 upwards); t_contact: first time R_n crosses 0
     downwards (contact lost); nan if none.
     """
@@ -376,6 +377,10 @@ def _dop853(Y0, P, full, t_eval, rtol, atol, max_steps, A, B, C, E3, E5, D):
                         t_invert[k] = t + 0.5 * (lo + hi) * h
                     else:
                         t_contact[k] = t + 0.5 * (lo + hi) * h
+        if stop_at_contact:
+            for k in range(nk):
+                if not math.isnan(t_contact[k]):
+                    return Ys, 1, steps, nfev, t_invert, t_contact
         t = t_new
         y[:] = y_new
         f[:] = f_new
@@ -453,11 +458,12 @@ def _check_t_eval(t_eval):
 
 
 def solve_batch(params_list, y0_list, t_eval, *, variant="full", rtol=1e-12, atol=1e-12,
-                max_steps=10_000_000):
+                max_steps=10_000_000, stop_at_contact_loss=False):
     """Integrate K copies (parameter dicts and launch states) with one shared DOP853 step sequence.
 
-    Returns (ys (T, K, 10), info) where info has status, n_steps, nfev, t_invert (K,), t_contact
-    (K,). Raises RuntimeError if the integrator fails.
+    Returns (ys (T, K, 10), info) where info has status (0, or 1: stopped at the first contact
+    loss of any copy, samples after it nan), n_steps, nfev, t_invert (K,), t_contact (K,).
+    Raises RuntimeError if the integrator fails.
     """
     if variant not in _VARIANTS:
         raise ValueError(f"variant must be 'full' or 'so3', got {variant!r}")
@@ -468,15 +474,15 @@ def solve_batch(params_list, y0_list, t_eval, *, variant="full", rtol=1e-12, ato
         raise ValueError(f"need one 10-vector state per parameter dict, got {Y0.shape}")
     ys, status, steps, nfev, t_inv, t_con = _dop853(
         Y0, P, _VARIANTS[variant], t_eval, float(rtol), float(atol), int(max_steps),
-        _A, _B, _C, _E3, _E5, _D)
-    if status != 0:
+        bool(stop_at_contact_loss), _A, _B, _C, _E3, _E5, _D)
+    if status < 0:
         why = "step size too small" if status == -1 else f"more than {max_steps} steps"
         raise RuntimeError(f"DOP853 failed ({why})")
     return ys, {"status": status, "n_steps": steps, "nfev": nfev, "t_invert": t_inv,
                 "t_contact": t_con}
 
 
-def _scipy_solve(p, y0, t_eval, full, rtol, atol):
+def _scipy_solve(p, y0, t_eval, full, rtol, atol, stop_at_contact_loss):
     def f(t, y):
         out = np.empty(10)
         _rhs(y, p, full, out)
@@ -491,22 +497,27 @@ def _scipy_solve(p, y0, t_eval, full, rtol, atol):
         return _rhs(y, p, full, np.empty(10))
 
     rn.direction = -1
+    rn.terminal = bool(stop_at_contact_loss)
     sol = solve_ivp(f, (0.0, float(t_eval[-1])), y0, method="DOP853", t_eval=t_eval,
                     rtol=rtol, atol=atol, events=(az, rn))
     if not sol.success:
         raise RuntimeError(f"solve_ivp failed: {sol.message}")
     first = [ev[0] if len(ev) else np.nan for ev in sol.t_events]
-    return sol.y.T[:, None, :], {"status": 0, "n_steps": None, "nfev": sol.nfev,
+    ys = np.full((t_eval.size, 10), np.nan)
+    ys[: sol.y.shape[1]] = sol.y.T
+    return ys[:, None, :], {"status": int(sol.status == 1), "n_steps": None, "nfev": sol.nfev,
                                  "t_invert": np.array([first[0]]),
                                  "t_contact": np.array([first[1]])}
 
 
 def solve(params, theta0, spin, t_eval, *, theta_dot=0.0, phi_dot=0.0, phi=0.0, vx=0.0, vy=0.0,
-          variant="full", rtol=1e-12, atol=1e-12, backend="auto"):
+          variant="full", rtol=1e-12, atol=1e-12, backend="auto", stop_at_contact_loss=False):
     """Integrate one launch from t = 0; fields sampled at t_eval (launch as `initial_vector`).
 
     backend: "numba" (the DOP853 port compiled), "python" (the same port uncompiled, slow),
     "scipy" (solve_ivp's DOP853), "auto" (numba if importable, else scipy).
+    stop_at_contact_loss: end the integration where R_n first reaches 0 (samples after it nan;
+    past a contact loss the equations describe a top glued to the table and may blow up).
 
     Returns a dict of arrays: t, theta (atan2 of the axis' horizontal norm and a_z, accurate at
     the poles), theta_dot, phi, spin (w . a), axis (T, 3), omega (T, 3), x, y, vx, vy,
@@ -524,17 +535,19 @@ def solve(params, theta0, spin, t_eval, *, theta_dot=0.0, phi_dot=0.0, phi=0.0, 
     if backend == "scipy":
         if variant not in _VARIANTS:
             raise ValueError(f"variant must be 'full' or 'so3', got {variant!r}")
-        ys, info = _scipy_solve(p, y0, t_eval, _VARIANTS[variant], rtol, atol)
+        ys, info = _scipy_solve(p, y0, t_eval, _VARIANTS[variant], rtol, atol,
+                                stop_at_contact_loss)
     elif backend == "numba":
         if not HAVE_NUMBA:
             raise ValueError("backend='numba' needs numba; use 'scipy' or 'python'")
-        ys, info = solve_batch([params], [y0], t_eval, variant=variant, rtol=rtol, atol=atol)
+        ys, info = solve_batch([params], [y0], t_eval, variant=variant, rtol=rtol, atol=atol,
+                               stop_at_contact_loss=stop_at_contact_loss)
     elif backend == "python":
         fn = getattr(_dop853, "py_func", _dop853)
         ys, status, steps, nfev, t_inv, t_con = fn(
             y0[None], p[None], _VARIANTS[variant], t_eval, float(rtol), float(atol), 10_000_000,
-            _A, _B, _C, _E3, _E5, _D)
-        if status != 0:
+            bool(stop_at_contact_loss), _A, _B, _C, _E3, _E5, _D)
+        if status < 0:
             raise RuntimeError("DOP853 failed")
         info = {"status": status, "n_steps": steps, "nfev": nfev, "t_invert": t_inv,
                 "t_contact": t_con}
@@ -545,5 +558,6 @@ def solve(params, theta0, spin, t_eval, *, theta_dot=0.0, phi_dot=0.0, phi=0.0, 
     t_con = float(info["t_contact"][0])
     out.update(t=t_eval, state=y, t_invert=float(info["t_invert"][0]), t_contact_loss=t_con,
                contact_lost=bool(np.isfinite(t_con) or np.any(out["normal_force"] <= 0)),
+               stopped=info["status"] == 1,
                nfev=info["nfev"], n_steps=info["n_steps"])
     return out
