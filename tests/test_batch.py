@@ -6,6 +6,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
 import tippejax as tj
 
@@ -69,3 +70,50 @@ def test_bucketed_batch_equals_unbucketed():
         assert diff < 1e-6, diff
         np.testing.assert_allclose(np.asarray(bucketed.spin[..., 0]),
                                    np.asarray(plain.spin[..., 0]), rtol=1e-12)
+
+
+def test_sweep_of_tops_and_launch_rates_equals_single_runs():
+    """grid=("top", "spin") over a batch of tops (mu and A/C both vary), with theta_dot
+    broadcast along the spin axis and a common phi_dot: every member is its single run."""
+    top = tj.default_top()
+    tops = top.replace(mu=[0.1, 0.6], A_over_C=[0.9, 1.2])
+    spins = [30.0, 90.0]
+    theta_dot = [0.0, 1.5]  # broadcasts along the spin axis (the last one)
+    batch = tj.simulate_batch(tops, 0.3, spins, 1.0, theta_dot=theta_dot, phi_dot=2.0,
+                              grid=("top", "spin"), saveat=TS)
+    assert batch.theta.shape == (2, 2, TS.size)
+    assert np.all(batch.message() == "successful")
+    for i, (mu, ac) in enumerate([(0.1, 0.9), (0.6, 1.2)]):
+        one = top.replace(mu=mu, A_over_C=ac)
+        for j, n in enumerate(spins):
+            y0 = tj.initial_state(one, 0.3, n, theta_dot=theta_dot[j], phi_dot=2.0)
+            single = tj.simulate(one, y0, 1.0, saveat=TS)
+            assert np.max(np.abs(np.asarray(batch.theta[i, j]) - np.asarray(single.theta))) < 1e-9
+            assert np.max(np.abs(np.asarray(batch.phi_dot[i, j]) - np.asarray(single.phi_dot))) < 1e-7
+            assert int(batch.outcome[i, j]) == int(single.outcome)
+    np.testing.assert_allclose(np.asarray(batch.theta_dot[:, :, 0]), [theta_dot, theta_dot],
+                               atol=1e-12)
+
+
+def test_batch_shapes_broadcast_and_bad_sweeps_are_refused():
+    top = tj.default_top()
+    # Shapes only: the member count is checked before anything runs.
+    with pytest.raises(ValueError, match="do not broadcast"):
+        tj.simulate_batch(top.replace(mu=[0.1, 0.2, 0.3]), [0.1, 0.2], [50.0, 60.0], 1.0)
+    with pytest.raises(ValueError, match="grid names must be among"):
+        tj.simulate_batch(top, 0.1, 50.0, 1.0, grid=("theta",))
+    with pytest.raises(ValueError, match="must be 1-d"):
+        tj.simulate_batch(top, [[0.1, 0.2]], 50.0, 1.0)
+    with pytest.raises(ValueError, match="must be finite"):
+        tj.simulate_batch(top, 0.1, 50.0, 1.0, phi_dot=float("nan"), grid=())
+    with pytest.raises(ValueError, match="not y0="):
+        tj.simulate_batch(top, 0.1, 50.0, 1.0, y0=None)
+
+
+@pytest.mark.parametrize("theta0", [5.7, [0.1, 90.0], -0.2])
+def test_batch_in_degrees_is_a_value_error(theta0):
+    top = tj.default_top()
+    with pytest.raises(ValueError, match=r"theta0 must lie in \[0, pi\] rad") as info:
+        tj.simulate_batch(top, theta0, [50.0], 1.0)
+    if theta0 != -0.2:
+        assert "np.deg2rad" in str(info.value)

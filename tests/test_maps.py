@@ -204,3 +204,26 @@ def test_map_command_rejects_a_degenerate_grid(tmp_path, capsys):
 
     assert main(["map", "--n-theta", "1", "--out", str(tmp_path)]) == 2
     assert "at least 2" in capsys.readouterr().err
+
+
+def test_map_messages_are_read_elementwise(standard_map):
+    om = standard_map
+    msgs = om.message()
+    assert msgs.shape == om.outcome.shape
+    np.testing.assert_array_equal(msgs, tj.RESULTS.message(om.result))
+    ok = np.asarray(om.result) == 0
+    assert np.all(msgs[ok] == "successful")
+    lost = np.asarray(om.outcome) == tj.OUTCOMES.index("contact_lost")
+    assert lost.any()
+    assert np.all(msgs[lost] == tj.RESULTS[tj.RESULTS.contact_lost])
+
+
+@pytest.mark.parametrize("tops", [
+    tj.default_top().replace(mu=[0.1, 0.3]),
+    tj.TippeTop.from_ratios([0.9, 1.1], 0.3),
+])
+def test_map_of_a_batch_of_tops_is_refused_clearly(tops):
+    with pytest.raises(ValueError, match="maps one top, but this TippeTop is a batch"):
+        tj.outcome_map(tops, THETA0, SPIN, t1=T1)
+    with pytest.raises(ValueError, match="maps one top"):
+        tj.outcome_map_tops(tops, [0.9], [0.3], theta0=0.1, spin=100.0, t1=T1)

@@ -253,3 +253,10 @@ def test_initial_state_at_pole_round_trips_theta_dot():
         y = tj.initial_state(top, theta, 100.0, theta_dot=thd)
         got = [float(v) for v in tj.euler_rates(y)]
         np.testing.assert_allclose(got, [thd, 0.0, 100.0], rtol=1e-14, atol=1e-14)
+
+
+@pytest.mark.parametrize("theta", [5.7, 90.0, [0.1, 30.0]])
+def test_initial_state_in_degrees_is_a_value_error(theta):
+    """Concrete values are checked in Python: a ValueError naming radians, not a jit error."""
+    with pytest.raises(ValueError, match=r"theta must lie in \[0, pi\].*radians.*np\.deg2rad"):
+        tj.initial_state(tj.default_top(), theta, 100.0)

@@ -216,3 +216,57 @@ def test_default_top():
     np.testing.assert_allclose(float(top.A_over_C), 0.9, rtol=1e-15)
     np.testing.assert_allclose(float(top.eps_over_R), 0.3, rtol=1e-15)
     assert float(top.m) == 0.02 and float(top.R) == 0.025 and float(top.mu) == 0.3
+
+
+# replace, repr, batches from one swept field
+
+
+def test_replace_changes_one_field_and_checks_it():
+    top = tj.default_top()
+    new = top.replace(mu=0.1)
+    assert float(new.mu) == 0.1
+    for k in ("m", "R", "eps", "A", "C", "g"):
+        assert float(getattr(new, k)) == float(getattr(top, k))
+    assert float(top.mu) == 0.3  # the original is unchanged
+    with pytest.raises(ValueError, match="mu"):
+        top.replace(mu=-1.0)
+    with pytest.raises(ValueError, match="unknown field"):
+        top.replace(Mu=1.0)
+    with pytest.raises(ValueError, match="not both"):
+        top.replace(A=1e-6, A_over_C=1.0)
+
+
+def test_replace_with_ratios_keeps_C_and_R():
+    top = tj.default_top()
+    new = top.replace(A_over_C=1.2, eps_over_R=0.1)
+    np.testing.assert_allclose(float(new.A_over_C), 1.2, rtol=1e-15)
+    np.testing.assert_allclose(float(new.eps_over_R), 0.1, rtol=1e-15)
+    assert float(new.C) == float(top.C) and float(new.R) == float(top.R)
+    with pytest.raises(ValueError, match="A/C must be >= 1/2"):
+        top.replace(A_over_C=0.4)
+
+
+def test_sweeping_one_field_makes_a_batch():
+    top = tj.default_top()
+    mus = np.linspace(0.1, 1.0, 4)
+    tops = top.replace(mu=mus)
+    assert tops.batch_shape == (4,)
+    for k in ("m", "R", "eps", "A", "C", "g", "mu"):
+        assert getattr(tops, k).shape == (4,)
+    np.testing.assert_array_equal(np.asarray(tops.mu), mus)
+    np.testing.assert_array_equal(np.asarray(tops.A), float(top.A))
+    # jax.vmap over the batch sees one top per member
+    rates = jax.vmap(tj.friction_rate)(tops)
+    np.testing.assert_allclose(np.asarray(rates), [float(tj.friction_rate(top.replace(mu=m)))
+                                                   for m in mus], rtol=1e-15)
+    with pytest.raises(ValueError, match="do not broadcast"):
+        tj.TippeTop(m=[0.02, 0.03], R=0.025, eps=0.0075, A=4.5e-6, C=5e-6, mu=[0.1, 0.2, 0.3])
+
+
+def test_repr_shows_values():
+    top = tj.default_top()
+    text = repr(top)
+    assert text == "TippeTop(m=0.02, R=0.025, eps=0.0075, A=4.5e-06, C=5e-06, g=9.81, mu=0.3)"
+    assert "f64[]" not in text
+    batch = repr(top.replace(mu=[0.1, 0.2]))
+    assert "batch_shape=(2,)" in batch and "mu=[0.1 0.2]" in batch and "m=0.02" in batch
