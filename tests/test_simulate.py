@@ -528,6 +528,25 @@ def test_convergence_in_rtol(top, y_std, full_ref, full_default):
 
 
 # ------------------------------------------------------------------------------------------------
+# Save grids share compilations by bucket
+
+
+def test_save_grid_lengths_in_one_bucket_compile_once(top, y_std):
+    from tippejax._simulate import _run, save_bucket
+
+    assert [save_bucket(n) for n in (1, 16, 17, 32, 33, 1001)] == [16, 16, 32, 32, 64, 1024]
+    ts = np.linspace(0.0, 0.5, 21)
+    a = tj.simulate(top, y_std, 0.5, saveat=ts, **DEFAULT)
+    before = _run._cached._cache_size()
+    b = tj.simulate(top, y_std, 0.5, saveat=ts[:17], **DEFAULT)  # 17 and 21: bucket 32
+    assert _run._cached._cache_size() == before
+    assert b.theta.shape == (17,) and b.states.axis.shape == (17, 3) and b.ts.shape == (17,)
+    np.testing.assert_allclose(_np(b.theta), _np(a.theta)[:17], rtol=0, atol=1e-14)
+    np.testing.assert_allclose(_np(b.ts), ts[:17], rtol=0, atol=0)
+    assert float(b.t_invert) == float(a.t_invert) or np.isnan(float(a.t_invert))
+
+
+# ------------------------------------------------------------------------------------------------
 # Rates at the pole
 
 

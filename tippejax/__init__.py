@@ -3,6 +3,11 @@
 Importing tippejax turns on float64 (`jax_enable_x64`), which the science needs. To stay in
 float32, set the environment variable `TIPPEJAX_ENABLE_X64=0` before the import.
 
+Importing tippejax also turns on JAX's persistent compilation cache in a user cache directory
+(`$XDG_CACHE_HOME/tippejax/jax`, default `~/.cache/tippejax/jax`), so a new process does not
+compile again; `TIPPEJAX_COMPILATION_CACHE=0` turns it off, and a cache directory the user
+configured is kept (`tippejax/_cache.py`).
+
 The public API is this flat namespace. Internals (vector fields, the Routhian plumbing, the
 linear-stability cross-checks, the engine) stay importable from their private modules.
 """
@@ -14,6 +19,11 @@ import jax as _jax
 
 if _os.environ.get("TIPPEJAX_ENABLE_X64", "1").strip().lower() not in ("0", "false", "no"):
     _jax.config.update("jax_enable_x64", True)
+
+from ._cache import enable_compilation_cache as _enable_compilation_cache
+
+# Persistent compilation cache in ~/.cache/tippejax/jax; TIPPEJAX_COMPILATION_CACHE=0 turns it off.
+_enable_compilation_cache()
 
 from ._analysis.groups import (
     GROUPS as GROUPS,

@@ -122,6 +122,16 @@ def _run(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_on
     )
 
 
+_SAVED = ("ts", "states", "theta", "phi", "psi", "theta_dot", "phi_dot", "psi_dot", "spin",
+          "position", "velocity", "jellet", "energy", "normal_force", "slip_speed")
+"""The outputs with a save-time axis."""
+
+
+def save_bucket(n: int) -> int:
+    """Length a save grid of `n` times is padded to: the next power of two, at least 16."""
+    return max(16, 1 << (int(n) - 1).bit_length())
+
+
 SETTLE_TOL = 0.1
 """Tilt distance (rad) within which a run's end counts as `settled` on its outcome."""
 
@@ -249,7 +259,8 @@ def simulate(
       error in the launch's regime, `benchmarks/LEVELS.md`, is below `tolerance`; the
       gyroscopic level only for a launch it accepts).
     - `saveat`: save times within `[t0, t1]`, non-decreasing (default: 1001 points from `t0`
-      to `t1`). Events (inversion, contact loss, the $R_n$ singularity, the chart edge) are
+      to `t1`). Grids are padded internally to the next power of two (at least 16), so
+      lengths that share that bucket share one compilation. Events (inversion, contact loss, the $R_n$ singularity, the chart edge) are
       located inside the solve, whatever the save grid.
     - `summary`: save nothing but the state where the run ended (`sol.ts` is `(t_final,)`);
       memory per run then does not grow with the save grid. Not with `saveat`.
@@ -304,6 +315,14 @@ def simulate(
         ts = jnp.linspace(t0, t1, 1001, dtype=dtype)
     else:
         ts = _check_saveat(saveat, t0, t1, dtype)
+    # Save grids are padded to a bucket length (the next power of two, at least 16) with
+    # copies of the last time, and the outputs cut back: a new length of `saveat` reuses the
+    # compiled program of its bucket instead of compiling anew.
+    n_save = None if ts is None else int(ts.shape[0])
+    if ts is not None:
+        bucket = save_bucket(n_save)
+        if bucket > n_save:
+            ts = jnp.concatenate([ts, jnp.broadcast_to(ts[-1:], (bucket - n_save,))])
     y0 = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), y0)
     defect = _state_defect(y0)
     if _concrete(defect):
@@ -323,6 +342,9 @@ def simulate(
         stop_on_contact=on_contact_loss == "stop", max_steps=int(max_steps), adjoint=adjoint,
         progress=progress, samples=int(event_samples),
     )
+    if n_save is not None and out["ts"].shape[0] != n_save:
+        for key in _SAVED:
+            out[key] = jax.tree_util.tree_map(lambda x: x[:n_save], out[key])
     name = model
     if LEVELS[model].fallback() is not None:
         switch = out["t_chart_switch"]
