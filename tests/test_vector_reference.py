@@ -140,3 +140,59 @@ def test_bad_input():
         vr.solve(STANDARD, 0.1, 100.0, [1.0, 0.5])
     with pytest.raises(ValueError, match="params"):
         vr.solve({**STANDARD, "eps": 0.03}, 0.1, 100.0, [0.0, 1.0])
+
+
+# --------------------------------------------------------------------------------------------
+# benchmarks/fit_records.py: the records made from this integrator
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def fit_records():
+    import pathlib
+    import sys
+
+    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent.parent / "benchmarks"))
+    import fit_records
+
+    return fit_records
+
+
+def test_fit_records_drawn_as_documented(fit_records, tmp_path, monkeypatch):
+    """Four records (one per group): ranges, noise, reproducible data, converged bound, cache."""
+    monkeypatch.setattr(fit_records, "CACHE_ROOT", tmp_path)
+    recs = fit_records.draw_records(4, 7)
+    assert [r["group"] for r in recs] == ["IIa", "IIb", "IIc", "III"]
+    for r in recs:
+        p, launch = r["params"], r["launch"]
+        assert fit_records._classify_numpy(p["A"] / p["C"], p["eps"] / p["R"]) == r["group"]
+        assert 0.005 <= p["m"] <= 0.06 and 0.01 <= p["R"] <= 0.03 and 0.05 <= p["mu"] <= 2
+        assert 1.5 <= r["spin_over_n1"] <= 8 and 20 <= r["rate_hz"] <= 500
+        assert 0.002 <= r["sigma"] <= 0.03 and 3 <= r["length_s"] <= 20
+        if r["upright"]:
+            assert launch["theta0"] == 0 and 0.2 <= launch["theta_dot"] <= 2
+            assert r["free"] == ("mu", "eps", "spin", "theta_dot")
+        else:
+            assert 0.02 <= launch["theta0"] <= 0.5 and launch["theta_dot"] == 0
+            assert r["free"] == ("mu", "eps", "spin")
+        # the clean data are the integrator's, the noise has the stated size
+        sol = vr.solve(p, launch["theta0"], launch["spin"], r["ts"], theta_dot=launch["theta_dot"])
+        assert np.max(np.abs(sol["theta"] - r["theta_clean"])) < 1e-7
+        assert np.all(sol["normal_force"] > 0)
+        resid = (r["theta_obs"] - r["theta_clean"])[np.isfinite(r["theta_obs"])]
+        assert abs(resid.std() / r["sigma"] - 1) < 5 / np.sqrt(2 * resid.size)
+        gap = np.isnan(r["theta_obs"])
+        assert (r["gap"] is None) == (not gap.any())
+        # the bound: below the cut, and unchanged (0.1%) with 10x smaller difference steps
+        assert max(r["crb_rel"][k] for k in ("mu", "eps", "spin")) <= fit_records.MAX_CRB_REL
+        _, jac = fit_records.sensitivities(p, launch, r["free"], r["ts"], step_scale=0.1)
+        crb = fit_records.cramer_rao(jac, r["sigma"], ~gap)
+        np.testing.assert_allclose(crb, [r["crb"][k] for k in r["free"]], rtol=1e-3)
+    # cached records come back identical; redrawn, the first records of a seed do not depend on n
+    cached = fit_records.draw_records(4, 7)
+    again = fit_records.draw_records(2, 7, cache=False)
+    assert all(r.get("from_cache") for r in cached)
+    for a, b, c in zip(again, cached, recs):
+        assert a["params"] == b["params"] == c["params"] and a["crb"] == b["crb"] == c["crb"]
+        np.testing.assert_array_equal(a["theta_obs"], c["theta_obs"])
+        np.testing.assert_array_equal(b["theta_obs"], c["theta_obs"])
