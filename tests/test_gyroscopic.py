@@ -8,6 +8,7 @@ Every gyroscopic `simulate` call uses the save grid `grid()` and the default tol
 every SO(3) reference run `REF`, so that each compiles once.
 """
 
+import diffrax
 import internal as ti
 import jax
 import jax.numpy as jnp
@@ -19,6 +20,7 @@ from helpers import GROUP_RATIOS
 import tippejax as tj
 from tippejax._models.gyroscopic import (
     BALANCE_MARGIN,
+    SETTLE_TIME_MAX,
     GyroscopicLevel,
     GyroscopicLevelState,
     limit_theta_dot,
@@ -26,12 +28,26 @@ from tippejax._models.gyroscopic import (
     nutation_frequency,
     precession_rate,
     project_launch,
+    settle_time,
     slow_manifold,
 )
+from tippejax._models.levels import LEVELS
+from tippejax._simulate import _run
 
 N = 201  # one save-grid length for every run
 REF = dict(rtol=1e-10, atol=1e-12)  # SO(3) reference runs
 LEVEL = GyroscopicLevel()
+
+
+def run_level(level, top, y0, t1, ts=None):
+    """One level as configured (e.g. without its hand-over to the full model), Dopri5 at rtol
+    1e-8: a dict of `Solution` fields (summary mode unless `ts`)."""
+    f = lambda x: jnp.asarray(x, jnp.result_type(top.m))  # noqa: E731
+    ts = None if ts is None else f(ts)
+    return _run(top, y0, ts, f(0.0), f(t1), f(1e-8), f(1e-10), level=level,
+                solver=diffrax.Dopri5(), guard_stiff=False, stop_on_contact=True,
+                max_steps=100_000, adjoint=diffrax.RecursiveCheckpointAdjoint(),
+                progress=False, samples=8)
 
 
 def grid(t1):
@@ -437,12 +453,13 @@ def test_error_shrinks_with_spin(top):
     errors, dt = [], []
     for spin in (50.0, 100.0, 200.0):
         y0 = on_manifold(top, 0.02, spin)
-        g = tj.simulate(top, y0, 10.0, model="gyroscopic", saveat=grid(10.0))
+        # the slow flow alone: at n0 = 200 the level hands over to the full model during the rise
+        g = run_level(GyroscopicLevel(hand_over=False), top, y0, 10.0, grid(10.0))
         o = tj.simulate(top, y0, 10.0, model="so3", saveat=grid(10.0), **REF)
-        assert is_ok(g) and is_ok(o)
-        before = _np(g.ts) < 0.9 * min(float(g.t_invert), float(o.t_invert))
-        errors.append(np.max(np.abs(np.log(_np(g.theta)) - np.log(_np(o.theta)))[before]))
-        dt.append(abs(float(g.t_invert) - float(o.t_invert)))
+        assert is_ok(o)
+        before = _np(g["ts"]) < 0.9 * min(float(g["t_invert"]), float(o.t_invert))
+        errors.append(np.max(np.abs(np.log(_np(g["theta"])) - np.log(_np(o.theta)))[before]))
+        dt.append(abs(float(g["t_invert"]) - float(o.t_invert)))
     rates = np.diff(np.log(dt)) / np.log(2.0)
     print("launched on the slow manifold at theta = 0.02, n0 = 50, 100, 200: |dt_invert| = "
           + ", ".join(f"{x:.2e}" for x in dt) + " s; max |d ln theta| before inversion = "
@@ -499,35 +516,56 @@ def test_iib_between_j1_and_j2_settles_on_the_intermediate_state(top):
     assert np.isfinite(float(sol.t_invert)) == (target[0][0] > np.pi / 2)
 
 
-def test_launch_without_gyroscopic_balance_is_refused(top):
-    """Upside down with |n_pi| < n_* = 2 sqrt(A m g eps)/C: (G2) has no real root."""
+def test_launch_without_gyroscopic_balance_hands_over_to_the_full_model(top):
+    """Upside down with |n_pi| < n_* = 2 sqrt(A m g eps)/C: (G2) has no real root. The level
+    does not describe it and the whole run is the full model's, reported as such."""
     A, C, m, g, eps = (float(getattr(top, k)) for k in ("A", "C", "m", "g", "eps"))
     n_star = 2 * np.sqrt(A * m * g * eps) / C
     y0 = tj.initial_state(top, np.pi - 0.2, 0.5 * n_star)
     assert float(slow_manifold(top, np.pi - 0.2, float(tj.jellet(top, y0))).discriminant) < 0
-    sol = tj.simulate(top, y0, 5.0, model="gyroscopic", saveat=grid(5.0), throw=False)
-    assert bool(sol.result == tj.RESULTS.no_gyroscopic_balance)
-    assert np.all(np.isnan(_np(sol.theta))) and float(sol.t_final) == 0.0
-    with pytest.raises(RuntimeError, match="model='gyroscopic' cannot describe"):
-        tj.simulate(top, y0, 5.0, model="gyroscopic", saveat=grid(5.0))
-    # a launch with no spin at all, tilted past cos(theta) = eps/R, likewise
-    y0 = tj.initial_state(top, 2.0, 0.0)
-    sol = tj.simulate(top, y0, 5.0, model="gyroscopic", saveat=grid(5.0), throw=False)
-    assert bool(sol.result == tj.RESULTS.no_gyroscopic_balance)
+    assert not bool(LEVELS["gyroscopic"].in_chart(top, y0))
+    sol = tj.simulate(top, y0, 1.0, model="gyroscopic", saveat=grid(1.0), throw=False)
+    full = tj.simulate(top, y0, 1.0, model="full", saveat=grid(1.0), throw=False)
+    assert sol.model == "gyroscopic->full" and float(sol.t_chart_switch) == 0.0
+    assert np.allclose(_np(sol.theta), _np(full.theta), rtol=0, atol=1e-6)
+    # the level alone (no hand-over) refuses it and says why
+    alone = run_level(GyroscopicLevel(hand_over=False), top, y0, 1.0)
+    assert bool(alone["result"] == tj.RESULTS.no_gyroscopic_balance)
 
 
-def test_growing_nutation_stops_the_run(top):
-    """At n0 = 400 the slow manifold repels during the rise (sigma > 0) and the nutation left by
-    the launch grows back past NUTATION_MAX: the level stops and says so (the SO(3) model loses
-    contact there)."""
+def test_repelling_manifold_hands_over_before_contact_loss(top):
+    """At n0 = 400 the slow manifold repels during the rise (sigma > 0): the run continues in the
+    full model from there, and the full model finds the contact loss that the slow flow, whose
+    R_n is m g, cannot."""
     J = jellet_of(top, 400.0, theta=0.1)
     assert max(float(nutation_damping(top, t, J)) for t in (0.8, 1.2, 1.6)) > 10
     sol = tj.simulate(top, tj.initial_state(top, 0.1, 400.0), 10.0, model="gyroscopic",
-                      saveat=grid(10.0), throw=False)
-    assert bool(sol.result == tj.RESULTS.no_gyroscopic_balance)
-    t_final = float(sol.t_final)
-    assert 3.0 < t_final < 10.0
-    before = _np(sol.ts) <= t_final
-    assert np.all(np.isfinite(_np(sol.theta)[before])) and np.all(np.isnan(_np(sol.theta)[~before]))
-    theta_end = float(_np(sol.theta)[before][-1])
-    assert float(nutation_damping(top, theta_end, J)) > 0  # stopped while the nutation grows
+                      summary=True, throw=False, on_contact_loss="continue")
+    assert sol.model == "gyroscopic->full"
+    switch = float(sol.t_chart_switch)
+    assert 2.0 < switch < float(sol.t_contact_loss) < 10.0
+    assert bool(sol.result == tj.RESULTS.contact_lost)
+    # where it handed over, the nutation about the slow manifold had just stopped decaying
+    alone = run_level(GyroscopicLevel(hand_over=False), top, tj.initial_state(top, 0.1, 400.0),
+                      10.0)
+    assert bool(alone["result"] == tj.RESULTS.no_gyroscopic_balance)
+    assert float(alone["t_final"]) > switch
+
+
+def test_fibre_projection_of_a_spun_launch(top):
+    """omega = n a at theta0 = 0.1, n0 = 225: the launch's nutation, followed in the SO(3) model
+    until it has decayed and the slow flow run back to t = 0, puts t_invert within 0.4% of the
+    SO(3) model's (the linear projection: 1.6%)."""
+    y0 = tj.initial_state(top, 0.1, 225.0)
+    o = tj.simulate(top, y0, 10.0, model="so3", summary=True, **REF)
+    fibre = run_level(GyroscopicLevel(hand_over=False), top, y0, 10.0)
+    linear = run_level(GyroscopicLevel(hand_over=False, fibre_projection=False), top, y0, 10.0)
+    ref = float(o.t_invert)
+    e_fibre = abs(float(fibre["t_invert"]) - ref) / ref
+    e_linear = abs(float(linear["t_invert"]) - ref) / ref
+    print(f"n0 = 225: t_invert so3 {ref:.4f} s, fibre projection {e_fibre:.2%}, linear "
+          f"{e_linear:.2%}")
+    assert e_fibre < 0.004 < e_linear
+    # the settle time is what the projection's decay rate says, and zero on the manifold
+    assert 0.2 < float(settle_time(top, y0)) <= SETTLE_TIME_MAX
+    assert float(settle_time(top, on_manifold(top, 0.3, 150.0))) == 0.0

@@ -123,28 +123,61 @@ where $\theta$ is exactly $0$ or $\pi$ and $u$ does not move (a vertical launch 
 vertical). The step size is controlled on $u$: an absolute error in $u$ is a relative error in
 $\tan(\theta/2)$.
 
-**Where the level stops** (`Conditions.chart`, terminating; the run ends with
-`RESULTS.no_gyroscopic_balance`, and a launch outside is not integrated):
+**Where the level ends** (`Conditions.chart`; the run continues in the full model from the
+state on the slow manifold, reported as `sol.model == "gyroscopic->full"`, and a launch outside
+the chart is integrated by the full model from the start):
 
 - $\Delta/(J^2 + 4Ahmg\epsilon|R\cos\theta - \epsilon|) <$ `BALANCE_MARGIN`: no (or barely a)
   real root of (G2): the spin is too slow for gyroscopic balance at this $\theta$ (near the fold
   $\Delta = 0$ the two roots merge and (G3) is not Lipschitz);
-- the nutation is larger than `NUTATION_MAX` and growing ($a >$ `NUTATION_MAX` and
-  $\sigma > 0$): $\max(\ln(a_{\max}/a), -\sigma/\nu)$ falls through zero;
-- the nutation exceeds `NUTATION_LAUNCH_MAX` (in practice only at launch: it decays, or the
-  previous condition stops the run first): the launch is too far from the slow manifold for
-  its linear projection.
+- $\sigma > 0$: the slow manifold repels and the nutation grows (at fast spins during the rise).
+  This is the route to the full model's contact loss, which the slow flow ($R_n = mg$) cannot
+  see, so the full model takes over where the nutation starts to grow, before $R_n$ can come
+  near zero. It restarts from the state on the slow manifold, without the (by then tiny) residue
+  of the launch's nutation: its own nutation grows from its own small departure from the slow
+  manifold, and its contact loss comes later than from the launch itself (standard top,
+  $\theta_0 = 0.1$: 5.72 s against 5.03 s at 225 rad/s, 5.65 s against 4.81 s at 300 rad/s);
+- the nutation exceeds `NUTATION_LAUNCH_MAX` (in practice only at launch): the launch is too far
+  from the slow manifold for its projection.
+
+`GyroscopicLevel(hand_over=False)` is the slow flow alone, as before: it stops at the chart end
+with `RESULTS.no_gyroscopic_balance` (the $\sigma > 0$ condition then reads: the nutation is
+larger than `NUTATION_MAX` and growing).
 
 **Projection of a launch** (`from_state`). A launch with $\omega = n a$ is not on the slow
 manifold (ERRATA.md): the slow flow must start from the launch's slow-mode content, not its
 $\theta$. Near a pole both modes are linear: in complex notation $\xi = a_X + i a_Y$,
 $w = \omega_X + i\omega_Y$, each mode has $w = r\xi$ with $r = \dot\psi + i\dot\theta/\sin\theta$ of
-its root. The slow component is $\xi_s = (w - r_{\rm in}\xi)/(r_{\rm out} - r_{\rm in})$, and
-$\sin\theta_s = |\xi_s|$; the nutation is the rest, $a_0 = |\xi - \xi_s|$ (at least
-`NUTATION_FLOOR`). $r_{\rm in}$ is the other root's at the nearer pole and $r_{\rm out}$ this
-root's at the launch's $\theta$. It is exact on the slow manifold (`to_state` then `from_state`
-returns $\theta$, and $a_0 = 0$) and, near a pole, the exact linear projection. For a launch far
-from both (large tilt and large nutation) it is an estimate.
+its root. The *linear projection* (`project_launch`) takes the slow component
+$\xi_s = (w - r_{\rm in}\xi)/(r_{\rm out} - r_{\rm in})$, and $\sin\theta_s = |\xi_s|$; the
+nutation is the rest, $a_0 = |\xi - \xi_s|$ (at least `NUTATION_FLOOR`). $r_{\rm in}$ is the
+other root's at the nearer pole and $r_{\rm out}$ this root's at the launch's $\theta$. It is
+exact on the slow manifold (`to_state` then `from_state` returns $\theta$, and $a_0 = 0$) and,
+near a pole, the exact linear projection.
+
+Its error is not of first order in $1/n$ but of second order in the launch's nutation: for
+$\omega = n a$ the slow component is itself small, $\theta_s \approx \theta_0 |n - r_{\rm in}|/
+|r_{\rm out} - r_{\rm in}| \propto \theta_0/n$, while the nutation that decays in the first
+half second has amplitude $\approx \theta_0$ and horizontal rate $\approx n\theta_0$; what it
+feeds into the slow mode while it decays is $O(\theta_0^3)$, i.e. a relative error that grows
+with $n\theta_0$ (standard top, $t_{\rm invert}$ against SO(3): $-0.006$ s at
+$n\theta_0 = 4$-$6$, $-0.017$ s at 11-15, $-0.094$ s at 22, $-0.27$ s at 30). Replacing
+$r_{\rm in}$ by the SO(3) model's exact linear eigenvector changes nothing measurable, and
+taking it at $\theta_0$ instead of the pole makes it worse: the correction is the
+nonlinear coupling of the decaying mode, not the linear modes.
+
+The level therefore projects *along the fibres* (`settle_launch`, Fenichel's fast fibres of the
+slow manifold): the launch is followed in the SO(3) model for the time `settle_time` its
+nutation takes to decay to `SETTLE_AMPLITUDE` (at the other root's rate at the pole, at most
+`SETTLE_TIME_MAX`; about 0.4 s for $\theta_0 = 0.1$), where the linear projection is accurate
+(its error is quadratic in the remaining amplitude), and the slow flow is integrated back from
+there to the launch time. The base point is the slow state whose slow-flow trajectory the
+launch's trajectory approaches, so the run starts at $t_0$ and the nutation-averaged $\theta(t)$
+is that of the SO(3) model from the end of the transient on. Standard top, $\theta_0 = 0.1$,
+$t_{\rm invert}$ against SO(3): $-0.28\%$, $-0.11\%$, $-0.05\%$, $-0.04\%$ at
+$n_0 = 100, 150, 225, 300$ rad/s (linear projection: $+0.13\%$, $-0.31\%$, $-1.6\%$, $-3.4\%$);
+see `benchmarks/LEVELS.md`. The cost is one short SO(3) solve and one short slow solve (both at
+rtol `SETTLE_RTOL`) at launch; a launch with $a_0 <$ `SETTLE_AMPLITUDE` skips them.
 
 **What is dropped.** The nutation (and with it any contact loss it causes: $R_n = mg$ on the
 slow manifold), and the translation of the centre of mass (position and velocity are reported
@@ -153,25 +186,26 @@ as zero, as by the SO(3) and Routhian levels).
 **Accuracy** (standard top, against the SO(3) model, rtol $10^{-8}$). Launched on the slow
 manifold at $\theta = 0.02$: $|\Delta t_{\rm invert}| = 0.064, 0.013, 0.0019$ s at
 $n_0 = 50, 100, 200$ rad/s (about $n_0^{-2.5}$). Launched with $\omega = n a$ at
-$\theta_0 = 0.1$: $\Delta t_{\rm invert} = -0.008, +0.007, -0.017, -0.064$ s at
-$n_0 = 60, 100, 150, 200$ (the SO(3) and full models differ by $0.02$-$0.04$ s). The linear
-projection is the limit: the error grows as $\theta_0^2$ and with the spin ($\theta_0 = 0.2$:
-$+0.09, -0.01, -0.27, -0.58$ s). About 55 steps for a 20 s run, against about 2000 for the full
-model at $n_0 = 100$: 55-82x cheaper in wall time
-(`benchmarks/LEVELS.md`; the ratio moves with the machine's load).
+$\theta_0 = 0.1$ (fibre projection): $-0.28\%, -0.11\%, -0.05\%, -0.04\%$ at
+$n_0 = 100, 150, 225, 300$, falling as about $n_0^{-1.8}$ (the full model differs from SO(3) by
+$+0.3\%$ and $+1.0\%$ at 100 and 150 rad/s, and loses contact before inverting at 225 and 300).
+About 55 slow steps for a 20 s run plus the launch transient, against about 2000 steps for the
+full model at $n_0 = 100$ (`benchmarks/LEVELS.md`; the ratio moves with the machine's load).
 
-**Not for:** the nutation, the translation, or a contact loss; launches with much nutation
-($\omega = n a$ with $n_0\theta_0 \gtrsim 20$ rad/s on the standard top errs by more than 0.1 s
-in $t_{\rm invert}$; beyond `NUTATION_LAUNCH_MAX` it refuses them); slow spins (it is an
+**Not for:** the nutation, the translation, or the moment of a contact loss (where the manifold
+repels the run is the full model's, see above); launches with more nutation than
+`NUTATION_LAUNCH_MAX` (the full model takes them from the start); slow spins (it is an
 expansion in $1/J$); tops with $A/C < (1 + \epsilon/R)/2$ near $\theta = \pi$ (Group IIa),
-whose relative equilibria there lie on the other root; fast spins where the slow manifold repels
-during the rise (it stops: standard top, $\theta_0 = 0.1$, $n_0 \gtrsim 300$ rad/s); and
-$\mu = 0$ ($\theta$ is then constant on the slow manifold and the nutation never decays).
+whose relative equilibria there lie on the other root (the nutation grows and the full model
+takes over); and $\mu = 0$ ($\theta$ is then constant on the slow manifold and the nutation never
+decays).
 """
 
 from __future__ import annotations
 
+import diffrax
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
@@ -179,6 +213,8 @@ from .._invariants import jellet
 from .._state import State, euler_angles, state_from_euler
 from .._top import TippeTop
 from .base import AbstractLevel, Conditions
+from .full import FullLevel
+from .so3 import SO3Level
 
 BALANCE_MARGIN = 0.01
 r"""The level stops where $\Delta/(J^2 + 4Ahmg\epsilon|R\cos\theta - \epsilon|)$ falls below
@@ -192,6 +228,16 @@ r"""A launch with more nutation than this (rad) is refused: its projection is no
 
 NUTATION_FLOOR = 1e-12
 r"""Nutation amplitude (rad) given to a launch that has none (on the slow manifold)."""
+
+SETTLE_AMPLITUDE = 0.01
+r"""The launch's nutation is followed in the SO(3) model until its linear projection's amplitude
+is about this (rad); see "Projection of a launch"."""
+
+SETTLE_TIME_MAX = 1.0
+r"""The longest the launch transient is followed in the SO(3) model (s)."""
+
+SETTLE_RTOL, SETTLE_ATOL = 1e-7, 1e-10
+r"""Tolerances of the two short solves of the fibre projection."""
 
 POLE = 750.0
 r"""$|u| \geq$ `POLE` ($u = \ln\tan(\theta/2)$) is a pole: $e^{-|u|}$ is then exactly zero (in
@@ -417,7 +463,8 @@ def nutation_damping(top: TippeTop, theta, J) -> Array:
     return _nutation(top, x, s, J, _slow_manifold(top, x, s, J)).damping
 
 
-def _validity(top: TippeTop, x, J, log_amplitude, nutation: Nutation) -> Array:
+def _validity(top: TippeTop, x, J, log_amplitude, nutation: Nutation, *,
+              hand_over: bool = False) -> Array:
     h = top.R - top.eps * x
     lever = top.R * x - top.eps
     weight = top.m * top.g * top.eps
@@ -426,6 +473,10 @@ def _validity(top: TippeTop, x, J, log_amplitude, nutation: Nutation) -> Array:
     decaying = -nutation.damping / jnp.sqrt(nutation.frequency_squared)
     small = jnp.log(NUTATION_MAX) - log_amplitude
     projectable = jnp.log(NUTATION_LAUNCH_MAX) - log_amplitude
+    if hand_over:
+        # hand over to the full model as soon as the slow manifold repels: the full model then
+        # grows its own nutation (and finds its own contact loss) from the slow state
+        return jnp.minimum(jnp.minimum(balance, decaying), projectable)
     return jnp.minimum(jnp.minimum(balance, jnp.maximum(small, decaying)), projectable)
 
 
@@ -519,15 +570,81 @@ class GyroscopicLevelState(eqx.Module):
                    jellet=jnp.asarray(jellet))
 
 
+def _linear_state(top: TippeTop, state: State) -> GyroscopicLevelState:
+    u, phi, psi, log_amplitude, J = _projection(top, state)
+    return GyroscopicLevelState(
+        log_tan_half_theta=u, phi=phi, psi=psi, nutation=log_amplitude, jellet=J
+    )
+
+
+def settle_time(top: TippeTop, state: State) -> Array:
+    r"""How long the launch transient is followed in the SO(3) model: the time its nutation
+    (the other root's mode, amplitude $a_0$ of the linear projection, decaying at the rate
+    $-\mathrm{Im}\,r_{\rm in}$ of that mode at the nearer pole) takes to fall to
+    `SETTLE_AMPLITUDE`; 0 for a launch with less, at most `SETTLE_TIME_MAX`."""
+    _, _, _, log_amplitude, J = _projection(top, state)
+    north = state.axis[2] >= 0
+    pole = jnp.where(north, 0.0, jnp.pi).astype(log_amplitude.dtype)
+    _, decay = _complex_ratio(top, pole, J, -1)
+    decaying = decay < 0
+    rate = jnp.where(decaying, -decay, 1.0)
+    time = (log_amplitude - jnp.log(SETTLE_AMPLITUDE)) / rate
+    return jnp.where(decaying, jnp.clip(time, 0.0, SETTLE_TIME_MAX), 0.0)
+
+
+def _solve(term, solver, y0, t0, t1, norm):
+    controller = diffrax.PIDController(rtol=SETTLE_RTOL, atol=SETTLE_ATOL, norm=norm)
+    sol = diffrax.diffeqsolve(
+        term, solver, t0, t1, None, y0, stepsize_controller=controller,
+        saveat=diffrax.SaveAt(t1=True), max_steps=4096, throw=False,
+    )
+    ok = sol.result == diffrax.RESULTS.successful
+    return jax.tree_util.tree_map(lambda x: x[-1], sol.ys), ok
+
+
+def settle_launch(top: TippeTop, state: State) -> GyroscopicLevelState:
+    r"""The fibre projection of a launch onto the slow manifold (see "Projection of a launch").
+
+    Follows the launch in the SO(3) model for `settle_time` $T$, projects the state there
+    linearly (its nutation is then about `SETTLE_AMPLITUDE`), and integrates the slow flow back
+    from $T$ to the launch time. Falls back to the linear projection where either solve fails or
+    $T = 0$.
+    """
+    linear = _linear_state(top, state)
+    T = settle_time(top, state)
+    short = T <= 0
+    t_end = jnp.where(short, 1e-6, T).astype(T.dtype)
+    so3 = SO3Level()
+    rigid = so3.from_state(top, state)
+    forward, ok_forward = _solve(
+        diffrax.ODETerm(lambda t, y, args: so3.vector_field(t, y, top)), diffrax.Tsit5(),
+        rigid, jnp.zeros_like(t_end), t_end, so3.error_norm,
+    )
+    settled = _linear_state(top, so3.to_state(top, forward))
+    # J is exact in the SO(3) model: keep the launch's, not the solve's rounding of it
+    settled = eqx.tree_at(lambda y: y.jellet, settled, linear.jellet)
+    level = GyroscopicLevel()
+    back, ok_back = _solve(
+        diffrax.ODETerm(lambda t, y, args: level.vector_field(t, y, top)), diffrax.Tsit5(),
+        settled, t_end, jnp.zeros_like(t_end), level.error_norm,
+    )
+    finite = jnp.all(jnp.stack([jnp.isfinite(x) for x in jax.tree_util.tree_leaves(back)]))
+    use = ~short & ok_forward & ok_back & finite
+    return jax.tree_util.tree_map(lambda a, b: jnp.where(use, a, b), back, linear)
+
+
 class GyroscopicLevel(AbstractLevel):
     r"""The slow flow (G3) for $\theta$ with $J$ fixed (see the module docstring).
 
     `to_state` gives the state on the slow manifold: $\theta$, $\dot\theta$ of (G3) (the slow
     drift, no nutation), $\dot\varphi = \Omega$, spin $n$ from (G1), horizontal position and
-    velocity zero. `from_state` projects a state onto it (`project_launch`). The step size is
-    controlled on $u = \ln\tan(\theta/2)$ alone. Where (G2) has no real root, or the dropped
-    nutation is large and growing, the run stops with `RESULTS.no_gyroscopic_balance` (no
-    fallback).
+    velocity zero. `from_state` projects a state onto it (`settle_launch`, the fibre
+    projection; `project_launch` with `fibre_projection=False`). The step size is controlled on
+    $u = \ln\tan(\theta/2)$ alone. Where (G2) has no real root or the slow manifold repels, the
+    run continues in the full model (`fallback`); with `hand_over=False` it stops there with
+    `RESULTS.no_gyroscopic_balance` instead.
+
+    **Static options:** `fibre_projection` (default True), `hand_over` (default True).
     """
 
     name = "gyroscopic"
@@ -535,12 +652,13 @@ class GyroscopicLevel(AbstractLevel):
     has_chart = True
     chart_end_result = "no_gyroscopic_balance"
     slow_flow = True
+    fibre_projection: bool = eqx.field(static=True, default=True)
+    hand_over: bool = eqx.field(static=True, default=True)
 
     def from_state(self, top, state):
-        u, phi, psi, log_amplitude, J = _projection(top, state)
-        return GyroscopicLevelState(
-            log_tan_half_theta=u, phi=phi, psi=psi, nutation=log_amplitude, jellet=J
-        )
+        if self.fibre_projection:
+            return settle_launch(top, state)
+        return _linear_state(top, state)
 
     def to_state(self, top, y):
         x, s = cos_sin(y.log_tan_half_theta)
@@ -577,11 +695,15 @@ class GyroscopicLevel(AbstractLevel):
             contact=numerator,  # R_n D
             singular=denominator,
             upright=x,
-            chart=_validity(top, x, y.jellet, y.nutation, nutation),
+            chart=_validity(top, x, y.jellet, y.nutation, nutation, hand_over=self.hand_over),
         )
 
     def in_chart(self, top, state):
-        return self.conditions(top, self.from_state(top, state)).chart > 0
+        # the linear projection's amplitude and balance decide (cheap, and what the chart reads)
+        return self.conditions(top, _linear_state(top, state)).chart > 0
+
+    def fallback(self):
+        return FullLevel() if self.hand_over else None
 
     def error_norm(self, scaled_error):
         return jnp.abs(scaled_error.log_tan_half_theta)
