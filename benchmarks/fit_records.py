@@ -194,11 +194,14 @@ def sensitivities(params, launch, free, ts, *, rtol=RTOL_FD, step_scale=1.0):
     return theta[:, 0], jac
 
 
-def cramer_rao(jac, sigma, mask):
-    """sqrt(diag(F^-1)), F = J^T J / sigma^2 over the samples where mask is True."""
+def cramer_rao(jac, sigma, mask, *, covariance=False):
+    """sqrt(diag(F^-1)), F = J^T J / sigma^2 over the samples where mask is True (and F^-1 if
+    `covariance`)."""
     J = jac[mask]
     fisher = J.T @ J / sigma**2
-    return np.sqrt(np.diag(np.linalg.inv(fisher)))
+    cov = np.linalg.inv(fisher)
+    std = np.sqrt(np.diag(cov))
+    return (std, cov) if covariance else std
 
 
 def _draw_one(seed, index, tj, max_crb_rel):
@@ -256,7 +259,7 @@ def _draw_one(seed, index, tj, max_crb_rel):
         truth = {name: float(_truth_value(params, launch, name)) for name in free}
         theta_fd, jac = sensitivities(params, launch, free, ts)
         mask = np.isfinite(obs)
-        crb = cramer_rao(jac, sigma, mask)
+        crb, cov = cramer_rao(jac, sigma, mask, covariance=True)
         crb_rel = {k: float(c / abs(truth[k])) for k, c in zip(free, crb)}
         if max_crb_rel is not None and max(crb_rel[k] for k in CUT_ON) > max_crb_rel:
             rejected["crb_above_max"] += 1
@@ -268,7 +271,8 @@ def _draw_one(seed, index, tj, max_crb_rel):
             theta_clean=theta_clean, theta_obs=obs, sigma=sigma, rate_hz=rate,
             length_s=float(ts[-1]), gap=gap, free=free, truth=truth,
             crb=dict(zip(free, map(float, crb))),
-            crb_rel=crb_rel,
+            crb_rel=crb_rel, crb_cov=cov.tolist(),
+            crb_corr=(cov / np.outer(crb, crb)).tolist(),
             t_invert=None if not np.isfinite(t_inv) or t_inv > ts[-1] else float(t_inv),
             contact_lost=contact_lost,
             t_contact_loss=float(t_loss) if contact_lost else None,
@@ -322,14 +326,15 @@ def draw_records(n: int, seed: int, *, max_crb_rel: float | None = MAX_CRB_REL, 
                  verbose: bool = False) -> list[dict]:
     """Records 0..n-1 of `seed` (see the module docstring); cached per record.
 
-    `max_crb_rel`: a draw whose Cramer-Rao bound exceeds this fraction of a free parameter's
+    `max_crb_rel`: a draw whose Cramer-Rao bound on mu, eps or spin exceeds this fraction of the
     true value is redrawn (default 0.5%: a fit can then be asked to land within 2% = 4 bounds);
-    None keeps every draw (some records then hardly constrain mu or eps).
+    None keeps every draw (then over half the records hardly constrain mu or eps).
 
     Each record: group, params (m, R, eps, A, C, g, mu), n1, spin_over_n1, launch (theta0, spin,
     theta_dot, phi_dot), upright, ts, theta_clean, theta_obs (noise, gap as NaN), sigma, rate_hz,
     length_s, gap ((t_start, t_end) or None), free, truth, crb (Cramer-Rao std per free
-    parameter), crb_rel (crb / |truth|), t_invert (first upward crossing of pi/2 or None),
+    parameter), crb_rel (crb / |truth|), crb_cov (F^-1 as nested lists, order of `free`),
+    crb_corr (its correlation matrix), t_invert (first upward crossing of pi/2 or None),
     contact_lost, t_contact_loss, min_normal_force.
     """
     if not (isinstance(n, int) and n >= 0):
