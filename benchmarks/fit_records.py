@@ -432,6 +432,14 @@ def main(argv=None):
               f"{time.perf_counter() - t1:.1f} s")
     rej = {k: sum(r["rejected"][k] for r in records) for k in records[0]["rejected"]}
     print(f"draws rejected before these records were kept: {rej}")
+    for g in GROUPS:
+        kept = [r for r in records if r["group"] == g]
+        drawn = sum(r["attempts"] for r in kept)
+        print(f"  group {g}: kept {len(kept)} of {drawn} draws; bound > cut: "
+              f"{sum(r['rejected']['crb_above_max'] for r in kept)}")
+    floor = [r["sigma"] / math.sqrt(np.isfinite(r["theta_obs"]).sum()) for r in records]
+    print(f"noise / sqrt(N) per record: min {min(floor):.1e}, median {np.median(floor):.1e} rad "
+          "(numerical error inside a fit should stay well below this)")
     print(f"integration error of the FD solves (rtol {RTOL_FD:g}) against the data (rtol "
           f"{RTOL_DATA:g}): max {max(r['fd_data_gap'] for r in records):.1e} rad")
     print(f"wall {elapsed:.1f} s; generation of the {len(made)} records not cached: "
