@@ -73,7 +73,7 @@ def normal_force(top: TippeTop, y: State, *, model: str = "full") -> Float[Array
 
     Agrees with the paper's closed form (eq. reactie). With `model="so3"` or `"routhian"` the
     horizontal velocity is dropped ($R'_n$). $R_n \le 0$ means the top has left the table and the
-    model no longer applies (ERRATA.md, 6).
+    model no longer applies (`docs/notes.md`, "Contact loss").
     """
     _check_model(model)
     return _batched(
@@ -86,7 +86,7 @@ def normal_force_denominator(
 ) -> Float[Array, "*batch"]:
     r"""The denominator $1/m + h'(h' + \mu h^2\dot\theta)/A + \dots$ of $R_n$ (eq. reactie).
 
-    Its zero is a Painleve-type singularity of friction proportional to $R_n$ (ERRATA.md, 5);
+    Its zero is a Painleve-type singularity of friction proportional to $R_n$ (`docs/notes.md`, "The R_n singularity");
     it is positive in every regular state.
     """
     _check_model(model)

@@ -12,7 +12,7 @@ $$W = \frac{J^2}{2D} - m g\epsilon\cos\theta,$$
 
 where $S = \epsilon^2 + R^2$ and $D = R^2A\sin^2\theta + C(R\cos\theta - \epsilon)^2$.
 
-Note on the factor 2 (ERRATA.md, 1): the paper writes $T_2 = T_{\theta\theta}\dot\theta^2 + \dots$
+Note on the factor 2 (`docs/notes.md`, "The factor 2 in the linearised equations"): the paper writes $T_2 = T_{\theta\theta}\dot\theta^2 + \dots$
 with $T_{\theta\theta} = M_\theta/2$, but its linearised equations need the full inertia
 coefficients $M_\theta$, $M_{\bar\varphi}$. Here the `inertia_*` fields are the full coefficients.
 """

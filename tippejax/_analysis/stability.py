@@ -8,12 +8,12 @@ r"""Linear stability of the steady states, by four independent routes.
    $\lambda^3 + (\alpha+\gamma)\lambda^2 + (\alpha\gamma + \beta^2 + \delta)\lambda + \delta\gamma$,
    with $\alpha = \mu m g h^2/M_\theta$, $\gamma = \mu m g\sin^2\theta_0/M_{\bar\varphi}$,
    $\beta^2 = \beta'^2/(M_\theta M_{\bar\varphi})$, $\delta = W''/M_\theta$ and the *full* inertia
-   coefficients $M_\theta$, $M_{\bar\varphi}$ (ERRATA.md, 1). `corrected=False` evaluates the
+   coefficients $M_\theta$, $M_{\bar\varphi}$ (`docs/notes.md`, "The factor 2 in the linearised equations"). `corrected=False` evaluates the
    polynomial as printed, with $T_{\theta\theta} = M_\theta/2$ and $T_{\bar\varphi\bar\varphi} =
    M_{\bar\varphi}/2$, which gives wrong eigenvalues.
 4. Eigenvalues of the SO(3) or full vector field linearised in the frame co-rotating with the
    relative equilibrium at rate $\dot\varphi_0 = RJ/D$. These charts are regular at the poles,
-   where the reduced chart is singular (ERRATA.md, 4). The trivial eigenvalues are removed
+   where the reduced chart is singular (`docs/notes.md`, "The singular chart at the poles"). The trivial eigenvalues are removed
    exactly: the zeros of the conserved $|a|^2$ and $J$ by restricting to the invariant subspace
    $\nabla|a|^2\cdot\delta = \nabla J\cdot\delta = 0$, the zero of the rotation symmetry (away from
    the poles) by quotienting out its generator $e_Z\times y_0$.
@@ -53,7 +53,7 @@ def reduced_jacobian_eigenvalues(top: TippeTop, theta0, J) -> Complex[Array, "3"
 def characteristic_polynomial(top: TippeTop, theta0, J, *, corrected: bool = True) -> Array:
     r"""Coefficients $[1, c_2, c_1, c_0]$ of the cubic of Sec. 4 at $\theta_0$ (zero root removed).
 
-    `corrected=True` uses the full inertia coefficients (ERRATA.md, 1); `False` the printed ones.
+    `corrected=True` uses the full inertia coefficients (`docs/notes.md`, "The factor 2"); `False` the printed ones.
     """
     terms = routhian_terms(top, theta0, J)
     dbeta = jax.grad(lambda th: routhian_terms(top, th, J).gyroscopic)(

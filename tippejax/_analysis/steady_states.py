@@ -6,7 +6,7 @@ $$f(J^2, x) = \frac{J^2}{m g C R^2\epsilon}\,\tilde B(x) - P(x)^2,\qquad
 \tilde B = (a-1)x + e,\quad P = a(1 - x^2) + (x - e)^2,$$
 
 which need $\tilde B > 0$ (eq. Exist). Along the branch $J^2(x) = m g C R^2\epsilon P^2/\tilde B$
-and $dJ^2/dx = -g(x) J^2/\tilde B$ (ERRATA.md), so $J^2(x)$ is monotone between the ends of the
+and $dJ^2/dx = -g(x) J^2/\tilde B$ (`docs/notes.md`, "Monotonicity along the intermediate branch"), so $J^2(x)$ is monotone between the ends of the
 branch and the bifurcation point $x_b$. Each monotone piece holds at most one root, which is
 bracketed and found by bisection (`optimistix.Bisection`): at most two intermediate states.
 """
