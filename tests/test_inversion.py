@@ -301,3 +301,29 @@ def test_bad_input():
         tj.inversion_time(top, y0, t1=T1, rtol=-1.0)
     with pytest.raises(TypeError):
         tj.inversion_time(top, y0, T1)  # t1 is keyword-only
+
+
+@pytest.mark.slow  # compiling the reverse pass through the launch's fibre projection and the
+# chain takes minutes on a CPU
+def test_gyroscopic_gradient_is_the_secular_slope():
+    """The design quantity: the gyroscopic t* (nutation averaged) has the gradient of its trend
+    over +-1% of mu and A, where the full model's t* is a staircase whose local gradient is
+    not (standard top, theta0 = 0.1, n0 = 100: 1.4x in mu, 1.7x in A)."""
+    top = tj.default_top()
+
+    def t_star(mu, A):
+        t = eqx.tree_at(lambda x: (x.mu, x.A), top, (mu, A))
+        return tj.inversion_time(t, tj.initial_state(t, THETA0, SPIN), t1=T1,
+                                 model="gyroscopic", throw=False)
+
+    value = jax.jit(t_star)
+    grad = jax.jit(jax.grad(t_star, argnums=(0, 1)))
+    mu, A = top.mu, top.A
+    g_mu, g_A = (float(x) for x in grad(mu, A))
+    s_mu = float(value(1.01 * mu, A) - value(0.99 * mu, A)) / (0.02 * float(mu))
+    s_A = float(value(mu, 1.01 * A) - value(mu, 0.99 * A)) / (0.02 * float(A))
+    print(f"gyroscopic t* = {float(value(mu, A)):.4f} s: dt*/dmu {g_mu:.4f} (secular {s_mu:.4f}),"
+          f" dt*/dA {g_A:.5g} (secular {s_A:.5g})")
+    assert np.isfinite(float(value(mu, A)))
+    assert abs(g_mu - s_mu) < 0.01 * abs(s_mu)
+    assert abs(g_A - s_A) < 0.01 * abs(s_A)

@@ -61,6 +61,20 @@ def inversion_time(
     0, as for `jnp.where`, so that losses that mask the nan members, e.g.
     `jnp.where(jnp.isfinite(t), t, penalty)`, differentiate cleanly.
 
+    **For design, use `model="gyroscopic"`.** With the full (or SO(3), Routhian) model, $t^*$
+    as a function of any parameter is a staircase: the crossing is made by the nutation, so
+    $t^*$ moves by one step of about a nutation period (~0.05 s for the standard top) each time
+    a parameter change makes an earlier or later nutation cycle reach $\pi/2$, and between steps
+    it follows that one cycle. Its exact gradient is then the slope of one stair, not the trend
+    an optimiser needs: standard top, $\theta_0 = 0.1$, $n_0 = 100$ rad/s, $dt^*/d\mu = -14.2$
+    against $-20.5$ over $\pm 1\%$ of $\mu$, and $dt^*/dA$ 1.75x smaller than the trend. The
+    gyroscopic level's $t^*$ is the crossing of the nutation-averaged $\theta$: smooth, and its
+    gradient is the trend ($-21.30$ against $-21.31$ over $\pm 1\%$; $dt^*/dA$ within 0.3%).
+    Where the slow manifold repels before the crossing (fast spins) the run continues in the
+    full model and its $t^*$ is the full model's again (`simulate(...).model` says
+    `"gyroscopic->full"`). The full-model gradient remains the right tool for the sensitivity
+    of one actual run's crossing (fitting a recorded inversion), not for shaping the top.
+
     **Failures.** Only the run up to $t^*$ matters: a solve that fails *after* the crossing
     (say a contact loss when the top lands on its stem) still returns $t^*$. A solve that
     fails before any crossing (contact loss, the $R_n$ singularity, `max_steps`, NaN, loss of
