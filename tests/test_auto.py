@@ -109,7 +109,8 @@ def test_auto_picks_the_gyroscopic_level_for_a_fast_launch_on_its_manifold():
     loose = 1.5 * error
     ts = jnp.linspace(0.0, 8.0, 201)
     auto = tj.simulate(top, y0, 8.0, model="auto", tolerance=loose, saveat=ts)
-    assert auto.model == "gyroscopic"
+    # the slow flow, handing over to the full model where the manifold starts to repel
+    assert auto.model in ("gyroscopic", "gyroscopic->full")
     full = tj.simulate(top, y0, 8.0, model="full", saveat=ts)
     err = float(np.max(np.abs(np.asarray(auto.theta) - np.asarray(full.theta))))
     print(f"gyroscopic (auto) vs full, on-manifold launch n0 = 150: max |dtheta| = {err:.3g} rad "

@@ -85,10 +85,10 @@ def choose_model(top: TippeTop, y0: State, *, tolerance: float | None) -> str:
     `tolerance=None` means "as accurate as the package can": the full model. Otherwise, in the
     regime of this launch (`launch_regime`), the level with the lowest measured cost among those
     whose measured worst error is at most `tolerance` and whose cost is below `COST_MARGIN` (the
-    full model, cost 1, always qualifies). A level that ends where its chart ends with no
-    fallback (the gyroscopic level: `RESULTS.no_gyroscopic_balance`) qualifies only if it
-    accepts this launch (`in_chart` of the launch), so that auto never picks a level that would
-    refuse it; it can still stop later on the way (the measured scenes say how often). Tops of groups the benchmark did not measure, regimes
+    full model, cost 1, always qualifies). The gyroscopic level qualifies only if it accepts
+    this launch (`in_chart` of the launch): a launch outside its chart would run in the full
+    model from the start (`"gyroscopic->full"`). On the way it may still hand over to the full
+    model where the slow manifold repels or balance is lost. Tops of groups the benchmark did not measure, regimes
     it did not measure, and traced arguments (no regime can be read) keep the full model.
     """
     if tolerance is None:
