@@ -254,18 +254,19 @@ def ladder(runners):
             jspin = spin if name.startswith("numba") else jnp.asarray(spin)
             timing, out = interleaved({"x": lambda: run(jspin, rtol)}, repeats=3)["x"]
             finals, steps = out
-            rows[name].append(dict(rtol=rtol, wall=timing.wall, steps=int(np.asarray(steps)[0]),
+            rows[name].append(dict(rtol=rtol, wall=timing.wall, cpu=timing.cpu, steps=int(np.asarray(steps)[0]),
                                    error=state_error(np.asarray(finals)[0], ref)))
     model = VectorModel(P, "so3")
     rows["scipy DOP853"] = []
     for rtol in SCIPY_RTOLS:
-        walls, out = [], None
+        walls, cpus, out = [], [], None
         for _ in range(2 if rtol < 1e-9 else 3):
-            t = time.perf_counter()
+            t, c = time.perf_counter(), time.process_time()
             out = solve_scipy(model, rtol)
             walls.append(time.perf_counter() - t)
+            cpus.append(time.process_time() - c)
         final, steps = out
-        rows["scipy DOP853"].append(dict(rtol=rtol, wall=float(np.median(walls)), steps=steps,
+        rows["scipy DOP853"].append(dict(rtol=rtol, wall=float(np.median(walls)), cpu=float(np.median(cpus)), steps=steps,
                                          error=state_error(final, refs["so3 equations"])))
     return rows, compile_s, ref_check
 
@@ -281,7 +282,7 @@ def solve_scipy(model, rtol):
 def at_error(rows, target):
     errors = [r["error"] for r in rows]
     out = {}
-    for key in ("wall", "steps", "rtol"):
+    for key in ("wall", "cpu", "steps", "rtol"):
         value, extrapolated = interp_loglog(target, errors, [r[key] for r in rows])
         out[key] = value
         out["extrapolated"] = extrapolated
@@ -300,13 +301,20 @@ def batch_times(runners, rtols, spins, names, saves=(False,), repeats=REPEATS):
     timed = interleaved(fns, repeats=repeats)
     out = {}
     for key, (timing, (finals, steps)) in timed.items():
-        row = dict(wall=timing.wall, first=timing.first_wall)
+        row = dict(wall=timing.wall, cpu=timing.cpu, first=timing.first_wall)
         if steps is not None:
             steps = np.asarray(steps)
             row.update(steps_sum=int(steps.sum()), steps_median=float(np.median(steps)),
                        steps_max=int(steps.max()))
         out[key] = row
     return out
+
+
+def single_top(runners, rtols):
+    """tippejax so3, one top at its equal-error rtol (to compare 1 and 2 host devices)."""
+    run, r = runners["tippejax so3"], rtols["tippejax so3"]
+    timing, _ = interleaved({"x": lambda: run(jnp.asarray([SPIN]), r)}, repeats=7)["x"]
+    return dict(wall=timing.wall, cpu=timing.cpu)
 
 
 def spins_device(spins):
@@ -325,6 +333,7 @@ def worker():
     spins = np.linspace(140.0, 160.0, args["batch"])
     res = batch_times(runners, args["rtols"], spins, args["names"], saves=(False,),
                       repeats=args["repeats"])
+    res[("tippejax so3 single top", False)] = single_top(runners, args["rtols"])
     print("JSON" + json.dumps({f"{k[0]}|{int(k[1])}": v for k, v in res.items()},
                               default=float))
     print("DEVICES", len(jax.devices()))
@@ -368,6 +377,7 @@ def main():
     numba.set_num_threads(1)
     nb1 = batch_times(runners, rtols, spins, ["numba DOP853 (CyRK)"])
     numba.set_num_threads(cores)
+    single1 = single_top(runners, rtols)
     print(f"batch 1 device done {time.perf_counter() - start:.0f} s")
     b2, ndev2 = in_subprocess(2, dict(batch=BATCH, rtols=rtols, repeats=REPEATS,
                                       names=["plain diffrax", "tippejax so3", "tippejax full"]))
@@ -381,13 +391,14 @@ def main():
                                         names=["plain diffrax", "tippejax so3"]))
         big.update({(k[0] + " (2 devices)", False): v for k, v in big2.items()})
     elapsed = time.perf_counter() - start
+    single2 = b2.pop(("tippejax so3 single top", "0"))
     report(rows, eq, target, compile_s, ref_check, b1, nb1, b2, ndev2, big, cores, elapsed,
-           load0)
+           load0, (single1, single2))
     chart(rows, target)
 
 
 def report(rows, eq, target, compile_s, ref_check, b1, nb1, b2, ndev2, big, cores, elapsed,
-           load0):
+           load0, singles):
     def ms(x):
         return f"{x * 1e3:.3g}"
 
@@ -411,19 +422,22 @@ def report(rows, eq, target, compile_s, ref_check, b1, nb1, b2, ndev2, big, core
         "(atol = rtol/100 everywhere); each peer's times and steps are interpolated (log-log) "
         "on its rtol ladder at that error, and its batches run at the rtol that gives it (the "
         "'rtol' column). Wall times: medians after a compiling call, peers timed in interleaved "
-        "rounds. 'per step' = wall / sum of the members' own steps.",
+        "rounds; process CPU time beside wall time, since the machine is shared and a loaded "
+        "machine inflates wall time (CPU time of a peer that runs on 2 threads counts both). "
+        "'per step' = time / sum of the members' own steps.",
         "",
         "### Single top at equal error",
         "",
     ]
     hdr = ["peer", "rtol at equal error", "steps", "vs plain steps", "ms per top",
-           "vs plain", "us per step", "compile s"]
+           "vs plain", "CPU ms", "vs plain (CPU)", "us per step", "compile s"]
     body = []
     for name, v in eq.items():
         body.append([
             name, f"{v['rtol']:.2e}" + ("*" if v["extrapolated"] else ""), f"{v['steps']:.0f}",
             f"{v['steps'] / plain['steps']:.2f}", ms(v["wall"]),
-            f"{v['wall'] / plain['wall']:.2f}", us(v["wall"] / v["steps"]),
+            f"{v['wall'] / plain['wall']:.2f}", ms(v["cpu"]), f"{v['cpu'] / plain['cpu']:.2f}",
+            us(v["wall"] / v["steps"]),
             f"{compile_s[name]:.1f}" if name in compile_s else "",
         ])
     lines += [table(hdr, body), "", "(* extrapolated beyond the ladder.) 'compile s': first "
@@ -433,7 +447,8 @@ def report(rows, eq, target, compile_s, ref_check, b1, nb1, b2, ndev2, big, core
 
     def batch_table(res, n, title, devices):
         hdr = ["peer", "mode", "devices / threads", "steps median", "steps max",
-               "ms per top", "vs plain", "us per member-step"]
+               "ms per top", "vs plain", "CPU ms per top", "vs plain (CPU)",
+               "us per member-step", "CPU us per member-step"]
         body = []
         base = {s: res.get(("plain diffrax", s)) for s in (False, True)}
         for (name, saves), v in res.items():
@@ -445,7 +460,9 @@ def report(rows, eq, target, compile_s, ref_check, b1, nb1, b2, ndev2, big, core
                 f"{v['steps_median']:.0f}" if "steps_median" in v else "",
                 str(v.get("steps_max", "")), ms(per_top),
                 f"{v['wall'] / ref['wall']:.2f}" if ref else "",
+                ms(v["cpu"] / n), f"{v['cpu'] / ref['cpu']:.2f}" if ref else "",
                 us(v["wall"] / v["steps_sum"]) if "steps_sum" in v else "",
+                us(v["cpu"] / v["steps_sum"]) if "steps_sum" in v else "",
             ])
         return [f"### {title}", "", table(hdr, body), ""]
 
@@ -457,6 +474,11 @@ def report(rows, eq, target, compile_s, ref_check, b1, nb1, b2, ndev2, big, core
               "'6 saves' row is timing only.", ""]
     b2k = {(k[0], k[1] == "1"): v for k, v in b2.items()}
     lines += batch_table(b2k, BATCH, f"Batch of {BATCH}, {ndev2} host devices (sharded)", ndev2)
+    one, two = singles
+    lines += [f"One top (tippejax so3, 7 calls) with 1 host device: {ms(one['wall'])} ms "
+              f"(CPU {ms(one['cpu'])}); with {ndev2} host devices: {ms(two['wall'])} ms (CPU "
+              f"{ms(two['cpu'])}): ratio {two['wall'] / one['wall']:.2f} (CPU "
+              f"{two['cpu'] / one['cpu']:.2f}). A single solve runs on the first device.", ""]
     if big:
         lines += batch_table(big, 10_000, "Batch of 1e4", "1 (or 2 where named)")
 
@@ -464,18 +486,22 @@ def report(rows, eq, target, compile_s, ref_check, b1, nb1, b2, ndev2, big, core
     so3, full = eq["tippejax so3"], eq["tippejax full"]
     s1 = b1[("tippejax so3", False)]["wall"] / b1[("plain diffrax", False)]["wall"]
     s2 = b2k[("tippejax so3", False)]["wall"] / b2k[("plain diffrax", False)]["wall"]
+    c1 = b1[("tippejax so3", False)]["cpu"] / b1[("plain diffrax", False)]["cpu"]
+    c2 = b2k[("tippejax so3", False)]["cpu"] / b2k[("plain diffrax", False)]["cpu"]
     nb_all = b1[("numba DOP853 (CyRK)", False)]["wall"]
     best_tj = min(b1[("tippejax so3", False)]["wall"], b2k[("tippejax so3", False)]["wall"])
     full_b = b1[("tippejax full", False)]["wall"] / b1[("tippejax so3", False)]["wall"]
     trows = [
         ["steps at equal error <= 1.05x plain", f"{so3['steps'] / plain['steps']:.2f}x",
          verdict(so3["steps"] / plain["steps"] <= 1.05)],
-        [f"batch {BATCH} summary <= 1.2x plain, 1 device", f"{s1:.2f}x", verdict(s1 <= 1.2)],
-        [f"batch {BATCH} summary <= 1.2x plain, {ndev2} devices", f"{s2:.2f}x",
+        [f"batch {BATCH} summary <= 1.2x plain, 1 device", f"{s1:.2f}x (CPU {c1:.2f}x)",
+         verdict(s1 <= 1.2)],
+        [f"batch {BATCH} summary <= 1.2x plain, {ndev2} devices", f"{s2:.2f}x (CPU {c2:.2f}x)",
          verdict(s2 <= 1.2)],
         [f"goal: batch {BATCH} at or below numba prange ({cores} threads)",
          f"{best_tj / nb_all:.2f}x", verdict(best_tj <= nb_all)],
-        ["single top <= 1.2x plain", f"{so3['wall'] / plain['wall']:.2f}x",
+        ["single top <= 1.2x plain",
+         f"{so3['wall'] / plain['wall']:.2f}x (CPU {so3['cpu'] / plain['cpu']:.2f}x)",
          verdict(so3["wall"] / plain["wall"] <= 1.2)],
         ["full <= 1.3x so3 (single top, equal error)", f"{full['wall'] / so3['wall']:.2f}x",
          verdict(full["wall"] / so3["wall"] <= 1.3)],
@@ -493,8 +519,8 @@ def report(rows, eq, target, compile_s, ref_check, b1, nb1, b2, ndev2, big, core
     for name, rs in rows.items():
         for r in rs:
             body.append([name, f"{r['rtol']:.0e}", str(r["steps"]), f"{r['error']:.2e}",
-                         ms(r["wall"])])
-    lines += [table(["peer", "rtol", "steps", "error", "ms"], body), ""]
+                         ms(r["wall"]), ms(r["cpu"])])
+    lines += [table(["peer", "rtol", "steps", "error", "ms", "CPU ms"], body), ""]
     text = "\n".join(lines)
     print(text)
     write_section("peers.py", text)

@@ -197,3 +197,162 @@ def test_simulate_batch_bad_grids(top):
         tj.simulate_batch(top, [0.1], [], 1.0)
     with pytest.raises(ValueError, match="theta0 must be finite"):
         tj.simulate_batch(top, [np.nan], [100.0], 1.0)
+
+
+# ----------------------------------------------------------------------------------------------
+# Issue 18: the body vector as a frame and a spin angle, the state's leaves, every core
+# ----------------------------------------------------------------------------------------------
+
+
+def _random_states(key, n=8):
+    from tippejax._state import state_from_euler
+
+    k1, k2, k3 = jax.random.split(key, 3)
+    angles = jax.random.uniform(k1, (n, 3), minval=-3.0, maxval=3.0)
+    theta = jnp.abs(angles[:, 0]) % jnp.pi
+    omega = jax.random.normal(k2, (n, 3)) * 60.0
+    velocity = jax.random.normal(k3, (n, 2)) * 0.3
+    states = []
+    for i in range(n):
+        s = state_from_euler(theta[i], angles[i, 1], angles[i, 2], 0.0, 0.0, 1.0)
+        states.append(s.__class__(position=jnp.zeros(2), velocity=velocity[i],
+                                  axis=s.axis, omega=omega[i], body=s.body))
+    return states
+
+
+@pytest.mark.parametrize("name", ["so3", "full"])
+def test_spin_frame_carries_the_body_vector_exactly(top, name):
+    """b = cos(s) c + sin(s) a x c obeys db/dt = omega x b along the level's vector field
+    (checked by autodiff of the level's to_state along its own field, at random states and
+    nonzero spin angles), c stays perpendicular to a, the other components have the rates of
+    the common vector field, and to_state(from_state(x)) = x."""
+    from tippejax._models.full import full_vector_field
+    from tippejax._models.levels import LEVELS
+    from tippejax._models.so3 import so3_vector_field
+
+    level = LEVELS[name]
+    common_field = {"so3": so3_vector_field, "full": full_vector_field}[name]
+    for i, state in enumerate(_random_states(jax.random.PRNGKey(3))):
+        y = level.from_state(top, state)
+        back = level.to_state(top, y)
+        for leaf in ("axis", "omega", "body", "velocity"):
+            expected = getattr(state, leaf) if (name == "full" or leaf != "velocity") else 0.0
+            assert np.allclose(getattr(back, leaf), expected, atol=1e-14), leaf
+        y = eqx.tree_at(lambda s: s.angle, y, jnp.asarray(0.7 * i - 2.0))
+        dy = level.vector_field(0.0, y, top)
+        state_i, dstate = jax.jvp(lambda z: level.to_state(top, z), (y,), (dy,))
+        reference = common_field(0.0, state_i, top)
+        for leaf in ("axis", "omega", "body"):
+            scale = 1.0 + np.max(np.abs(getattr(reference, leaf)))
+            assert np.max(np.abs(getattr(dstate, leaf) - getattr(reference, leaf))) < 1e-12 * scale
+        assert abs(float(jnp.dot(dy.frame, y.axis) + jnp.dot(y.frame, dy.axis))) < 1e-12
+
+
+def test_ravel_state_round_trip_and_leaves():
+    from tippejax._engine.segment import ravel_state
+    from tippejax._models.so3 import RigidState
+
+    y = RigidState(axis=jnp.arange(3.0), omega=jnp.arange(3.0, 6.0),
+                   frame=jnp.arange(6.0, 9.0), angle=jnp.asarray(9.0))
+    flat, unravel = ravel_state(y)
+    assert [x.shape for x in flat] == [(9,), (1,)]  # the 3-vectors together, the scalar apart
+    assert np.array_equal(np.concatenate(flat), np.arange(10.0))
+    back = unravel(flat)
+    for leaf in ("axis", "omega", "frame", "angle"):
+        assert np.array_equal(getattr(back, leaf), getattr(y, leaf))
+
+
+def test_body_vector_of_a_fast_top_against_a_plain_solve(top, inverting):
+    """The SO(3) level's body vector (frame and spin angle) against a plain diffrax solve of
+    db/dt = omega x b on the 9-component state (axis, omega, body) at tight tolerance: the
+    new form reproduces the old one, through the inversion and the pole."""
+    from tippejax._models.so3 import so3_vector_field
+
+    y0 = tj.initial_state(top, 0.1, 150.0)
+    ts = np.linspace(0.0, 8.0, 9)
+    sol = tj.simulate(top, y0, 8.0, model="so3", saveat=ts, rtol=1e-11, atol=1e-13)
+    ref = diffrax.diffeqsolve(
+        diffrax.ODETerm(so3_vector_field), diffrax.Dopri8(), 0.0, 8.0, None, y0, top,
+        saveat=diffrax.SaveAt(ts=jnp.asarray(ts)), max_steps=100_000,
+        stepsize_controller=diffrax.PIDController(rtol=1e-12, atol=1e-14),
+    ).ys
+    assert np.max(np.abs(np.asarray(sol.states.body) - np.asarray(ref.body))) < 1e-7
+    assert np.max(np.abs(np.asarray(sol.states.axis) - np.asarray(ref.axis))) < 1e-7
+
+
+def test_fast_top_steps_match_a_solve_without_body_vector(top):
+    """The body vector no longer sets the steps: the SO(3) level takes within 5% of the steps
+    of a plain Dopri8 solve of (axis, omega) alone (it took 1.5x as many with the body vector
+    in the state), at rtol 1e-8."""
+    from tippejax._models.so3 import so3_vector_field
+
+    y0 = tj.initial_state(top, 0.1, 150.0)
+    sol = tj.simulate(top, y0, 20.0, model="so3", summary=True)
+
+    def rigid(t, y, args):
+        a, w = y[:3], y[3:]
+        s = so3_vector_field(t, tj.State(position=jnp.zeros(2), velocity=jnp.zeros(2), axis=a,
+                                          omega=w, body=a), args)
+        return jnp.concatenate([s.axis, s.omega])
+
+    plain = diffrax.diffeqsolve(
+        diffrax.ODETerm(rigid), diffrax.Dopri8(), 0.0, 20.0, None,
+        jnp.concatenate([y0.axis, y0.omega]), top, max_steps=100_000,
+        stepsize_controller=diffrax.PIDController(rtol=1e-8, atol=1e-10),
+    )
+    ratio = int(sol.num_steps) / int(plain.stats["num_steps"])
+    assert 0.9 < ratio < 1.05, ratio
+
+
+DEVICES_SCRIPT = r"""
+import json, os, numpy as np
+import tippejax as tj, jax
+top = tj.default_top()
+ts = np.linspace(0.0, 0.3, 4)
+sharded = tj.simulate_batch(top, [0.1, 0.2, 0.3], [60.0], 0.3, saveat=ts)
+plain = tj.simulate_batch(top, [0.1, 0.2, 0.3], [60.0], 0.3, saveat=ts, shard=False)
+print(json.dumps(dict(devices=jax.device_count(), flags=os.environ.get("XLA_FLAGS", ""),
+    diff=float(np.max(np.abs(np.asarray(sharded.theta) - np.asarray(plain.theta)))))))
+"""
+
+
+def _devices_run(**env_changes):
+    import json
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "TIPPEJAX_HOST_DEVICES")}
+    env.update(env_changes)
+    out = subprocess.run([sys.executable, "-c", DEVICES_SCRIPT], env=env, capture_output=True,
+                         text=True, check=True).stdout
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def test_every_core_is_a_device_by_default():
+    """Importing tippejax makes os.cpu_count() host devices (here forced to 2 through
+    TIPPEJAX_HOST_DEVICES, as on a 2-core machine) and simulate_batch shards over them with the
+    same results; TIPPEJAX_HOST_DEVICES=1 keeps one device; a flag the user set is kept."""
+    import os
+
+    two = _devices_run(TIPPEJAX_HOST_DEVICES="2")
+    assert two["devices"] == 2 and two["diff"] < 1e-12
+    assert "--xla_force_host_platform_device_count=2" in two["flags"]
+    assert _devices_run(TIPPEJAX_HOST_DEVICES="1")["devices"] == 1
+    user = _devices_run(XLA_FLAGS="--xla_force_host_platform_device_count=3")
+    assert user["devices"] == 3 and user["flags"] == "--xla_force_host_platform_device_count=3"
+    default = _devices_run()
+    assert default["devices"] == (os.cpu_count() or 1)
+
+
+def test_every_core_bad_setting_and_late_import():
+    from tippejax import _devices
+
+    with pytest.raises(ValueError, match="TIPPEJAX_HOST_DEVICES must be a positive integer"):
+        _devices.requested_devices({"TIPPEJAX_HOST_DEVICES": "zero"})
+    with pytest.raises(ValueError, match="positive integer"):
+        _devices.requested_devices({"TIPPEJAX_HOST_DEVICES": "0"})
+    # This process's backends run already: the flag could not take effect, nothing is changed.
+    jax.devices()
+    env = {"TIPPEJAX_HOST_DEVICES": "4"}
+    assert _devices.use_every_core(env) is None and "XLA_FLAGS" not in env

@@ -13,7 +13,6 @@ from collections.abc import Callable
 import diffrax
 import equinox as eqx
 import jax
-import jax.flatten_util
 import jax.numpy as jnp
 from diffrax._root_finder import use_stepsize_tol  # diffrax exports no public name for it
 from jaxtyping import Array, Bool, Float, PyTree
@@ -40,19 +39,49 @@ class Watch(eqx.Module):
         return as_event_dtype(jnp.stack([conditions.get(name) for name in self.names]))
 
 
-class FlatField(eqx.Module):
-    """A level's vector field on its state flattened to one vector.
+def ravel_state(y: PyTree):
+    """A level state as a tuple of flat vectors, one per leaf shape (the level's 3-vectors
+    concatenated, its 2-vectors, its scalars stacked); with the inverse.
 
-    diffrax's Runge-Kutta stages combine the state leaf by leaf; with one leaf instead of the
-    level's five or six, each step runs several times fewer (tiny) operations, which on a CPU is
-    what a step of a 10-dimensional system costs.
+    diffrax's Runge-Kutta stages combine the state leaf by leaf; with two or three leaves
+    instead of the level's five or six, each step runs several times fewer (tiny) operations,
+    which on a CPU is what a step of a 10-dimensional system costs. The leaves are not all
+    concatenated into one vector because XLA:CPU runs the stage combinations of a batch of
+    some widths much slower than of others: for a batch of 200 SO(3) tops
+    (`benchmarks/peers.py`'s scene), a single 10-wide state costs 2.2x a 6-wide one per step,
+    a 9-wide leaf plus a scalar leaf 1.1x.
     """
+    leaves, treedef = jax.tree_util.tree_flatten(y)
+    dtype = jnp.result_type(*leaves)
+    shapes = [jnp.shape(x) for x in leaves]
+    groups = {}
+    for i, shape in enumerate(shapes):
+        groups.setdefault(shape, []).append(i)
+    groups = tuple(groups.values())
+    flat = tuple(
+        jnp.stack([jnp.asarray(leaves[i], dtype) for i in group]).reshape(-1)
+        for group in groups
+    )
+
+    def unravel(flat):
+        out = [None] * len(leaves)
+        for group, vector in zip(groups, flat):
+            pieces = vector.reshape((len(group),) + shapes[group[0]])
+            for j, i in enumerate(group):
+                out[i] = pieces[j]
+        return jax.tree_util.tree_unflatten(treedef, out)
+
+    return flat, unravel
+
+
+class FlatField(eqx.Module):
+    """A level's vector field on its state flattened by `ravel_state` (one or two leaves)."""
 
     level: AbstractLevel
     unravel: Callable = eqx.field(static=True)
 
     def __call__(self, t, y, top):
-        return jax.flatten_util.ravel_pytree(self.level.vector_field(t, self.unravel(y), top))[0]
+        return ravel_state(self.level.vector_field(t, self.unravel(y), top))[0]
 
     def error_norm(self, scaled_error):
         return self.level.error_norm(self.unravel(scaled_error))
@@ -91,7 +120,7 @@ def run_segment(
 ) -> Segment:
     """Integrate `level` from `(t0, y0)` to `t1` or the first terminating event."""
     names = terminating + observed
-    y0_flat, unravel = jax.flatten_util.ravel_pytree(y0)
+    y0_flat, unravel = ravel_state(y0)
     field = FlatField(level, unravel)
     watch = Watch(level, unravel, names)
     controller = diffrax.PIDController(rtol=rtol, atol=atol, norm=field.error_norm)
@@ -146,11 +175,12 @@ def run_segment(
         progress_meter=progress_meter,
     )
     t_end = sol.ts[0][-1]
-    y_end = unravel(sol.ys[0][-1])
+    flat_end = jax.tree_util.tree_map(lambda x: x[-1], sol.ys[0])
+    y_end = unravel(flat_end)
     # Which terminating condition fired: at the located event it is (to the root finder's
     # tolerance) zero and the others are positive, so it is the smallest.
     stopped = sol.result == diffrax.RESULTS.event_occurred
-    end_values = watch(sol.ys[0][-1], top)[: len(terminating)]
+    end_values = watch(flat_end, top)[: len(terminating)]
     first = jnp.argmin(end_values)
     fired = {name: stopped & (first == i) for i, name in enumerate(terminating)}
     observed_times = {}

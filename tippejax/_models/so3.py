@@ -3,8 +3,8 @@ r"""The SO(3) model: the paper's approximation with translation dropped in the f
 As in Sec. 2.2 (Routhian reduction), the horizontal velocity of the centre of mass is neglected in
 the friction force and in $R_n$ ($R'_n$); the vertical motion of the centre of mass (the
 $m\epsilon^2\sin^2\theta\,\dot\theta^2$ term of $L'$) is kept. In vector form this is the full model
-with $v_O = (0, 0, \dot h)$: state $(a, \omega)$ (+ the body vector for $\psi$), regular at the
-poles. The Jellet $J$ is conserved exactly and the energy
+with $v_O = (0, 0, \dot h)$: state $(a, \omega)$ (+ the body vector for $\psi$, carried as a frame
+vector and a spin angle, `full.spin_frame_rates`), regular at the poles. The Jellet $J$ is conserved exactly and the energy
 $E' = T_{\rm rot} + \tfrac12 m\dot h^2 + m g h$ never increases: $\dot E' = -\mu R_n |v_Q|^2$.
 """
 
@@ -19,7 +19,7 @@ from .._state import State
 from .._top import TippeTop
 from ._rigid_body import rigid_body_dynamics
 from .base import AbstractLevel
-from .full import vector_conditions
+from .full import body_of, spin_frame_rates, vector_conditions
 
 
 def _single(top: TippeTop, y: State) -> State:
@@ -48,33 +48,42 @@ def so3_vector_field(t, y: State, top: TippeTop) -> State:
 
 
 class RigidState(eqx.Module):
-    """State of the SO(3) level: axis, angular velocity and body vector (no translation)."""
+    r"""State of the SO(3) level: axis, angular velocity, and the body vector as a frame vector
+    and a spin angle, $b = \cos\sigma\, c + \sin\sigma\, a\times c$ (no translation)."""
 
     axis: Float[Array, "3"]
     omega: Float[Array, "3"]
-    body: Float[Array, "3"]
+    frame: Float[Array, "3"]
+    angle: Float[Array, ""]
 
 
 class SO3Level(AbstractLevel):
-    """The SO(3) model: rotation only (9 ODEs); position and velocity are reported as zero."""
+    """The SO(3) model: rotation only (10 ODEs: axis, omega, and the body vector as a frame
+    vector and a spin angle); position and velocity are reported as zero."""
 
     name = "so3"
     friction_model = "so3"
 
     def from_state(self, top, state):
-        return RigidState(axis=state.axis, omega=state.omega, body=state.body)
+        return RigidState(
+            axis=state.axis, omega=state.omega, frame=state.body,
+            angle=jnp.zeros((), state.axis.dtype),
+        )
 
     def to_state(self, top, y):
         zero = jnp.zeros(2, y.axis.dtype)
-        return State(position=zero, velocity=zero, axis=y.axis, omega=y.omega, body=y.body)
+        return State(position=zero, velocity=zero, axis=y.axis, omega=y.omega,
+                     body=body_of(y.axis, y.frame, y.angle))
 
     def vector_field(self, t, y, top):
         zero = jnp.zeros(2, y.axis.dtype)
         _, omega_dot, _, _ = rigid_body_dynamics(top, y.axis, y.omega, zero)
+        frame_dot, angle_dot = spin_frame_rates(y.axis, y.omega, y.frame)
         return RigidState(
             axis=jnp.cross(y.omega, y.axis),
             omega=omega_dot,
-            body=jnp.cross(y.omega, y.body),
+            frame=frame_dot,
+            angle=angle_dot,
         )
 
     def conditions(self, top, y):

@@ -1,0 +1,70 @@
+"""Every CPU core a JAX device, by default, so that batches spread over the whole machine.
+
+XLA runs a batch (`jax.vmap` of a solve) on one CPU device, and its while loop on one core: a
+batch of 1000 tops on an 8-core machine would use one core. With `N` host devices,
+`simulate_batch`, `outcome_map` and `fit`'s batches shard their launches over
+`jax.devices()` (`jax.sharding`), one core each. JAX makes `N` host devices only when the
+flag `--xla_force_host_platform_device_count=N` is in `XLA_FLAGS` before its CPU backend
+starts; importing tippejax puts it there, with `N = os.cpu_count()`, unless
+
+- `XLA_FLAGS` already holds that flag (the user's choice is kept);
+- the environment variable `TIPPEJAX_HOST_DEVICES` is set: `TIPPEJAX_HOST_DEVICES=1` keeps
+  JAX's default single CPU device, another positive integer asks for that many devices;
+- JAX's backends are already running (jax was used before tippejax was imported): then the
+  flag could no longer take effect, and nothing is changed.
+
+A single solve runs on the first device whatever their number (`benchmarks/peers.py` measures
+one top with one and with two host devices).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import MutableMapping
+
+ENV = "TIPPEJAX_HOST_DEVICES"
+FLAG = "--xla_force_host_platform_device_count"
+
+
+def _backends_running() -> bool:
+    try:
+        from jax._src import xla_bridge  # no public name for this
+
+        return bool(xla_bridge.backends_are_initialized())
+    except (ImportError, AttributeError):  # pragma: no cover - other jax versions
+        return False
+
+
+def requested_devices(environ: MutableMapping[str, str] = os.environ) -> int:
+    """The number of host devices asked for: `TIPPEJAX_HOST_DEVICES`, else `os.cpu_count()`."""
+    value = environ.get(ENV, "").strip()
+    if not value:
+        return os.cpu_count() or 1
+    try:
+        count = int(value)
+    except ValueError:
+        count = 0
+    if count < 1:
+        raise ValueError(
+            f"{ENV} must be a positive integer (the number of CPU devices JAX should make; 1 "
+            f"keeps JAX's single device), got {value!r}."
+        )
+    return count
+
+
+def use_every_core(environ: MutableMapping[str, str] = os.environ) -> int | None:
+    """Add `--xla_force_host_platform_device_count` to `XLA_FLAGS` (see the module docstring).
+
+    **Returns:** the device count set, or None where nothing was changed.
+    """
+    flags = environ.get("XLA_FLAGS", "")
+    if FLAG in flags:
+        return None
+    count = requested_devices(environ)
+    if count <= 1 or _backends_running():
+        return None
+    environ["XLA_FLAGS"] = f"{flags} {FLAG}={count}".strip()
+    return count
+
+
+use_every_core()
