@@ -1,0 +1,519 @@
+r"""`fit`: physical parameters and launch quantities from a measured tilt $\theta(t_k)$.
+
+The fit is a weighted nonlinear least-squares problem,
+
+$$\min_p \tfrac12 \sum_k w_k\,\big(\theta(t_k; p) - \theta^{obs}_k\big)^2
+        \;[+\; \tfrac12 \sum_k w^\varphi_k \sin^2\theta^{obs}_k\,
+        \mathrm{wrap}\big(\varphi(t_k; p) - \varphi^{obs}_k\big)^2],$$
+
+where $\theta(t; p)$ comes from `simulate` at the chosen level of model, with free parameters
+mapped to unconstrained coordinates (`params.py`). Jacobians are taken in forward mode through
+the ODE solve, one pass per optimiser step for the residuals and all columns.
+
+The loss is multimodal: the nutation's phase slips by a cycle for about 1% of error in the
+spin, and each slip is a valley. The default strategy (`"global"`, `strategies.py`) therefore
+
+1. ranks ~100 starting points around the guess by a loss blind to the nutation's phase (the
+   smoothed tilt's envelope and level-crossing times), simulated in one batch;
+2. refines the best start: the slow loss alone, then the raw tilt in windows that double
+   from 1/64 of the record, then the whole record alone (the loss the covariance is about);
+3. tests the residuals (`diagnostics.py`: runs test and windowed chi-square); if they are not
+   noise, the next start is refined, and if none passes, the best fit is flagged
+   `local_minimum` rather than returned with confident error bars.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Literal
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import ArrayLike
+
+from .._simulate import MODELS
+from .._state import State
+from .._top import TippeTop, _checks
+from . import diagnostics
+from .params import FREE_NAMES, LAUNCH_FIELDS, TOP_FIELDS, Base, launch_of
+from .problem import Config, Data, ladder, smooth_numpy, smoother
+from .result import FIT_RESULTS, FitResult
+from .setup import Setup, bucket
+from .strategies import STRATEGIES
+
+METHODS = ("levenberg_marquardt", "gauss_newton", "adam")
+FIT_MODELS = ("full", "so3", "routhian")
+MAX_RECORD_SPAN = 600.0  # s: a longer record is taken for times in the wrong unit
+_TRIM_ROUNDS = 4
+
+
+# ---------------------------------------------------------------------------------------------
+# Input checks: every one raises before anything is compiled.
+
+
+def _check_options(free, model, method, strategy, max_steps, tol, sigma):
+    if isinstance(free, str):
+        raise ValueError(
+            f"free must be a sequence of names, e.g. free=({free!r},) or ('mu', 'eps', 'spin'), "
+            f"not the string {free!r} (which would be read letter by letter)."
+        )
+    free = tuple(free)
+    unknown = [n for n in free if n not in FREE_NAMES]
+    if unknown:
+        raise ValueError(f"Unknown names in free: {unknown}; choose from {FREE_NAMES}.")
+    if not free:
+        raise ValueError(f"free is empty; name at least one of {FREE_NAMES}.")
+    if len(set(free)) != len(free):
+        raise ValueError(f"free names a parameter twice: {free}.")
+    if model not in FIT_MODELS:
+        allowed = tuple(m for m in MODELS if m in FIT_MODELS)
+        raise ValueError(f"fit supports model in {allowed}, got {model!r}.")
+    if method not in METHODS:
+        raise ValueError(f"Unknown method {method!r}; choose one of {METHODS}.")
+    if strategy not in STRATEGIES:
+        raise ValueError(f"Unknown strategy {strategy!r}; choose one of {tuple(STRATEGIES)}.")
+    if not (isinstance(max_steps, (int, np.integer)) and max_steps > 0):
+        raise ValueError(f"max_steps must be a positive integer, got {max_steps!r}.")
+    if not tol > 0:
+        raise ValueError(f"tol must be positive, got {tol}.")
+    if sigma is not None and not (np.isfinite(sigma) and sigma > 0):
+        raise ValueError(f"sigma must be a positive noise level (rad), got {sigma}.")
+    return free
+
+
+def _as_1d_times(ts) -> np.ndarray:
+    arr = np.asarray(ts, dtype=float)
+    if arr.ndim != 1 or arr.size < 2:
+        raise ValueError(f"ts must be a 1-d array of at least 2 times, got shape {arr.shape}.")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError("ts must hold finite times (NaN or inf found); mark missing data with "
+                         "NaN in theta_obs instead.")
+    if np.any(np.diff(arr) <= 0):
+        raise ValueError("ts must be strictly increasing.")
+    span = arr[-1] - arr[0]
+    if span > MAX_RECORD_SPAN:
+        raise ValueError(
+            f"ts spans {span:g}, but times are in seconds and a tippe top's record lasts seconds "
+            f"to a minute (at most {MAX_RECORD_SPAN:g} s here). Were the times given in "
+            "milliseconds? Pass ts / 1000."
+        )
+    return arr
+
+
+def _observations(name, obs, n) -> np.ndarray:
+    arr = np.asarray(obs, dtype=float)
+    if arr.ndim not in (1, 2) or arr.shape[-1] != n:
+        raise ValueError(
+            f"{name} must have shape (N,) or (batch, N) with N = len(ts) = {n}, got {arr.shape}."
+        )
+    if np.any(np.isinf(arr)):
+        raise ValueError(f"{name} holds inf; use NaN to mark missing samples (they are masked).")
+    if name == "theta_obs":
+        finite = arr[np.isfinite(arr)]
+        if finite.size and (finite.max() > np.pi + 0.5 or finite.min() < -0.5):
+            raise ValueError(
+                f"theta_obs holds values from {finite.min():.4g} to {finite.max():.4g}, but the "
+                "tilt is in radians, between 0 and pi. Were they given in degrees? Pass "
+                "np.deg2rad(theta_obs)."
+            )
+    return arr
+
+
+def _check_guess(top_guess, y0_guess, free, batch):
+    if not isinstance(top_guess, TippeTop):
+        raise TypeError(f"top_guess must be a tippejax.TippeTop, got {type(top_guess).__name__}.")
+    if not isinstance(y0_guess, State):
+        raise TypeError(
+            f"y0_guess must be a tippejax.State (see initial_state), got {type(y0_guess).__name__}."
+        )
+    fields = {f: np.asarray(getattr(top_guess, f), dtype=float) for f in TOP_FIELDS}
+    for f, v in fields.items():
+        if not np.all(np.isfinite(v)):
+            raise ValueError(f"top_guess.{f} is not finite.")
+        if v.ndim > 1 or (v.ndim == 1 and (batch is None or v.shape[0] != batch)):
+            raise ValueError(
+                f"top_guess.{f} has shape {v.shape}: a guess is one top, or one per recording "
+                f"when theta_obs has shape (batch, N)."
+            )
+    for failed, message in _checks(*(fields[f] for f in ("m", "R", "eps", "A", "C", "g", "mu"))):
+        if np.any(failed):
+            raise ValueError(f"top_guess is not a valid top: {message}")
+    for name in ("m", "R", "g", "mu"):
+        if name in free and np.any(fields[name] == 0):
+            raise ValueError(f"{name!r} is free but its guess is 0; give a positive guess.")
+    launch = {k: np.asarray(v, dtype=float) for k, v in launch_of(y0_guess).items()}
+    for k, v in launch.items():
+        if not np.all(np.isfinite(v)):
+            raise ValueError(f"y0_guess gives a non-finite launch quantity {k}.")
+    at_pole = np.sin(launch["theta0"]) < 1e-9
+    if "theta0" in free and np.any(at_pole):
+        raise ValueError(
+            "'theta0' is free but the guess is launched at a pole (theta = 0 or pi); free "
+            "'theta_dot' instead (the tilt rate that takes the top off the pole), or give a "
+            "small non-zero tilt guess."
+        )
+    if "theta_dot" in free and np.any(at_pole & (launch["theta_dot"] == 0)):
+        raise ValueError(
+            "'theta_dot' is free and the guess sits at a pole with theta_dot = 0, from which a "
+            "model top never leaves; give the guess a non-zero tilt rate."
+        )
+    if "spin" in free and np.any(launch["spin"] == 0):
+        raise ValueError("'spin' is free but the guess has zero spin: give a non-zero guess "
+                         "(its sign is kept; theta alone cannot tell the spin's direction).")
+    if "A" in free and np.any(fields["A"] / fields["C"] <= 0.5):
+        raise ValueError("'A' is free but the guess has A/C = 1/2: give A/C > 1/2.")
+    if "C" in free and "A" not in free and np.any(fields["C"] >= 2 * fields["A"]):
+        raise ValueError("'C' is free but the guess has C >= 2A, which no rigid body has.")
+    return fields, launch
+
+
+def _nutation_period(fields, launch) -> float:
+    """The fast nutation's period of the guess, 2 pi A / (C |n|) (the fast-top limit)."""
+    period = 2 * np.pi * np.asarray(fields["A"]) / (
+        np.asarray(fields["C"]) * np.maximum(np.abs(np.asarray(launch["spin"])), 1e-6)
+    )
+    return float(np.max(period))
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+def fit(
+    top_guess: TippeTop,
+    y0_guess: State,
+    ts: ArrayLike,
+    theta_obs: ArrayLike,
+    *,
+    free: Sequence[str] = ("mu", "eps", "spin"),
+    phi_obs: ArrayLike | None = None,
+    model: Literal["full", "so3", "routhian"] = "full",
+    method: Literal["levenberg_marquardt", "gauss_newton", "adam"] = "levenberg_marquardt",
+    strategy: Literal["global", "levels", "windows", "plain"] = "global",
+    t0: float | None = None,
+    weights: ArrayLike | None = None,
+    sigma: float | None = None,
+    max_steps: int = 200,
+    tol: float = 1e-6,
+    rtol: float = 1e-10,
+    atol: float = 1e-12,
+    solver: diffrax.AbstractSolver | None = None,
+    sim_max_steps: int = 100_000,
+    learning_rate: float = 0.02,
+    trim: bool = False,
+) -> FitResult:
+    r"""Fit free parameters of the top and its launch to a measured tilt $\theta(t_k)$.
+
+    **Arguments:**
+
+    - `top_guess`: a `TippeTop`; its fields give the fixed parameters and the starting guess.
+    - `y0_guess`: the `State` at time `t0` (see `initial_state`); gives the launch quantities.
+      Any valid state, including one at a pole (an upright top with a tilt rate: free
+      `theta_dot` then, not `theta0`). When no launch quantity is free it is simulated as
+      given.
+    - `ts`: the observation times in seconds (strictly increasing, finite), shape `(N,)`.
+    - `theta_obs`: the measured tilt in radians, shape `(N,)`, or `(batch, N)` to fit several
+      recordings at once (vmapped: one compilation; the batch steps together). **NaN marks a
+      missing sample**, which is left out of the loss.
+    - `free`: a sequence of names of the parameters to fit: top fields `m, R, eps, A, C, g,
+      mu` and launch quantities `theta0, spin, theta_dot, phi_dot, vx, vy`. The spin keeps
+      the sign of its guess (theta alone cannot tell its direction). Nothing else is fitted:
+      a launch tilt that is not free is held at the guess's exactly, so free `theta0` unless
+      it is known.
+    - `phi_obs`: optional precession angle (rad; differences are wrapped), weighted by
+      $\sin\theta^{obs}$, NaN masked.
+    - `model`: level of model to fit with, `"full"`, `"so3"` or `"routhian"`.
+    - `method`: `"levenberg_marquardt"` (default; `optimistix.LevenbergMarquardt`),
+      `"gauss_newton"` or `"adam"` (`optax.adam` at `learning_rate`).
+    - `strategy`: `"global"` (default: a global search for starts, then the slow observables,
+      growing windows and the whole record; see the module docstring), `"levels"` (the same
+      from the guess alone), `"windows"` (growing windows from the guess) or `"plain"` (the
+      whole record at once).
+    - `t0`: time of `y0_guess` (default `ts[0]`; must be `<= ts[0]`).
+    - `weights`: optional non-negative weight per sample (e.g. `1/sigma_k^2`).
+    - `sigma`: the noise of `theta_obs` (rad), if known: the diagnostics then also test the
+      residuals' level against it.
+    - `max_steps`: optimiser steps per optimisation. `tol`: the optimiser's relative and
+      absolute tolerance in the final stage.
+    - `rtol`, `atol`, `solver`, `sim_max_steps`: passed to `simulate` in the final stage and
+      for the statistics (the intermediate stages simulate at `rtol` 1e-7 unless `rtol` is
+      looser, the global search at 1e-6). The default 1e-10 keeps the integration error below
+      a tenth of noise/sqrt(N) for the records of `benchmarks/fitting.py`, where 1e-8 did not
+      for a quarter of them.
+    - `trim`: for a record whose end the model does not describe (a real top whose stem
+      lands), fit again on the part it describes (`describes_until`, found by a windowed
+      chi-square test at a false-alarm rate of 1e-3), until that moves by less than 2% of the
+      record (at most 4 fits). Off by default: a record the model describes is never trimmed
+      then, and a record it does not describe is flagged (`local_minimum`).
+
+    **Returns:** a `FitResult`, with standard errors from the Gauss-Newton covariance
+    $s^2 (J^\top J)^{-1}$, $s^2 = \mathrm{RSS}/(N - p)$, and diagnostics of the residuals
+    (`runs_z`, `describes_until`); `converged` is True only when the residuals pass them.
+    """
+    free = _check_options(free, model, method, strategy, max_steps, tol, sigma)
+    ts_np = _as_1d_times(ts)
+    n = ts_np.size
+    obs = _observations("theta_obs", theta_obs, n)
+    batch = obs.shape[0] if obs.ndim == 2 else None
+    obs2 = obs.reshape(-1, n)
+    phi2 = None
+    if phi_obs is not None:
+        phi_arr = _observations("phi_obs", phi_obs, n)
+        if phi_arr.shape != obs.shape:
+            raise ValueError(f"phi_obs has shape {phi_arr.shape}, theta_obs {obs.shape}.")
+        phi2 = phi_arr.reshape(-1, n)
+    if weights is None:
+        w2 = np.ones_like(obs2)
+    else:
+        w = np.broadcast_to(np.asarray(weights, dtype=float), obs.shape).reshape(-1, n)
+        if np.any(~np.isfinite(w)) or np.any(w < 0):
+            raise ValueError("weights must be finite and non-negative.")
+        w2 = w.copy()
+    mask2 = np.isfinite(obs2) & (w2 > 0)
+    for b in range(obs2.shape[0]):
+        if mask2[b].sum() <= len(free):
+            raise ValueError(
+                f"Recording {b} has {mask2[b].sum()} usable samples (not NaN) for "
+                f"{len(free)} free parameters; a fit needs more samples than parameters."
+            )
+    t0 = float(ts_np[0]) if t0 is None else float(t0)
+    if not t0 <= ts_np[0]:
+        raise ValueError(f"t0 = {t0} must not be later than the first observation ts[0] = {ts_np[0]}.")
+    fields, launch = _check_guess(top_guess, y0_guess, free, batch)
+    if not isinstance(trim, bool):
+        raise ValueError(f"trim must be True or False, got {trim!r}.")
+
+    setup = _setup(top_guess, y0_guess, ts_np, obs2, mask2, w2, phi2, fields, launch, t0,
+                   free=free, model=model, method=method, max_steps=max_steps, tol=tol,
+                   rtol=rtol, atol=atol, solver=solver, sim_max_steps=sim_max_steps,
+                   learning_rate=learning_rate, batched=batch is not None)
+    search, stages = STRATEGIES[strategy]
+    out = _fit_starts(setup, search, stages, obs2, sigma)
+    span = ts_np[-1] - ts_np[0]
+    ends = np.full(setup.bsize, ts_np[-1])
+    if trim:
+        for _ in range(_TRIM_ROUNDS - 1):
+            new_ends = np.where(np.isfinite(out["describes"]),
+                                np.maximum(out["describes"], ts_np[0] + 0.1 * span), ends)
+            if np.all(np.abs(new_ends - ends) <= 0.02 * span):
+                break
+            ends = new_ends
+            setup.fitted = ts_np[None, :] <= ends[:, None]
+            out = _fit_starts(setup, search, stages, obs2, sigma)
+    return _result(out, setup, obs2, ends, batch, free, model, method, strategy)
+
+
+def _setup(top_guess, y0_guess, ts_np, obs2, mask2, w2, phi2, fields, launch, t0, *, free,
+           model, method, max_steps, tol, rtol, atol, solver, sim_max_steps, learning_rate,
+           batched) -> Setup:
+    dtype = jnp.result_type(top_guess.m)
+    bsize, n = obs2.shape
+    band, grid = smoother(ts_np, _nutation_period(fields, launch))
+    smooth_obs = np.stack([smooth_numpy(obs2[b], mask2[b].astype(float), band) for b in range(bsize)])
+    ladders = [ladder(smooth_obs[b], grid) for b in range(bsize)]
+    rises = np.array([lad[2] for lad in ladders])
+
+    def per_rec(x):  # a field of the guess: scalar or (batch,)
+        x = np.asarray(x, dtype=float)
+        return jnp.asarray(np.broadcast_to(x, (bsize,)), dtype)
+
+    state = jax.tree_util.tree_map(
+        lambda x: jnp.asarray(np.broadcast_to(np.asarray(x), (bsize,) + np.shape(x)[-1:]), dtype),
+        y0_guess,
+    ) if batched else jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype)[None], y0_guess)
+    base = Base(
+        top={f: per_rec(v) for f, v in fields.items()},
+        launch={k: per_rec(v) for k, v in launch.items()},
+        state=state,
+    )
+    # Arrays padded to a bucket length (padding: the last time, weight and mask 0), so that
+    # records of similar lengths share one compilation.
+    size = bucket(n)
+    ts_pad = np.concatenate([ts_np, np.full(size - n, ts_np[-1])])
+
+    def pad(x):
+        return np.concatenate([x, np.zeros((bsize, size - n))], -1)
+
+    index, weight = band
+    band_size = bucket(index.shape[1])
+    index = np.concatenate([index, np.zeros((index.shape[0], band_size - index.shape[1]), int)], 1)
+    weight = np.concatenate([weight, np.zeros((weight.shape[0], band_size - weight.shape[1]))], 1)
+    band = (index, weight)
+    zeros = np.zeros((bsize, size))
+    template = Data(
+        base=base,
+        ts=jnp.asarray(np.broadcast_to(ts_pad, (bsize, size)), dtype),
+        t0=per_rec(t0),
+        t_end=per_rec(ts_np[-1]),
+        theta_obs=jnp.asarray(pad(np.where(mask2, obs2, 0.0)), dtype),
+        weights=jnp.asarray(zeros, dtype),
+        mask=jnp.asarray(pad(mask2.astype(float)), dtype),
+        phi_obs=jnp.asarray(pad(np.nan_to_num(phi2)) if phi2 is not None else zeros, dtype),
+        phi_weights=jnp.asarray(zeros, dtype),
+        smoother_index=jnp.asarray(np.broadcast_to(band[0], (bsize,) + band[0].shape)),
+        smoother_weight=jnp.asarray(np.broadcast_to(band[1], (bsize,) + band[1].shape), dtype),
+        grid=jnp.asarray(np.broadcast_to(grid, (bsize,) + grid.shape), dtype),
+        smooth_obs=jnp.asarray(smooth_obs, dtype),
+        envelope_weight=per_rec(0.0),
+        levels=jnp.asarray(np.stack([lad[0] for lad in ladders]), dtype),
+        t_levels=jnp.asarray(np.stack([lad[1] for lad in ladders]), dtype),
+        level_weight=per_rec(0.0),
+        rtol=per_rec(rtol),
+        atol=per_rec(atol),
+        tol=per_rec(tol),
+    )
+    if not batched:
+        template = jax.tree_util.tree_map(lambda x: x[0], template)
+    cfg = Config(
+        free=free, model=model, method=method, max_steps=int(max_steps),
+        sim_max_steps=int(sim_max_steps), has_phi=phi2 is not None, solver=solver,
+        learning_rate=float(learning_rate),
+    )
+    return Setup(ts=ts_np, mask=mask2, weights=w2, phi=phi2, rises=rises, template=template,
+                 cfg=cfg, batched=batched, tol=float(tol), rtol=float(rtol))
+
+
+def _refine(u, setup, stages):
+    histories, counts, code = [], [], None
+    for stage in stages:
+        run = stage.run(u, setup)
+        u, code = run.u, run.code
+        histories += run.histories
+        counts += run.counts
+    return u, histories, counts, code
+
+
+def _judge(out, setup, obs2, sigma):
+    """Diagnostics of each record's residuals over the samples the fit used."""
+    theta_fit = np.asarray(out["theta_fit"]).reshape(obs2.shape[0], -1)[:, : obs2.shape[1]]
+    residuals = theta_fit - obs2
+    verdicts = []
+    for b in range(setup.bsize):
+        used = setup.mask[b] & setup.fitted[b]
+        r = np.where(used, residuals[b], np.nan)
+        verdicts.append(diagnostics.describes(r, setup.ts, sigma))
+    return residuals, verdicts
+
+
+def _fit_starts(setup, search, stages, obs2, sigma):
+    """Refine the starts in turn until every record has a fit whose residuals pass."""
+    p = len(setup.cfg.free)
+    u0 = jnp.zeros((setup.bsize, p) if setup.batched else (p,), jnp.result_type(float))
+    starts = u0[None] if search is None else search.starts(u0, setup)
+    best = None
+    total_steps = np.zeros(setup.bsize, int)
+    for s in range(starts.shape[0]):
+        u, histories, counts, code = _refine(starts[s], setup, stages)
+        out = setup.finish(u, code, setup.data(tol=setup.tol))
+        residuals, verdicts = _judge(out, setup, obs2, sigma)
+        steps = np.asarray(sum(jnp.asarray(c) for c in counts)).reshape(-1)
+        total_steps = total_steps + steps
+        hist = _pack(histories, counts, setup.bsize, setup.cfg.max_steps)
+        loss = np.asarray(out["loss"]).reshape(-1)
+        cand = dict(out=out, residuals=residuals, verdicts=verdicts, history=hist, loss=loss,
+                    starts=np.full(setup.bsize, s + 1))
+        best = cand if best is None else _better(best, cand, setup.bsize)
+        if all(v["passes"] for v in best["verdicts"]):
+            break
+    best["num_steps"] = total_steps
+    best["describes"] = np.array([v["describes_until"] for v in best["verdicts"]])
+    return best
+
+
+def _better(a, b, bsize):
+    """Per record, the fit that passes the diagnostics, else the one with the lower loss."""
+
+    def score(c, i):
+        return (not c["verdicts"][i]["passes"], c["loss"][i])
+
+    pick = np.array([score(b, i) < score(a, i) for i in range(bsize)])
+    if not pick.any():
+        a["starts"] = np.where(True, b["starts"], a["starts"])
+        return a
+    if pick.all():
+        return b
+    take = lambda x, y: jnp.where(  # noqa: E731
+        jnp.asarray(pick).reshape((bsize,) + (1,) * (jnp.ndim(x) - 1)), y, x
+    )
+    out = jax.tree_util.tree_map(take, a["out"], b["out"])
+    return dict(
+        out=out,
+        residuals=np.where(pick[:, None], b["residuals"], a["residuals"]),
+        verdicts=[b["verdicts"][i] if pick[i] else a["verdicts"][i] for i in range(bsize)],
+        history=np.where(pick[:, None], b["history"], a["history"]),
+        loss=np.where(pick, b["loss"], a["loss"]),
+        starts=b["starts"],
+    )
+
+
+def _pack(histories, counts, bsize, max_steps):
+    """Each optimisation's losses one after the other, nan-padded to a fixed length."""
+    hist = np.asarray(jnp.concatenate(histories, axis=-1)).reshape(bsize, len(histories), max_steps)
+    cnt = np.asarray(jnp.stack([jnp.asarray(c) for c in counts], -1)).reshape(bsize, -1)
+    packed = np.full((bsize, len(histories) * max_steps), np.nan)
+    for b in range(bsize):
+        row = np.concatenate([hist[b, s, : cnt[b, s]] for s in range(len(histories))])
+        packed[b, : row.size] = row
+    return packed
+
+
+def _result(best, setup, obs2, ends, batch, free, model, method, strategy) -> FitResult:
+    out = best["out"]
+    bsize, n = obs2.shape
+    verdicts = best["verdicts"]
+    residuals = best["residuals"]
+    passes = np.array([v["passes"] for v in verdicts])
+    code = out["result"]
+    code = FIT_RESULTS.where(
+        jnp.asarray(~passes if batch is not None else ~passes[0]) & (code == FIT_RESULTS.successful),
+        FIT_RESULTS.local_minimum,
+        code,
+    )
+    mask = setup.mask
+    whole = np.where(mask, residuals, np.nan)
+    rms = np.sqrt(np.nanmean(whole**2, axis=-1))
+    ts_out = np.broadcast_to(setup.ts, (bsize, n))
+    per = dict(
+        rms=rms,
+        rms_fitted=np.array([v["rms"] for v in verdicts]),
+        noise=np.array([v["noise"] for v in verdicts]),
+        runs_z=np.array([v["runs_z"] for v in verdicts]),
+        describes_until=best["describes"],
+        fitted_until=ends,
+        num_steps=best["num_steps"],
+        starts=best["starts"],
+    )
+    arrays = dict(residuals=whole, theta_obs=np.where(mask, obs2, np.nan), ts=ts_out,
+                  loss_history=best["history"])
+    dtype = out["values"].dtype
+    if batch is None:
+        per = {k: v[0] for k, v in per.items()}
+        arrays = {k: v[0] for k, v in arrays.items()}
+    out = dict(out)
+    for k in ("theta_fit", "phi_fit"):
+        out[k] = out[k][..., :n]
+    phi_res = jnp.full_like(out["phi_fit"], jnp.nan)
+    if setup.phi is not None:
+        dphi = np.asarray(out["phi_fit"]).reshape(obs2.shape) - setup.phi
+        wrapped = np.arctan2(np.sin(dphi), np.cos(dphi))
+        phi_res = jnp.asarray(wrapped if batch is not None else wrapped[0], dtype)
+    return FitResult(
+        top=out["top"], y0=out["y0"], values=out["values"], std_errors=out["std_errors"],
+        covariance=out["covariance"], correlation=out["correlation"],
+        loss_history=jnp.asarray(arrays["loss_history"], dtype),
+        ts=jnp.asarray(arrays["ts"], dtype), theta_obs=jnp.asarray(arrays["theta_obs"], dtype),
+        theta_fit=out["theta_fit"], residuals=jnp.asarray(arrays["residuals"], dtype),
+        rms=jnp.asarray(per["rms"], dtype), rms_fitted=jnp.asarray(per["rms_fitted"], dtype),
+        noise=jnp.asarray(per["noise"], dtype), runs_z=jnp.asarray(per["runs_z"], dtype),
+        describes_until=jnp.asarray(per["describes_until"], dtype),
+        fitted_until=jnp.asarray(per["fitted_until"], dtype),
+        phi_fit=out["phi_fit"], phi_residuals=phi_res,
+        converged=code == FIT_RESULTS.successful, result=code,
+        num_steps=jnp.asarray(per["num_steps"]), starts=jnp.asarray(per["starts"]),
+        free=free, model=model, method=method, strategy=strategy,
+    )
+
+
+__all__ = ["fit", "METHODS", "FIT_MODELS", "LAUNCH_FIELDS", "TOP_FIELDS"]

@@ -1,0 +1,220 @@
+r"""The least-squares problem of a fit: data, settings and residuals.
+
+The residual vector of a trial $p$ stacks up to four parts, each switched on by a weight of the
+stage that runs (`Data`):
+
+1. the tilt, $\sqrt{w_k}\,(\theta(t_k; p) - \theta^{obs}_k)$ on the samples of the stage's
+   window;
+2. the precession angle (if given), $\sqrt{w^\varphi_k}\,\sin\theta^{obs}_k\,
+   \mathrm{wrap}(\varphi(t_k; p) - \varphi^{obs}_k)$;
+3. the envelope: the kernel-smoothed tilt of the model minus that of the data on a uniform
+   grid, $\sqrt{w_e/G}\,(\bar\theta(g_j; p) - \bar\theta^{obs}(g_j))$, the kernel wider than a
+   nutation period, so the nutation's phase does not enter;
+4. level times: the first times $T_l(p)$ at which the smoothed tilt crosses a ladder of levels,
+   $w_l (T_l(p) - T^{obs}_l)/\tau$ with $\tau$ = 0.05 s. A shift of the inversion by 1 s is a
+   residual of 1 s, not a plateau, so these are nearly linear in the parameters far from the
+   optimum.
+
+A save time at which the trial's simulation has stopped (contact lost, the $R_n$ singularity,
+max steps), or that lies after a loss of contact, gets the finite residual `FAILED_RESIDUAL`
+($\pi$), so such a trial has a large loss and is rejected, never a NaN.
+"""
+
+from __future__ import annotations
+
+import math
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float, Int
+
+from .._simulate import simulate
+from .params import TOP_FIELDS, Base, assemble, physical
+
+NUM_LEVELS = 12
+FAILED_RESIDUAL = math.pi
+LEVEL_TIME_SCALE = 0.05  # s: level-crossing residuals are divided by this
+
+
+class Config(eqx.Module):
+    """Static settings of one fit (hashable: one compilation per configuration)."""
+
+    free: tuple[str, ...]
+    model: str
+    method: str
+    max_steps: int
+    sim_max_steps: int
+    has_phi: bool
+    solver: diffrax.AbstractSolver | None
+    learning_rate: float
+
+
+class Data(eqx.Module):
+    """Everything a stage needs that is an array (batched along with the recording)."""
+
+    base: Base
+    ts: Float[Array, " N"]
+    t0: Float[Array, ""]
+    t_end: Float[Array, ""]
+    theta_obs: Float[Array, " N"]  # 0 where masked
+    weights: Float[Array, " N"]  # 0 where masked or outside the window
+    mask: Float[Array, " N"]  # 1 where a sample exists (for the smoothing), whatever the stage
+    phi_obs: Float[Array, " N"]
+    phi_weights: Float[Array, " N"]
+    smoother_index: Int[Array, "G M"]  # samples near each grid point (a band of the kernel)
+    smoother_weight: Float[Array, "G M"]  # their Gaussian weights (0 for padding)
+    grid: Float[Array, " G"]
+    smooth_obs: Float[Array, " G"]  # the data's smoothed tilt on the grid
+    envelope_weight: Float[Array, ""]
+    levels: Float[Array, " L"]
+    t_levels: Float[Array, " L"]
+    level_weight: Float[Array, ""]
+    rtol: Float[Array, ""]
+    atol: Float[Array, ""]
+    tol: Float[Array, ""]  # the optimiser's tolerance in this stage
+
+
+def simulated(values, data: Data, cfg: Config):
+    """The trial's simulation at the data's times (theta nan if a value is not finite)."""
+    # A trial with a non-finite value (an optimiser step that overflowed) runs the guess
+    # instead, and all its samples are marked failed: simulate must not see a NaN state.
+    finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(v)) for v in values.values()]))
+    guess = {k: data.base.top[k] if k in TOP_FIELDS else data.base.launch[k] for k in values}
+    safe = {k: jnp.where(finite, v, guess[k]) for k, v in values.items()}
+    top, y0 = assemble(safe, data.base)
+    saves = jnp.minimum(data.ts, data.t_end)
+    sol = simulate(
+        top, y0, data.t_end, t0=data.t0, saveat=saves, model=cfg.model, rtol=data.rtol,
+        atol=data.atol, solver=cfg.solver, max_steps=cfg.sim_max_steps, throw=False,
+        adjoint=diffrax.ForwardMode(), on_contact_loss="continue",
+    )
+    return eqx.tree_at(lambda s: s.theta, sol, jnp.where(finite, sol.theta, jnp.nan))
+
+
+def first_crossings(smooth, grid, levels):
+    """Differentiable first time `smooth` (sampled on `grid`) reaches each level."""
+
+    def one(level):
+        above = smooth >= level
+        k = jnp.maximum(jnp.argmax(above), 1)
+        lo, hi = smooth[k - 1], smooth[k]
+        frac = jnp.clip((level - lo) / jnp.where(hi > lo, hi - lo, 1.0), 0.0, 1.0)
+        t_hit = grid[k - 1] + frac * (grid[k] - grid[k - 1])
+        # Never reached: past the end by the missing height, at the mean rate pi per record.
+        t_miss = grid[-1] + (level - jnp.max(smooth)) * (grid[-1] - grid[0]) / jnp.pi
+        return jnp.where(jnp.any(above), t_hit, t_miss)
+
+    return jax.vmap(one)(levels)
+
+
+def smoothed(y, mask, index, weight):
+    """Kernel regression onto the grid: sum_k w_gk m_k y_k / sum_k w_gk m_k over the band."""
+    numerator = jnp.sum(weight * (mask * y)[index], axis=-1)
+    return numerator / jnp.maximum(jnp.sum(weight * mask[index], axis=-1), 1e-300)
+
+
+def residuals_of_values(values, data: Data, cfg: Config):
+    """The stacked residual vector of a trial (physical values) and its simulation."""
+    sol = simulated(values, data, cfg)
+    theta = sol.theta
+    finite = jnp.isfinite(theta)
+    theta_safe = jnp.where(finite, theta, 0.0)
+    # Past a contact loss the hard-table model does not hold: those samples get the failure
+    # residual. The run itself goes on (on_contact_loss="continue") with the same equations, so
+    # the level-crossing times below stay smooth functions of the parameters through the loss.
+    lost = sol.ts > sol.t_contact_loss  # False when contact is never lost (nan)
+    ok = finite & ~lost
+    used = data.weights > 0
+    r = jnp.where(used, jnp.where(ok, theta_safe - data.theta_obs, FAILED_RESIDUAL), 0.0)
+    parts = [jnp.sqrt(data.weights) * r]
+    if cfg.has_phi:
+        phi = jnp.where(ok, sol.phi, 0.0)
+        dphi = jnp.arctan2(jnp.sin(phi - data.phi_obs), jnp.cos(phi - data.phi_obs))
+        used_phi = data.phi_weights > 0
+        rphi = jnp.where(used_phi, jnp.where(ok, dphi, FAILED_RESIDUAL), 0.0)
+        parts.append(jnp.sqrt(data.phi_weights) * jnp.sin(data.theta_obs) * rphi)
+    # Slow observables of the smoothed tilt (a failed sample counts as the failure value).
+    theta_slow = jnp.where(ok, theta_safe, FAILED_RESIDUAL)
+    smooth = smoothed(theta_slow, data.mask, data.smoother_index, data.smoother_weight)
+    grid_size = data.grid.shape[-1]
+    parts.append(jnp.sqrt(data.envelope_weight / grid_size) * (smooth - data.smooth_obs))
+    t_cross = first_crossings(smooth, data.grid, data.levels)
+    parts.append(data.level_weight * (t_cross - data.t_levels) / LEVEL_TIME_SCALE)
+    return jnp.concatenate(parts), sol
+
+
+def residuals(u, data: Data, cfg: Config):
+    r = residuals_of_values(physical(u, data.base, cfg.free), data, cfg)[0]
+    return r.astype(u.dtype)  # the optimiser works in its own precision
+
+
+def value_and_jacobian(u, data, cfg):
+    """Residuals and their Jacobian in one forward-mode pass (primal plus p tangents)."""
+    jac, value = jax.jacfwd(lambda v: (residuals(v, data, cfg),) * 2, has_aux=True)(u)
+    return value, jac
+
+
+def residual_fn(cfg: Config):
+    """The residual function for optimistix: a custom JVP so that `jax.linearize` keeps the
+    Jacobian as a matrix (one solve per step) instead of re-running the ODE per product."""
+
+    @jax.custom_jvp
+    def fn(u, data):
+        return residuals(u, data, cfg)
+
+    @fn.defjvp
+    def _jvp(primals, tangents):
+        u, data = primals
+        value, jac = value_and_jacobian(u, data, cfg)
+        return value, jac @ tangents[0]
+
+    return fn
+
+
+# ---------------------------------------------------------------------------------------------
+# Set-up in numpy: the smoother and the level ladder.
+
+
+def smoother(ts: np.ndarray, nutation_period: float):
+    """A Gaussian kernel from the data times onto a uniform grid, as a band: for each grid point
+    the indices of the samples within 4 kernel widths and their weights (memory G x M, with M
+    the most samples in one band, not G x N).
+
+    The kernel is wider than 2.5 nutation periods (so that it averages the nutation out), than
+    4 sample spacings and than 1/80 of the record."""
+    span = ts[-1] - ts[0]
+    width = max(span / 80.0, 4.0 * float(np.median(np.diff(ts))), 2.5 * nutation_period)
+    width = min(width, span / 8.0)
+    from .setup import bucket  # grid sizes in buckets too: fewer compilations
+
+    num = bucket(int(min(max(np.ceil(4 * span / width) + 1, 50), 1500)))
+    grid = np.linspace(ts[0], ts[-1], num)
+    lo = np.searchsorted(ts, grid - 4 * width, side="left")
+    hi = np.searchsorted(ts, grid + 4 * width, side="right")
+    band = int(np.max(hi - lo))
+    index = np.minimum(lo[:, None] + np.arange(band)[None, :], ts.size - 1)
+    inside = (lo[:, None] + np.arange(band)[None, :]) < hi[:, None]
+    weight = np.where(inside, np.exp(-0.5 * ((grid[:, None] - ts[index]) / width) ** 2), 0.0)
+    return (index, weight), grid
+
+
+def smooth_numpy(theta: np.ndarray, mask: np.ndarray, band) -> np.ndarray:
+    index, weight = band
+    y = mask * np.nan_to_num(theta)
+    return np.sum(weight * y[index], -1) / np.maximum(np.sum(weight * mask[index], -1), 1e-300)
+
+
+def ladder(smooth: np.ndarray, grid: np.ndarray):
+    """Levels between the smoothed start and maximum, and the data's first crossing times.
+
+    Returns the levels, their times and whether the record rises enough (0.3 rad) to use them.
+    """
+    start, top = smooth[0], smooth.max()
+    rises = top - start > 0.3
+    lo, hi = start + 0.1 * (top - start), top - 0.1 * (top - start)
+    levels = np.linspace(lo, hi, NUM_LEVELS) if rises else np.zeros(NUM_LEVELS)
+    times = np.asarray(first_crossings(jnp.asarray(smooth), jnp.asarray(grid), jnp.asarray(levels)))
+    return levels, times, rises

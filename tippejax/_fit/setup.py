@@ -1,0 +1,190 @@
+"""The numpy side of a fit: one record (or a batch) and its settings, and the compiled runs.
+
+`Setup` builds the `Data` of each optimisation (which samples, which slow observables, which
+tolerance) and runs the compiled functions: an optimisation (`optimise`), the losses of many
+starting points at once (`losses`) and the statistics at the end (`finish`). Each compiles
+once per configuration (`Config`) and shape, whatever the stage.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .optimise import optimise
+from .params import physical
+from .problem import NUM_LEVELS, Config, Data, residuals, residuals_of_values, value_and_jacobian
+from .result import FIT_RESULTS
+
+# Weight of the envelope residuals: an rms error of 0.05 rad in the smoothed tilt weighs as
+# much as errors of 0.05 s in all the level times.
+ENVELOPE_WEIGHT = NUM_LEVELS / 0.05**2
+STAGE_TOL = 1e-4  # optimiser tolerance of the intermediate stages (the last one uses `tol`)
+SEARCH_RTOL = 1e-6  # simulation tolerance of the global search (it ranks, it does not fit)
+STAGE_RTOL = 1e-7  # simulation tolerance of intermediate stages, unless `rtol` is looser
+
+
+def bucket(n: int) -> int:
+    """The size that `n` is padded to: the next of 2^k and 3 x 2^(k-1), so that records of
+    similar lengths share one compilation (at most a third of the work is padding)."""
+    size = 16
+    while size < n:
+        size = size * 3 // 2 if size & (size - 1) == 0 else size * 4 // 3
+    return size
+
+
+class Setup:
+    """One fit's data in numpy (shape `(bsize, N)`) and the template of its `Data`."""
+
+    def __init__(self, *, ts, mask, weights, phi, rises, template: Data, cfg: Config,
+                 batched: bool, tol: float, rtol: float):
+        self.ts = ts
+        self.n = ts.size
+        self.mask = mask  # (bsize, N) bool: a usable sample
+        self.w = weights  # (bsize, N)
+        self.phi = phi  # (bsize, N) or None
+        self.rises = rises  # (bsize,) bool
+        self.bsize = mask.shape[0]
+        self.template = template
+        self.cfg = cfg
+        self.batched = batched
+        self.tol = tol
+        self.rtol = rtol
+        self.fitted = np.ones_like(mask)  # the samples a fit may use (trim shortens it)
+        self.padded = template.ts.shape[-1]  # the data arrays' length (a bucket, >= n)
+
+    def pad(self, x: np.ndarray) -> np.ndarray:
+        """`x` of shape (bsize, n) padded with zeros to the bucket length."""
+        return np.concatenate([x, np.zeros(x.shape[:-1] + (self.padded - self.n,), x.dtype)], -1)
+
+    def data(self, *, window_end=None, theta=True, slow=0.0, tol=STAGE_TOL, rtol=None,
+             final=False) -> Data:
+        """`Data` for one optimisation: tilt samples up to `window_end` (all if None; none if
+        `theta` is False) and the slow observables with weight `slow` (per record or scalar).
+        The simulation runs at `rtol` if given, else at the fit's own `rtol` when `final`,
+        else at `STAGE_RTOL` (or the fit's, if looser)."""
+        ts, bsize = self.ts, self.bsize
+        use = self.mask & self.fitted
+        if window_end is not None:
+            use = use & (ts <= window_end + 1e-12)[None, :]
+        theta_mask = np.broadcast_to(np.asarray(theta, bool).reshape(-1, 1), use.shape)
+        w = np.where(use & theta_mask, self.w, 0.0)
+        dtype = self.template.theta_obs.dtype
+        pw = self.template.phi_weights
+        if self.phi is not None:
+            pw = np.where(np.isfinite(self.phi) & use & theta_mask, self.w, 0.0)
+        slow = np.broadcast_to(np.asarray(slow, float), (bsize,))
+        if rtol is None:
+            rtol = self.rtol if final else max(self.rtol, STAGE_RTOL)
+        fields = dict(
+            weights=self.pad(w),
+            phi_weights=self.pad(pw) if self.phi is not None else pw,
+            level_weight=slow * self.rises,
+            envelope_weight=slow * ENVELOPE_WEIGHT,
+            tol=np.full(bsize, max(tol, self.tol)),
+            rtol=np.full(bsize, rtol),
+        )
+        fields = {k: jnp.asarray(np.asarray(v), dtype) for k, v in fields.items()}
+        if not self.batched:
+            fields = {k: v[0] for k, v in fields.items()}
+        names = tuple(fields)
+        return eqx.tree_at(lambda d: tuple(getattr(d, k) for k in names), self.template,
+                           tuple(fields[k] for k in names))
+
+    def optimise(self, u, data: Data):
+        return _run_optimise(u, data, self.cfg, self.batched)
+
+    def losses(self, u, data: Data):
+        """Loss of each of the starting points `u` (shape `(K, *batch, p)`), in one batch."""
+        return _run_losses(u, data, self.cfg, self.batched)
+
+    def jacobian(self, u, data: Data):
+        """The Jacobian of the residuals at `u` (shape `(*batch, m, p)`)."""
+        return _run_jacobian(u, data, self.cfg, self.batched)
+
+    def nutation_cycles(self, spin_u):
+        """Number of fast-nutation cycles, C|n|/(2 pi A) x the record, at spin coordinates
+        `spin_u` (one per record)."""
+        base = self.template.base
+        spin = np.abs(np.asarray(base.launch["spin"])) * np.exp(np.asarray(spin_u))
+        period = 2 * np.pi * np.asarray(base.top["A"]) / (np.asarray(base.top["C"]) * spin)
+        return (self.ts[-1] - self.ts[0]) / period
+
+    def finish(self, u, code, data: Data):
+        return _run_finish(u, code, data, self.cfg, self.batched)
+
+
+@eqx.filter_jit
+def _run_optimise(u0, data, cfg, batched):
+    if batched:
+        return jax.vmap(lambda u, d: optimise(u, d, cfg))(u0, data)
+    return optimise(u0, data, cfg)
+
+
+@eqx.filter_jit
+def _run_jacobian(u, data, cfg, batched):
+    if batched:
+        return jax.vmap(lambda v, d: value_and_jacobian(v, d, cfg)[1])(u, data)
+    return value_and_jacobian(u, data, cfg)[1]
+
+
+@eqx.filter_jit
+def _run_losses(u, data, cfg, batched):
+    def loss(v, d):
+        r = residuals(v, d, cfg)
+        return 0.5 * jnp.sum(r**2)
+
+    if batched:
+        one_start = jax.vmap(loss)  # over recordings
+    else:
+        one_start = loss
+    return jax.vmap(lambda v: one_start(v, data))(u)
+
+
+def finish(u, code, data: Data, cfg: Config):
+    """Covariance and the fitted curve at the final coordinates (one record)."""
+    value, jac_u = value_and_jacobian(u, data, cfg)
+    values = physical(u, data.base, cfg.free)
+    dp_du = jax.jacfwd(lambda v: jnp.stack([physical(v, data.base, cfg.free)[n] for n in cfg.free]))(u)
+    n_used = jnp.sum(data.weights > 0) + (jnp.sum(data.phi_weights > 0) if cfg.has_phi else 0)
+    p = len(cfg.free)
+    rss = jnp.sum(value**2)
+    s2 = rss / jnp.maximum(n_used - p, 1)
+    # J_p = J_u (du/dp); Sigma = s2 (J_p^T J_p)^{-1} = s2 G (J_u^T J_u)^{-1} G^T with G = dp/du.
+    jtj = jac_u.T @ jac_u
+    scale = 1.0 / jnp.sqrt(jnp.maximum(jnp.diag(jtj), 1e-300))
+    inv_scaled = jnp.linalg.inv(scale[:, None] * jtj * scale[None, :])
+    cov_u = s2 * scale[:, None] * inv_scaled * scale[None, :]
+    cov = dp_du @ cov_u @ dp_du.T
+    std = jnp.sqrt(jnp.maximum(jnp.diag(cov), 0.0))
+    std = jnp.where(jnp.isfinite(std), std, jnp.inf)
+    corr = cov / (std[:, None] * std[None, :])
+    _, sol = residuals_of_values(values, data, cfg)
+    theta_fit = jnp.where(sol.ts > sol.t_contact_loss, jnp.nan, sol.theta)
+    phi_fit = jnp.where(jnp.isfinite(theta_fit), sol.phi, jnp.nan)
+    if not cfg.has_phi:
+        phi_fit = jnp.full_like(phi_fit, jnp.nan)
+    used = data.weights > 0
+    failed = jnp.any(used & ~jnp.isfinite(theta_fit))
+    from .params import assemble
+
+    top, y0 = assemble(values, data.base)
+    vector = jnp.stack([values[n] for n in cfg.free])
+    return dict(
+        top=top, y0=y0, values=vector, std_errors=std, covariance=cov, correlation=corr,
+        theta_fit=theta_fit, phi_fit=phi_fit, loss=0.5 * rss,
+        result=FIT_RESULTS.where(
+            jnp.all(jnp.isfinite(u)),
+            FIT_RESULTS.where(failed, FIT_RESULTS.simulation_failed, code),
+            FIT_RESULTS.optimiser_failed,  # (Gauss-Newton can accept a step to nan)
+        ),
+    )
+
+
+@eqx.filter_jit
+def _run_finish(u, code, data, cfg, batched):
+    if batched:
+        return jax.vmap(lambda v, c, d: finish(v, c, d, cfg))(u, code, data)
+    return finish(u, code, data, cfg)
