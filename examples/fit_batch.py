@@ -80,7 +80,7 @@ def main():
             print(f"[{b}] {name:5s} {t:10.5g} {start_values[name]:10.5g} {v:10.6g} {e:10.2g} "
                   f"{(v - t) / e:13.2f} {single:10.6g}")
         print(f"    rms {float(batch.rms[b]):.4g} rad, {int(batch.num_steps[b])} steps, "
-              f"{batch.message[b]} (loop: rms {float(singles[b].rms):.4g}, "
+              f"{batch.message()[b]} (loop: rms {float(singles[b].rms):.4g}, "
               f"{int(singles[b].num_steps)} steps)")
     print(f"\nwall time, 4 recordings at once (vmapped):  {wall_batch:6.1f} s (incl. compilation)")
     print(f"wall time, 4 fits in a loop:                {wall_loop:6.1f} s (incl. compilation; "

@@ -64,7 +64,7 @@ def main():
               f"{(value - true) / true:10.2e} {(value - true) / error:14.2f}")
     print(f"\nrms residual {float(result.rms):.4g} rad (noise {NOISE}); "
           f"describes until {float(result.describes_until):.3g} s of {DURATION:g} s; "
-          f"{int(result.num_steps)} optimiser steps; {result.message}")
+          f"{int(result.num_steps)} optimiser steps; {result.message()}")
     print(f"wall time of the fit: {wall:.1f} s (including compilation)")
 
     fig = fit_figure(result, title="Standard top, synthetic data (noise 0.01 rad): fit of "

@@ -115,6 +115,9 @@ def test_fit_recovers_mu_and_writes_outputs(fit_csv, tmp_path, capsys):
     assert "149 with theta" in text  # two samples missing
     assert "model:           full" in text and "describes until" in text
     assert "converged:       True" in text
+    # The launch tilt was not given: it is freed (from the smoothed start of the record).
+    assert "theta0" in text.split("fitting ")[1].splitlines()[0]
+    assert "over the whole record" in text
     assert (out / "fit.png").stat().st_size > 10_000
     table = np.genfromtxt(out / "fit.csv", delimiter=",", names=True)
     assert table.dtype.names == ("t", "theta_obs", "theta_fit", "residual")

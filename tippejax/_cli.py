@@ -242,8 +242,7 @@ def _cmd_demo(args) -> int:
 
 
 FIT_DEFAULT_SPIN = 100.0  # rad/s: launch spin guess of `tippejax fit`
-FIT_MIN_THETA0 = 0.02  # rad: the launch tilt guess is clipped to at least this (a top at a pole
-# does not rise, and `fit` refuses a guess at theta = 0)
+FIT_MIN_THETA0 = 0.02  # rad: the launch tilt guess from the data is at least this
 
 
 def _cell(text: str, column: str, row: int, path: str) -> float:
@@ -305,6 +304,17 @@ def read_fit_csv(path: str):
     theta = np.asarray(columns["theta"], dtype=float)
     phi = np.asarray(columns["phi"], dtype=float) if "phi" in columns else None
     return t, theta, phi
+
+
+def launch_tilt_guess(t, theta) -> float:
+    """A guess of the launch tilt from the record: the mean of the samples in its first 2% (at
+    least 5 samples), which averages the noise of one sample, kept away from the poles."""
+    import numpy as np
+
+    finite = np.isfinite(theta)
+    first = t[finite][:max(5, int(0.02 * finite.sum()))]
+    guess = float(np.mean(theta[finite][: first.size]))
+    return min(max(guess, FIT_MIN_THETA0), math.pi - FIT_MIN_THETA0)
 
 
 def fit_guess(args):
@@ -377,11 +387,15 @@ def _run_fit(args) -> int:
         raise ValueError(f"{args.data}: every theta sample is missing.")
     free = tuple(name.strip() for name in args.free.split(",") if name.strip())
     top = fit_guess(args)
-    first = float(theta[np.isfinite(theta)][0])
     theta0 = args.theta0
-    if theta0 is None:  # the first sample, away from the poles
-        theta0 = min(max(first, FIT_MIN_THETA0), math.pi - FIT_MIN_THETA0)
-    y0 = tj.initial_state(top, theta0, args.spin)
+    if theta0 is None:
+        # Not given: free it (unless --free leaves it out on purpose with --theta0), starting
+        # from the smoothed start of the record, away from the poles.
+        theta0 = launch_tilt_guess(t, theta)
+        if "theta0" not in free and args.theta_dot is None:
+            free = free + ("theta0",)
+    theta_dot = 0.0 if args.theta_dot is None else args.theta_dot
+    y0 = tj.initial_state(top, theta0, args.spin, theta_dot=theta_dot)
     n_used = int(np.isfinite(theta).sum())
     print(
         f"data: {args.data}: {t.size} samples from t = {t[0]:g} to {t[-1]:g} s "
@@ -391,7 +405,7 @@ def _run_fit(args) -> int:
         f"guess: m = {float(top.m):.4g} kg, R = {float(top.R):.4g} m, eps = {float(top.eps):.4g} m "
         f"(eps/R = {float(top.eps / top.R):.4g}), A/C = {float(top.A / top.C):.4g}, "
         f"mu = {float(top.mu):.4g} s/m; launch theta0 = {theta0:.4g} rad, "
-        f"spin = {args.spin:g} rad/s"
+        f"theta_dot = {theta_dot:g} rad/s, spin = {args.spin:g} rad/s"
     )
     print(
         f"fitting {', '.join(free) or '(nothing)'} (model {args.model}, "
@@ -400,7 +414,7 @@ def _run_fit(args) -> int:
     start = time.perf_counter()
     result = tj.fit(
         top, y0, t, theta, free=free, phi_obs=phi, model=args.model, method=args.method,
-        strategy=args.strategy, max_steps=args.max_steps,
+        strategy=args.strategy, max_steps=args.max_steps, sigma=args.sigma, trim=args.trim,
     )
     wall = time.perf_counter() - start
     print(result.table())
@@ -414,7 +428,10 @@ def _run_fit(args) -> int:
         note = (f"  (of {t[-1]:g} s: the model stops describing the data there; try --t-max or "
                 "another model)")
     print(f"describes until: {_fmt(describes, '.4g')} s{note}")
-    print(f"converged:       {bool(result.converged)} ({result.message})")
+    print(f"rms residual:    {float(result.rms):.4g} rad over the whole record, "
+          f"{float(result.rms_fitted):.4g} rad over the fitted part (to "
+          f"{float(result.fitted_until):.4g} s)")
+    print(f"converged:       {bool(result.converged)} ({result.message()})")
     print(f"wall time:       {wall:.1f} s (including compilation)")
     for path in write_fit_outputs(result, args.out):
         print(f"wrote {path}")
@@ -616,19 +633,27 @@ def _parser() -> argparse.ArgumentParser:
         "--mu", type=float, default=None, help="viscous friction coefficient (s/m), default 0.3"
     )
     guess.add_argument("--theta0", metavar="TH", type=float, default=None,
-                       help="launch tilt (rad) at the first time; default the first theta of the "
-                            f"data, at least {FIT_MIN_THETA0:g}")
+                       help="launch tilt (rad) at the first time, held fixed unless --free names "
+                            "theta0; default: free, starting from the mean of the record's first "
+                            f"samples (at least {FIT_MIN_THETA0:g})")
+    guess.add_argument("--theta-dot", dest="theta_dot", metavar="W", type=float, default=None,
+                       help="launch tilt rate (rad/s), default 0; for a top launched upright give "
+                            "--theta0 0 --theta-dot W and free theta_dot")
     guess.add_argument("--spin", metavar="N", type=float, default=FIT_DEFAULT_SPIN,
                        help=f"launch spin (rad/s), default {FIT_DEFAULT_SPIN:g}")
     p.add_argument("--model", default="full", choices=("full", "so3", "routhian"),
                    help="level of model to fit with (default full)")
-    p.add_argument("--strategy", default="levels", choices=STRATEGIES,
-                   help="fitting strategy (default levels: level-crossing times first, then "
-                        "the record)")
+    p.add_argument("--strategy", default="global", choices=tuple(STRATEGIES),
+                   help="fitting strategy (default global: a batch of starts ranked by the "
+                        "smoothed tilt, then the best refined until its residuals are noise)")
+    p.add_argument("--sigma", type=float, default=None,
+                   help="noise of theta (rad), if known: the residuals are tested against it")
+    p.add_argument("--trim", action="store_true",
+                   help="refit on the part of the record the model describes (a stem landing)")
     p.add_argument("--method", default="levenberg_marquardt", choices=METHODS,
                    help="optimiser (default levenberg_marquardt)")
     p.add_argument("--max-steps", dest="max_steps", metavar="K", type=int, default=200,
-                   help="optimiser steps per stage (default 200)")
+                   help="optimiser steps per optimisation (default 200)")
     p.add_argument("--t-max", dest="t_max", metavar="T", type=float, default=None,
                    help="use only the samples with t <= T (s): the part of the record the "
                         "model describes")

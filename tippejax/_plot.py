@@ -356,11 +356,16 @@ def fit_figure(result, *, title: str | None = None):
     values, errors = np.asarray(result.values), np.asarray(result.std_errors)
     rms = np.asarray(result.rms)
     describes = np.asarray(result.describes_until)
+    fitted_until = np.asarray(getattr(result, "fitted_until", ts[..., -1]))
+    rms_fitted = np.asarray(getattr(result, "rms_fitted", rms))
     batched = theta_obs.ndim == 2
     if batched:  # recording 0 only
         theta_obs, theta_fit, residuals = theta_obs[0], theta_fit[0], residuals[0]
         values, errors, rms, describes = values[0], errors[0], rms[0], describes[0]
+        fitted_until, rms_fitted = fitted_until[0], rms_fitted[0]
+        ts = ts[0] if ts.ndim == 2 else ts
     rms, describes = float(rms), float(describes)
+    fitted_until, rms_fitted = float(fitted_until), float(rms_fitted)
 
     fig, (ax, ax_res) = plt.subplots(
         2, 1, figsize=(8.0, 6.0), sharex=True, layout="constrained",
@@ -383,9 +388,14 @@ def fit_figure(result, *, title: str | None = None):
         ax.set_yticks(_POLE_TICKS, _POLE_LABELS)
     ax.legend(loc="best", fontsize=9, framealpha=0.9, markerscale=3)
 
+    if fitted_until < ts[-1]:  # trimmed: the part of the record the fit did not use
+        for axes in (ax, ax_res):
+            axes.axvspan(fitted_until, ts[-1], color="0.85", alpha=0.5, linewidth=0)
     if np.isfinite(rms):
-        ax_res.axhspan(-rms, rms, color="tab:red", alpha=0.15, linewidth=0,
-                       label=f"$\\pm$ rms = {rms:.3g} rad")
+        label = f"$\\pm$ rms = {rms:.3g} rad (whole record)"
+        if fitted_until < ts[-1]:
+            label += f"; {rms_fitted:.3g} rad fitted (t $\\leq$ {fitted_until:.3g} s)"
+        ax_res.axhspan(-rms, rms, color="tab:red", alpha=0.15, linewidth=0, label=label)
     ax_res.axhline(0.0, color="black", linewidth=0.6)
     ax_res.plot(ts, residuals, ".", color="0.3", markersize=2.0)
     ax_res.set_xlabel("$t$ (s)")
