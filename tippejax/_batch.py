@@ -10,6 +10,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import ArrayLike
 
+from ._cache import cacheable
 from ._engine.solver_choice import default_solver, is_traced
 from ._models.levels import LEVELS
 from ._simulate import simulate
@@ -240,7 +241,8 @@ def simulate_batch(
             )
         else:
             member_tops = top
-        parts.append(_batch_run(member_tops, launches, t1, kwargs))
+        with cacheable():  # every input was checked above, in Python
+            parts.append(_batch_run(member_tops, launches, t1, kwargs))
     if buckets == 1:
         sol = parts[0]
         back = None

@@ -12,21 +12,26 @@ process. It does nothing when:
   kept;
 - the directory cannot be created (read-only home): no cache, no error.
 
-`TIPPEJAX_COMPILATION_CACHE` may also name a directory, used instead of the default. Programs
-that compile in under 0.2 s are not stored unless the user set
-`JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS` (JAX's default, 1 s, would leave out the many
-small programs a first call also compiles). The cache only saves XLA compilation: tracing the
-Python functions again in each process still costs a fraction of a second.
+`TIPPEJAX_COMPILATION_CACHE` may also name a directory, used instead of the default. Every
+program is stored, however quick to compile, unless the user set
+`JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS` (JAX's default, 1 s, leaves out the many small
+programs a first call also compiles: about 1 s of a warm first `simulate`). The cache saves
+XLA compilation only: each process still traces the Python functions again (about 3 s for a
+first `simulate` on a loaded 2-core machine, `benchmarks/compile_cache.py`).
+
+JAX does not store programs with host callbacks, which every `eqx.error_if` is; see
+`cacheable` for how the solve is kept free of them.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 
 import jax
 
 _OFF = ("0", "false", "no", "off")
-MIN_COMPILE_TIME_SECS = 0.2
+MIN_COMPILE_TIME_SECS = 0.0
 
 
 def default_cache_dir() -> str:
@@ -50,3 +55,31 @@ def enable_compilation_cache() -> str | None:
     if "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in os.environ:
         jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_TIME_SECS)
     return path
+
+
+@contextlib.contextmanager
+def cacheable():
+    """Trace the enclosed jitted calls without equinox's runtime checks, so that the compiled
+    program can be stored in the persistent cache.
+
+    JAX does not store a program that holds a host callback, and every `eqx.error_if` is one.
+    The checks traced inside tippejax's solves are the libraries' own: diffrax checks that the
+    save times are ordered and within [t0, t1], optimistix that a bisection's bracket holds a
+    root. tippejax checks the save times itself before the solve (in Python when they are
+    concrete), and its root finds are bracketed by construction; failures of the solve are
+    reported through `RESULTS`, not through `error_if`. So while a cache directory is set these
+    library checks are compiled out of the solve (only of the solve: the checks of the inputs,
+    `TippeTop` and `initial_state`, stay). With the cache off (`TIPPEJAX_COMPILATION_CACHE=0`)
+    or with `EQX_ON_ERROR` set by the user, nothing changes.
+    """
+    import equinox._errors as errors
+
+    if not jax.config.jax_compilation_cache_dir or "EQX_ON_ERROR" in os.environ:
+        yield
+        return
+    old = errors.EQX_ON_ERROR
+    errors.EQX_ON_ERROR = "off"
+    try:
+        yield
+    finally:
+        errors.EQX_ON_ERROR = old

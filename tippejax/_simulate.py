@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike
 
+from ._cache import cacheable
 from ._engine.chain import run_chain
 from ._engine.solver_choice import (
     IMPLICIT_RATE,
@@ -335,13 +336,14 @@ def simulate(
         solver = default_solver(top, slow_flow=LEVELS[model].slow_flow)
     if adjoint is None:
         adjoint = diffrax.RecursiveCheckpointAdjoint()
-    out = _run(
-        top, y0, ts, jnp.asarray(t0, dtype), jnp.asarray(t1, dtype),
-        jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype),
-        level=LEVELS[model], solver=solver, guard_stiff=guard_stiff,
-        stop_on_contact=on_contact_loss == "stop", max_steps=int(max_steps), adjoint=adjoint,
-        progress=progress, samples=int(event_samples),
-    )
+    with cacheable():
+        out = _run(
+            top, y0, ts, jnp.asarray(t0, dtype), jnp.asarray(t1, dtype),
+            jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype),
+            level=LEVELS[model], solver=solver, guard_stiff=guard_stiff,
+            stop_on_contact=on_contact_loss == "stop", max_steps=int(max_steps),
+            adjoint=adjoint, progress=progress, samples=int(event_samples),
+        )
     if n_save is not None and out["ts"].shape[0] != n_save:
         for key in _SAVED:
             out[key] = jax.tree_util.tree_map(lambda x: x[:n_save], out[key])
@@ -355,7 +357,8 @@ def simulate(
         else:
             name = f"{model}(->{fallback} where t_chart_switch is finite)"
     theta_end, jellet_launch = out.pop("theta_end"), out.pop("jellet_launch")
-    outcome, settled = _outcome(top, jellet_launch, theta_end, out["result"])
+    with cacheable():
+        outcome, settled = _outcome(top, jellet_launch, theta_end, out["result"])
     sol = Solution(model=name, outcome=outcome, settled=settled, **out)
     if throw:
         sol = _raise_if_failed(sol, on_contact_loss, top)

@@ -193,7 +193,8 @@ def initial_state(
     dtype = jnp.result_type(top.m)
     raw = (theta, spin, theta_dot, phi_dot, phi, psi, vx, vy)
     names = ("theta", "spin", "theta_dot", "phi_dot", "phi", "psi", "vx", "vy")
-    if not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(raw)):
+    concrete = not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(raw))
+    if concrete:
         # Concrete values: say what is wrong in Python, before any jit.
         for name, value in zip(names, raw):
             try:
@@ -217,14 +218,15 @@ def initial_state(
                 f"vertical, in radians); got {bad:g}.{hint}"
             )
     args = [jnp.asarray(x, dtype=dtype) for x in raw]
-    checked = []
-    for name, value in zip(names, args):
-        value = eqx.error_if(value, ~jnp.isfinite(value), f"initial_state: {name} must be finite (got NaN or inf).")
-        checked.append(value)
-    theta, spin_, theta_dot, phi_dot, phi, psi, vx, vy = checked
-    theta = eqx.error_if(
-        theta, (theta < 0) | (theta > jnp.pi), "initial_state: theta must lie in [0, pi]."
-    )
+    if not concrete:  # (concrete values were checked above; no runtime check to compile)
+        args = [
+            eqx.error_if(v, ~jnp.isfinite(v), f"initial_state: {name} must be finite (got NaN or inf).")
+            for name, v in zip(names, args)
+        ]
+        args[0] = eqx.error_if(
+            args[0], (args[0] < 0) | (args[0] > jnp.pi), "initial_state: theta must lie in [0, pi]."
+        )
+    theta, spin_, theta_dot, phi_dot, phi, psi, vx, vy = args
     psi_dot = spin_ - phi_dot * jnp.cos(theta)
     velocity = jnp.stack(jnp.broadcast_arrays(vx, vy), axis=-1)
     y = state_from_euler(theta, phi, psi, theta_dot, phi_dot, psi_dot)
