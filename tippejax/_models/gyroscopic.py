@@ -229,6 +229,10 @@ r"""A launch with more nutation than this (rad) is refused: its projection is no
 NUTATION_FLOOR = 1e-12
 r"""Nutation amplitude (rad) given to a launch that has none (on the slow manifold)."""
 
+HAND_OVER_MARGIN = 0.0
+r"""With `hand_over`, the level hands over to the full model where $-\sigma/\nu$ falls below
+this: where the nutation about the slow manifold stops decaying fast."""
+
 SETTLE_AMPLITUDE = 0.01
 r"""The launch's nutation is followed in the SO(3) model until its linear projection's amplitude
 is about this (rad); see "Projection of a launch"."""
@@ -476,7 +480,7 @@ def _validity(top: TippeTop, x, J, log_amplitude, nutation: Nutation, *,
     if hand_over:
         # hand over to the full model as soon as the slow manifold repels: the full model then
         # grows its own nutation (and finds its own contact loss) from the slow state
-        return jnp.minimum(jnp.minimum(balance, decaying), projectable)
+        return jnp.minimum(jnp.minimum(balance, decaying - HAND_OVER_MARGIN), projectable)
     return jnp.minimum(jnp.minimum(balance, jnp.maximum(small, decaying)), projectable)
 
 
