@@ -117,6 +117,32 @@ def two_processes(n_theta, n_spin, t1):
     return wall, (line[0] if line else outs[0][-500:])
 
 
+GROUP_TOPS = {"standard": (0.9, 0.3), "IIa": (0.69, 0.38), "III": (1.6, 0.2)}
+
+
+def level_maps(n_theta, n_spin, t1):
+    """The same map with `model="gyroscopic"` (slow flow, handing over to the full model where
+    its chart ends) and `model="full"`: agreement of the outcomes and launches per second,
+    interleaved in one run (second, compiled calls)."""
+    theta0 = np.linspace(0.02, 1.5, n_theta)
+    spin = np.linspace(10.0, 220.0, n_spin)
+    rows = []
+    for name, (a, e) in GROUP_TOPS.items():
+        top = tj.default_top() if name == "standard" else tj.TippeTop.from_ratios(
+            a, e, m=0.02, R=0.025, mu=0.3)
+        out, secs = {}, {}
+        for model in ("gyroscopic", "full"):
+            om, _, secs[model] = timed_map(top=top, theta0=theta0, spin=spin, t1=t1, model=model)
+            out[model] = np.asarray(om.outcome)
+        g, f = out["gyroscopic"], out["full"]
+        lost = f == tj.OUTCOMES.index("contact_lost")
+        rows.append(dict(map=name, n=g.size, agree=float(np.mean(g == f)),
+                         missed_losses=int(np.sum(lost & (g != f))), losses=int(lost.sum()),
+                         speed=secs["full"] / secs["gyroscopic"]))
+        print("levels", rows[-1], flush=True)
+    return rows
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser()
     p.add_argument("--n-theta", type=int, default=24)
@@ -125,8 +151,13 @@ def main(argv=None) -> int:
     p.add_argument("--no-processes", action="store_true")
     p.add_argument("--scale", type=int, default=100_000, help="launches of the scale run (0: skip)")
     p.add_argument("--scale-t1", type=float, default=0.5)
+    p.add_argument("--levels", action="store_true",
+                   help="only: gyroscopic against full maps (standard, IIa, III), printed")
     args = p.parse_args(argv)
     begin = time.perf_counter()
+    if args.levels:
+        level_maps(args.n_theta, args.n_spin, args.t1)
+        return 0
     top = tj.default_top()
     theta0 = np.linspace(0.02, 1.5, args.n_theta)
     spin = np.linspace(10.0, 220.0, args.n_spin)
