@@ -21,11 +21,8 @@ import jax as _jax
 if _os.environ.get("TIPPEJAX_ENABLE_X64", "1").strip().lower() not in ("0", "false", "no"):
     _jax.config.update("jax_enable_x64", True)
 
-from ._cache import enable_compilation_cache as _enable_compilation_cache
-
 # Persistent compilation cache in ~/.cache/tippejax/jax; TIPPEJAX_COMPILATION_CACHE=0 turns it off.
-_enable_compilation_cache()
-
+from . import _cache as _cache  # (turns it on when imported)
 from ._analysis.groups import (
     GROUPS as GROUPS,
     Thresholds as Thresholds,

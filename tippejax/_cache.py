@@ -83,3 +83,7 @@ def cacheable():
         yield
     finally:
         errors.EQX_ON_ERROR = old
+
+
+CACHE_DIR = enable_compilation_cache()
+"""The directory this process caches in (None: off, or a directory the user configured)."""
