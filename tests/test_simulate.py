@@ -325,12 +325,13 @@ def test_contact_loss_located_by_every_solver(contact_stop):
 
 def test_contact_loss_too_brief_for_the_watch_is_reported():
     """With the dense-output watch at its coarsest (event_samples=2: the midpoint only), Dopri8's
-    ~9 ms steps at rtol 1e-6 go over the first brief dip of R_n below 0 (seen on a 1.3 ms save
-    grid): the run must say so, not report the later loss as the first."""
+    long steps at rtol 1e-5 go over the first brief dip of R_n below 0 (seen on a 1.3 ms save
+    grid): the run must say so, not report the later loss as the first. (At rtol 1e-6 the
+    midpoint now sees the dip: the steps are no longer set by the body vector, issue 18.)"""
     top = tj.default_top()
     y0 = tj.initial_state(top, 0.1, 200.0)
     ts = jnp.linspace(4.9, 5.3, N)
-    opts = dict(model="full", saveat=ts, rtol=1e-6, atol=1e-8, solver=diffrax.Dopri8(),
+    opts = dict(model="full", saveat=ts, rtol=1e-5, atol=1e-7, solver=diffrax.Dopri8(),
                 event_samples=2)
     sol = tj.simulate(top, y0, 5.3, throw=False, **opts)
     assert same_result(sol, tj.RESULTS.contact_loss_missed)
