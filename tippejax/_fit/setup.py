@@ -100,10 +100,6 @@ class Setup:
         """Loss of each of the starting points `u` (shape `(K, *batch, p)`), in one batch."""
         return _run_losses(u, data, self.cfg, self.batched)
 
-    def jacobian(self, u, data: Data):
-        """The Jacobian of the residuals at `u` (shape `(*batch, m, p)`)."""
-        return _run_jacobian(u, data, self.cfg, self.batched)
-
     def nutation_cycles(self, spin_u):
         """Number of fast-nutation cycles, C|n|/(2 pi A) x the record, at spin coordinates
         `spin_u` (one per record)."""
@@ -121,13 +117,6 @@ def _run_optimise(u0, data, cfg, batched):
     if batched:
         return jax.vmap(lambda u, d: optimise(u, d, cfg))(u0, data)
     return optimise(u0, data, cfg)
-
-
-@eqx.filter_jit
-def _run_jacobian(u, data, cfg, batched):
-    if batched:
-        return jax.vmap(lambda v, d: value_and_jacobian(v, d, cfg)[1])(u, data)
-    return value_and_jacobian(u, data, cfg)[1]
 
 
 @eqx.filter_jit
