@@ -37,7 +37,6 @@ Writes its section of benchmarks/RESULTS.md and benchmarks/peers.png.
 from __future__ import annotations
 
 import json
-import math
 import os
 import pathlib
 import subprocess
@@ -57,8 +56,9 @@ import numpy as np  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
-import tippejax as tj  # noqa: E402
 from jax.sharding import Mesh, NamedSharding, PartitionSpec  # noqa: E402
+
+import tippejax as tj  # noqa: E402
 
 HERE = pathlib.Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))

@@ -15,8 +15,9 @@ linear-stability cross-checks, the engine) stay importable from their private mo
 import importlib.metadata as _metadata
 import os as _os
 
-from . import _devices as _devices  # every CPU core a JAX device (TIPPEJAX_HOST_DEVICES=1: one)
 import jax as _jax
+
+from . import _devices as _devices  # every CPU core a JAX device (TIPPEJAX_HOST_DEVICES=1: one)
 
 if _os.environ.get("TIPPEJAX_ENABLE_X64", "1").strip().lower() not in ("0", "false", "no"):
     _jax.config.update("jax_enable_x64", True)
