@@ -293,6 +293,20 @@ def test_runs_test_on_noise_and_on_left_over_signal():
     assert diagnostics.runs_z(signal) < -diagnostics.runs_limit()
 
 
+def test_ljung_box_sees_an_aliased_oscillation_the_runs_test_misses():
+    """Left-over nutation at 30 Hz sampled at 37 Hz: the signs alternate fast enough for the
+    runs test to pass it, the autocorrelations do not; white noise passes both (~ chi2_20)."""
+    rng = np.random.default_rng(2)
+    q_noise = [diagnostics.ljung_box(rng.standard_normal(300))[0] for _ in range(200)]
+    assert abs(np.mean(q_noise) - 20) < 2  # E[chi2_20] = 20
+    t = np.arange(226) / 37.24
+    aliased = 0.07 * np.sin(2 * np.pi * 30 * t) + 0.0024 * rng.standard_normal(t.size)
+    q, limit = diagnostics.ljung_box(aliased)
+    assert q > 10 * limit
+    verdict = diagnostics.describes(aliased, t, None)
+    assert not verdict["passes"]
+
+
 def test_chi_square_quantile_and_window_test():
     from scipy import stats
 

@@ -17,8 +17,13 @@ Two tests catch them, each at a small false-alarm rate $\alpha$:
   given noise, or the median of the $s_w$ (robust while at least half the windows are
   described), corrected by the median of $\chi^2_{n_w}/n_w$.
 
-Both need no knowledge of the noise level; the second also gives `describes_until`, the end of
-the last window before the first that is not described.
+- **Ljung-Box test** of the autocorrelations $\rho_k$ of the residuals (in time order, the
+  finite ones) at lags $k = 1..h$: $Q = n(n+2)\sum_k \rho_k^2/(n-k) \sim \chi^2_h$ under
+  independence. Left-over nutation sampled below its frequency is an aliased oscillation: its
+  signs can look random to the runs test, but it is strongly autocorrelated at some lags.
+
+None needs the noise level; the windows also give `describes_until`, the end of the last
+window before the first that is not described.
 """
 
 from __future__ import annotations
@@ -88,6 +93,22 @@ def window_test(ts: np.ndarray, residuals: np.ndarray, sigma: float | None):
     return noise, until, bad
 
 
+def ljung_box(residuals: np.ndarray, lags: int = 20) -> tuple[float, float]:
+    """Ljung-Box statistic Q of the finite residuals and its rejection threshold (nan if < 50)."""
+    r = residuals[np.isfinite(residuals)]
+    n = r.size
+    if n < 50:
+        return float("nan"), float("nan")
+    h = int(min(lags, n // 10))
+    r = r - r.mean()
+    denom = float(np.sum(r * r))
+    if denom == 0.0:
+        return 0.0, 1.0
+    rho = np.array([np.sum(r[k:] * r[:-k]) / denom for k in range(1, h + 1)])
+    q = float(n * (n + 2) * np.sum(rho**2 / (n - np.arange(1, h + 1))))
+    return q, _chi2_quantile(1.0 - FALSE_ALARM, h)
+
+
 def runs_limit() -> float:
     """|z| above which the runs test rejects independence (two-sided, at `FALSE_ALARM`)."""
     return NormalDist().inv_cdf(1.0 - FALSE_ALARM / 2.0)
@@ -96,13 +117,15 @@ def runs_limit() -> float:
 def describes(residuals: np.ndarray, ts: np.ndarray, sigma: float | None) -> dict:
     """All diagnostics of one record's residuals (over the samples the fit used)."""
     z = runs_z(residuals)
+    q, q_limit = ljung_box(residuals)
     noise, until, bad = window_test(ts, residuals, sigma)
     finite = np.isfinite(residuals)
     rms = float(np.sqrt(np.mean(residuals[finite] ** 2))) if finite.any() else float("nan")
-    white = not (abs(z) > runs_limit())
+    white = not (abs(z) > runs_limit()) and not (q > q_limit)
     passes = bool(white and not bad.any())
     if sigma is not None and finite.sum() > 0:
         # The given noise level: the mean square must not exceed it beyond chance.
         n = int(finite.sum())
         passes = passes and rms**2 / sigma**2 <= _chi2_quantile(1.0 - FALSE_ALARM, n) / n
-    return dict(runs_z=z, noise=noise, describes_until=until, rms=rms, passes=passes)
+    return dict(runs_z=z, ljung_box=q / q_limit if np.isfinite(q) else float("nan"), noise=noise,
+                describes_until=until, rms=rms, passes=passes)

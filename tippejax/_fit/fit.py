@@ -415,7 +415,7 @@ def _fit_starts(setup, search, stages, obs2, sigma):
         cand = dict(out=out, residuals=residuals, verdicts=verdicts, history=hist, loss=loss,
                     starts=np.full(setup.bsize, s + 1))
         best = cand if best is None else _better(best, cand, setup.bsize)
-        if all(v["passes"] for v in best["verdicts"]):
+        if all(v["passes"] for v in best["verdicts"]):  # the lowest minimum so far is noise
             break
     best["num_steps"] = total_steps
     best["describes"] = np.array([v["describes_until"] for v in best["verdicts"]])
@@ -423,14 +423,11 @@ def _fit_starts(setup, search, stages, obs2, sigma):
 
 
 def _better(a, b, bsize):
-    """Per record, the fit that passes the diagnostics, else the one with the lower loss."""
-
-    def score(c, i):
-        return (not c["verdicts"][i]["passes"], c["loss"][i])
-
-    pick = np.array([score(b, i) < score(a, i) for i in range(bsize)])
+    """Per record, the fit with the lower loss (the least-squares estimate is the lowest
+    minimum found; the diagnostics only say whether to trust it)."""
+    pick = np.array([b["loss"][i] < a["loss"][i] for i in range(bsize)])
     if not pick.any():
-        a["starts"] = np.where(True, b["starts"], a["starts"])
+        a["starts"] = b["starts"]
         return a
     if pick.all():
         return b
@@ -480,6 +477,7 @@ def _result(best, setup, obs2, ends, batch, free, model, method, strategy) -> Fi
         rms_fitted=np.array([v["rms"] for v in verdicts]),
         noise=np.array([v["noise"] for v in verdicts]),
         runs_z=np.array([v["runs_z"] for v in verdicts]),
+        ljung_box=np.array([v["ljung_box"] for v in verdicts]),
         describes_until=best["describes"],
         fitted_until=ends,
         num_steps=best["num_steps"],
@@ -507,6 +505,7 @@ def _result(best, setup, obs2, ends, batch, free, model, method, strategy) -> Fi
         theta_fit=out["theta_fit"], residuals=jnp.asarray(arrays["residuals"], dtype),
         rms=jnp.asarray(per["rms"], dtype), rms_fitted=jnp.asarray(per["rms_fitted"], dtype),
         noise=jnp.asarray(per["noise"], dtype), runs_z=jnp.asarray(per["runs_z"], dtype),
+        ljung_box=jnp.asarray(per["ljung_box"], dtype),
         describes_until=jnp.asarray(per["describes_until"], dtype),
         fitted_until=jnp.asarray(per["fitted_until"], dtype),
         phi_fit=out["phi_fit"], phi_residuals=phi_res,

@@ -67,6 +67,10 @@ class FitResult(eqx.Module):
     - `runs_z`: the z-score of the Wald-Wolfowitz runs test on the signs of the fitted
       residuals; white noise gives $|z| \lesssim 3$, a fit in the wrong valley (a slipped
       nutation phase, a wrong envelope) gives long runs of one sign and a large $-z$.
+    - `ljung_box`: the Ljung-Box statistic of the fitted residuals' autocorrelations at lags
+      1-20, divided by its rejection threshold (chi-square at a false-alarm rate of 1e-3):
+      above 1, the residuals are serially correlated (left-over nutation, even when sampled
+      below its frequency).
     - `describes_until`: the end of the initial part of the record the model describes: the
       end of the last window before the first one whose mean-square residual is too large for
       noise of level `noise` (a chi-square test at a false-alarm rate of 1e-3 over all
@@ -74,7 +78,8 @@ class FitResult(eqx.Module):
     - `fitted_until`: the end of the part of the record the fit used (`trim`; else the end).
     - `phi_fit`, `phi_residuals`: the fitted precession angle and its wrapped residual (nan
       unless `phi_obs` was given).
-    - `converged`: the optimiser met its tolerance and the residuals pass the diagnostics.
+    - `converged`: the optimiser met its tolerance and the residuals pass the diagnostics
+      (runs test, Ljung-Box, windows; and their level against `sigma` when it is given).
     - `result`: a `FIT_RESULTS` code; `message` gives its text.
     - `num_steps`: optimiser steps, all stages and starts.
     - `starts`: how many starting points were refined before one passed the diagnostics.
@@ -96,6 +101,7 @@ class FitResult(eqx.Module):
     rms_fitted: Float[Array, "*batch"]
     noise: Float[Array, "*batch"]
     runs_z: Float[Array, "*batch"]
+    ljung_box: Float[Array, "*batch"]
     describes_until: Float[Array, "*batch"]
     fitted_until: Float[Array, "*batch"]
     phi_fit: Float[Array, "*batch N"]
@@ -137,7 +143,8 @@ class FitResult(eqx.Module):
             lines.append(
                 f"rms residual {float(self.rms):.4g} rad over the record, "
                 f"{float(self.rms_fitted):.4g} rad over the fitted part (noise level "
-                f"{float(self.noise):.3g}); runs test z = {float(self.runs_z):.2g}; describes "
+                f"{float(self.noise):.3g}); runs test z = {float(self.runs_z):.2g}, Ljung-Box "
+                f"{float(self.ljung_box):.2g} of its threshold; describes "
                 f"the record until t = {float(self.describes_until):.4g} s of "
                 f"{float(self.ts[-1]):.4g} s; {int(self.num_steps)} optimiser steps from "
                 f"{int(self.starts)} start(s); {message}"
