@@ -11,8 +11,16 @@ from .base import AbstractStage, StageRun
 
 
 class Final(AbstractStage):
-    """One optimisation of the whole record's tilt at the fit's own tolerance."""
+    """One optimisation of the whole record's tilt at the fit's own tolerances; with
+    `final=False`, at the intermediate stages' looser ones (most of the steps, at a fraction
+    of the cost of the fit's simulation tolerance)."""
+
+    final: bool = True
 
     def run(self, u, setup) -> StageRun:
-        u, history, k, code = setup.optimise(u, setup.data(tol=setup.tol, final=True))
+        if self.final:
+            data = setup.data(tol=setup.tol, final=True)
+        else:
+            data = setup.data()
+        u, history, k, code = setup.optimise(u, data)
         return StageRun(u=u, histories=[history], counts=[k], code=code)
