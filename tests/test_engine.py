@@ -193,7 +193,7 @@ def test_other_bad_options(top):
 
 
 def test_simulate_batch_bad_grids(top):
-    with pytest.raises(ValueError, match="spin must be a non-empty"):
+    with pytest.raises(ValueError, match="spin is empty"):
         tj.simulate_batch(top, [0.1], [], 1.0)
     with pytest.raises(ValueError, match="theta0 must be finite"):
         tj.simulate_batch(top, [np.nan], [100.0], 1.0)

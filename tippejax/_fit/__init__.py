@@ -1,7 +1,11 @@
 """Fitting: one stage per file (`stages/`), behind one interface (`stages/base.py`)."""
 
 from .fit import fit as fit
-from .params import FREE_NAMES as FREE_NAMES, LAUNCH_FIELDS as LAUNCH_FIELDS, TOP_FIELDS as TOP_FIELDS
+from .params import (
+    FREE_NAMES as FREE_NAMES,
+    LAUNCH_FIELDS as LAUNCH_FIELDS,
+    TOP_FIELDS as TOP_FIELDS,
+)
 from .problem import FAILED_RESIDUAL as FAILED_RESIDUAL
 from .result import FIT_RESULTS as FIT_RESULTS, FitResult as FitResult
 from .strategies import STRATEGIES as STRATEGIES

@@ -28,7 +28,6 @@ from collections.abc import Sequence
 from typing import Literal
 
 import diffrax
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np

@@ -1,6 +1,10 @@
 """The stages of a fit, one per file, behind `AbstractStage` (see `base.py`)."""
 
-from .base import AbstractSearch as AbstractSearch, AbstractStage as AbstractStage, StageRun as StageRun
+from .base import (
+    AbstractSearch as AbstractSearch,
+    AbstractStage as AbstractStage,
+    StageRun as StageRun,
+)
 from .final import Final as Final
 from .global_search import GlobalSearch as GlobalSearch
 from .levels import Levels as Levels
