@@ -462,11 +462,14 @@ def _result(best, setup, obs2, ends, batch, free, model, method, strategy) -> Fi
     residuals = best["residuals"]
     passes = np.array([v["passes"] for v in verdicts])
     code = out["result"]
-    code = FIT_RESULTS.where(
-        jnp.asarray(~passes if batch is not None else ~passes[0]) & (code == FIT_RESULTS.successful),
-        FIT_RESULTS.local_minimum,
-        code,
-    )
+
+    def flag(fails, c):  # a converged fit whose residuals are not noise is a local minimum
+        return FIT_RESULTS.where(fails & (c == FIT_RESULTS.successful), FIT_RESULTS.local_minimum, c)
+
+    if batch is not None:
+        code = jax.vmap(flag)(jnp.asarray(~passes), code)
+    else:
+        code = flag(jnp.asarray(~passes[0]), code)
     mask = setup.mask
     whole = np.where(mask, residuals, np.nan)
     rms = np.sqrt(np.nanmean(whole**2, axis=-1))
