@@ -194,7 +194,7 @@ def fit(
     t0: float | None = None,
     weights: ArrayLike | None = None,
     sigma: float | None = None,
-    max_steps: int = 200,
+    max_steps: int = 100,
     tol: float = 1e-6,
     rtol: float = 1e-10,
     atol: float = 1e-12,

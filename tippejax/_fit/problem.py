@@ -136,8 +136,11 @@ def residuals_of_values(values, data: Data, cfg: Config):
         used_phi = data.phi_weights > 0
         rphi = jnp.where(used_phi, jnp.where(ok, dphi, FAILED_RESIDUAL), 0.0)
         parts.append(jnp.sqrt(data.phi_weights) * jnp.sin(data.theta_obs) * rphi)
-    # Slow observables of the smoothed tilt (a failed sample counts as the failure value).
-    theta_slow = jnp.where(ok, theta_safe, FAILED_RESIDUAL)
+    # Slow observables of the smoothed tilt. Past a contact loss the run goes on with the same
+    # equations, so they stay smooth in the parameters across the loss; a sample the run never
+    # reached (max steps, the R_n singularity) counts as -pi, below any tilt, never as a value
+    # that could mimic the data (pi would look like an inverted top).
+    theta_slow = jnp.where(finite, theta_safe, -FAILED_RESIDUAL)
     smooth = smoothed(theta_slow, data.mask, data.smoother_index, data.smoother_weight)
     grid_size = data.grid.shape[-1]
     parts.append(jnp.sqrt(data.envelope_weight / grid_size) * (smooth - data.smooth_obs))

@@ -32,7 +32,7 @@ class GlobalSearch(AbstractSearch):
     """Rank `candidates` points of the box `|u| <= box` (and the guess) by the slow loss."""
 
     candidates: int = 127  # with the guess: one batch of 128, as the phase scan's chunks
-    keep: int = 4
+    keep: int = 3
     box: float = 0.7
 
     def starts(self, u, setup):
