@@ -652,8 +652,8 @@ def _parser() -> argparse.ArgumentParser:
                    help="refit on the part of the record the model describes (a stem landing)")
     p.add_argument("--method", default="levenberg_marquardt", choices=METHODS,
                    help="optimiser (default levenberg_marquardt)")
-    p.add_argument("--max-steps", dest="max_steps", metavar="K", type=int, default=200,
-                   help="optimiser steps per optimisation (default 200)")
+    p.add_argument("--max-steps", dest="max_steps", metavar="K", type=int, default=100,
+                   help="optimiser steps per optimisation (default 100)")
     p.add_argument("--t-max", dest="t_max", metavar="T", type=float, default=None,
                    help="use only the samples with t <= T (s): the part of the record the "
                         "model describes")
