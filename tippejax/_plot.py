@@ -362,7 +362,8 @@ def fit_figure(result, *, title: str | None = None):
     if batched:  # recording 0 only
         theta_obs, theta_fit, residuals = theta_obs[0], theta_fit[0], residuals[0]
         values, errors, rms, describes = values[0], errors[0], rms[0], describes[0]
-        fitted_until, rms_fitted = fitted_until[0], rms_fitted[0]
+        fitted_until = fitted_until[0] if fitted_until.ndim else fitted_until
+        rms_fitted = rms_fitted[0] if rms_fitted.ndim else rms_fitted
         ts = ts[0] if ts.ndim == 2 else ts
     rms, describes = float(rms), float(describes)
     fitted_until, rms_fitted = float(fitted_until), float(rms_fitted)
