@@ -62,7 +62,8 @@ def _chi2_quantile(p: float, nu: float) -> float:
     return nu * (1.0 - a + z * math.sqrt(a)) ** 3
 
 
-def window_test(ts: np.ndarray, residuals: np.ndarray, sigma: float | None):
+def window_test(ts: np.ndarray, residuals: np.ndarray, sigma: float | None, *,
+                reference: str = "median"):
     """Mean squares of the residuals in windows, the noise level, and the end of the record
     the model describes.
 
@@ -80,14 +81,18 @@ def window_test(ts: np.ndarray, residuals: np.ndarray, sigma: float | None):
     counts = np.array([g.size for g in groups], float)
     ms = np.array([np.mean(residuals[g] ** 2) for g in groups])
     nu = float(np.median(counts))
-    if sigma is None:
+    if sigma is None and reference == "quietest":
+        # the quietest window, corrected by the expected minimum of `windows` chi-square draws
+        q = _chi2_quantile(0.5 / windows, nu) / nu
+        noise = math.sqrt(float(np.min(ms)) / q)
+    elif sigma is None:
         noise = math.sqrt(float(np.median(ms)) / (_chi2_quantile(0.5, nu) / nu))
     else:
         noise = float(sigma)
     limit = np.array([_chi2_quantile(1.0 - FALSE_ALARM / windows, c) / c for c in counts])
     bad = ms / noise**2 > limit
-    if not bad.any():
-        return noise, float(ts[-1]), bad
+    if not bad.any():  # described up to the last sample the fit used
+        return noise, float(ts[idx[-1]]), bad
     first = int(np.argmax(bad))
     until = float(ts[groups[first - 1][-1]]) if first > 0 else float(ts[groups[0][0]])
     return noise, until, bad
@@ -127,5 +132,10 @@ def describes(residuals: np.ndarray, ts: np.ndarray, sigma: float | None) -> dic
         # The given noise level: the mean square must not exceed it beyond chance.
         n = int(finite.sum())
         passes = passes and rms**2 / sigma**2 <= _chi2_quantile(1.0 - FALSE_ALARM, n) / n
+    if not passes and until >= ts[-1]:
+        # Not noise, and no window stands out against the median: a fit distorted everywhere
+        # (by a stretch the model cannot describe). Judge the windows against the quietest one
+        # to find where the description ends (what trim=True refits on).
+        until = window_test(ts, residuals, sigma, reference="quietest")[1]
     return dict(runs_z=z, ljung_box=q / q_limit if np.isfinite(q) else float("nan"), noise=noise,
                 describes_until=until, rms=rms, passes=passes)

@@ -74,7 +74,8 @@ class FitResult(eqx.Module):
     - `describes_until`: the end of the initial part of the record the model describes: the
       end of the last window before the first one whose mean-square residual is too large for
       noise of level `noise` (a chi-square test at a false-alarm rate of 1e-3 over all
-      windows). For data the model made, the whole record.
+      windows; when the residuals fail the tests but no window stands out against the median,
+      against the quietest window instead). For data the model made, the whole record.
     - `fitted_until`: the end of the part of the record the fit used (`trim`; else the end).
     - `phi_fit`, `phi_residuals`: the fitted precession angle and its wrapped residual (nan
       unless `phi_obs` was given).
