@@ -158,6 +158,7 @@ def fit_records():
     return fit_records
 
 
+@pytest.mark.slow  # draws records with their Cramer-Rao bounds: minutes without numba (CI)
 def test_fit_records_drawn_as_documented(fit_records, tmp_path, monkeypatch):
     """Four records (one per group): ranges, noise, reproducible data, converged bound, cache."""
     monkeypatch.setattr(fit_records, "CACHE_ROOT", tmp_path)
