@@ -254,8 +254,9 @@ def simulate(
       slow flow for $\theta$ alone with the nutation averaged out, see
       `tippejax/_models/gyroscopic.py`: `y0` is first projected onto the slow manifold; the
       solution is the state on it, with no nutation and no translation; where gyroscopic
-      balance is lost, or the nutation it drops grows large, it stops with
-      `RESULTS.no_gyroscopic_balance`, and a launch it cannot describe is not integrated), or
+      balance is lost, the slow manifold repels, or the launch carries more nutation than
+      the level can project, the run hands over to the full model from the reconstructed
+      state, reported as `sol.model == "gyroscopic->full"`), or
       `"auto"` (the cheapest of `"full"`, `"so3"`, `"routhian"`, `"gyroscopic"` whose measured
       error in the launch's regime, `benchmarks/LEVELS.md`, is below `tolerance`; the
       gyroscopic level only for a launch it accepts).
