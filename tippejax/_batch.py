@@ -15,7 +15,7 @@ from ._engine.solver_choice import default_solver, is_traced
 from ._models.levels import LEVELS
 from ._simulate import simulate
 from ._solution import Solution
-from ._state import initial_state
+from ._state import check_theta0, initial_state
 from ._top import _FIELDS, TippeTop
 
 LAUNCH = ("theta0", "spin", "theta_dot", "phi_dot", "phi", "psi", "vx", "vy")
@@ -56,21 +56,6 @@ def _concrete_array(name, value):
     if not np.all(np.isfinite(array)):
         raise ValueError(f"simulate_batch: {name} must be finite (got NaN or inf).")
     return array
-
-
-def check_theta0(name: str, theta) -> None:
-    """A concrete launch tilt must lie in [0, pi] rad; say so, with the degrees hint."""
-    theta = np.asarray(theta, dtype=float)
-    if np.any(theta < 0) or np.any(theta > np.pi):
-        bad = theta[(theta < 0) | (theta > np.pi)].ravel()[0]
-        hint = (
-            f" It looks like degrees: pass np.deg2rad({bad:g}) = {np.deg2rad(bad):.6g} rad."
-            if np.pi < bad <= 180 else ""
-        )
-        raise ValueError(
-            f"{name} must lie in [0, pi] rad (the tilt of the axis from the vertical, in "
-            f"radians); got {bad:g}.{hint}"
-        )
 
 
 def simulate_batch(

@@ -163,6 +163,21 @@ def euler_rates(y: State) -> tuple[Array, Array, Array]:
     return theta_dot, phi_dot, psi_dot
 
 
+def check_theta0(name: str, theta) -> None:
+    """A concrete launch tilt must lie in [0, pi] rad; say so, with the degrees hint."""
+    theta = np.asarray(theta, dtype=float)
+    if np.any(theta < 0) or np.any(theta > np.pi):
+        bad = theta[(theta < 0) | (theta > np.pi)].ravel()[0]
+        hint = (
+            f" It looks like degrees: pass np.deg2rad({bad:g}) = {np.deg2rad(bad):.6g} rad."
+            if np.pi < bad <= 180 else ""
+        )
+        raise ValueError(
+            f"{name} must lie in [0, pi] rad (the tilt of the axis from the vertical, in "
+            f"radians); got {bad:g}.{hint}"
+        )
+
+
 def initial_state(
     top: TippeTop,
     theta: ArrayLike,
@@ -206,17 +221,7 @@ def initial_state(
                 ) from None
             if not np.all(np.isfinite(value)):
                 raise ValueError(f"initial_state: {name} must be finite (got NaN or inf).")
-        theta_np = np.asarray(theta, dtype=float)
-        if np.any(theta_np < 0) or np.any(theta_np > np.pi):
-            bad = theta_np[(theta_np < 0) | (theta_np > np.pi)].ravel()[0]
-            hint = (
-                f" It looks like degrees: pass np.deg2rad({bad:g}) = {np.deg2rad(bad):.6g} rad."
-                if np.pi < bad <= 180 else ""
-            )
-            raise ValueError(
-                "initial_state: theta must lie in [0, pi] (the tilt of the axis from the "
-                f"vertical, in radians); got {bad:g}.{hint}"
-            )
+        check_theta0("initial_state: theta", theta)
     args = [jnp.asarray(x, dtype=dtype) for x in raw]
     if not concrete:  # (concrete values were checked above; no runtime check to compile)
         args = [
