@@ -362,6 +362,7 @@ def _setup(top_guess, y0_guess, ts_np, obs2, mask2, w2, phi2, fields, launch, t0
         rtol=per_rec(rtol),
         atol=per_rec(atol),
         tol=per_rec(tol),
+        pinned=jnp.zeros((bsize, len(free)), dtype),
     )
     if not batched:
         template = jax.tree_util.tree_map(lambda x: x[0], template)

@@ -37,6 +37,11 @@ from .params import TOP_FIELDS, Base, assemble, physical
 NUM_LEVELS = 12
 FAILED_RESIDUAL = math.pi
 LEVEL_TIME_SCALE = 0.05  # s: level-crossing residuals are divided by this
+# Trust region of a fit's coordinates: |u_i| <= 1.6, a factor 5 either way in the log-scaled
+# parameters. A guess further off than that from the truth is outside what the global search
+# (a factor 2) is built for; the limit keeps the optimisers' trial steps (a Levenberg-Marquardt
+# step can jump to mu x 20) away from stiff, costly and meaningless simulations.
+U_LIMIT = 1.6
 
 
 class Config(eqx.Module):
@@ -75,6 +80,7 @@ class Data(eqx.Module):
     rtol: Float[Array, ""]
     atol: Float[Array, ""]
     tol: Float[Array, ""]  # the optimiser's tolerance in this stage
+    pinned: Float[Array, " p"]  # 1 for a coordinate this stage holds where it is, else 0
 
 
 def simulated(values, data: Data, cfg: Config):
@@ -150,8 +156,19 @@ def residuals_of_values(values, data: Data, cfg: Config):
 
 
 def residuals(u, data: Data, cfg: Config):
-    r = residuals_of_values(physical(u, data.base, cfg.free), data, cfg)[0]
-    return r.astype(u.dtype)  # the optimiser works in its own precision
+    """The residuals at coordinates `u`, with the trust region of `U_LIMIT`: the simulation
+    sees `u` clipped to `[-U_LIMIT, U_LIMIT]` and one more residual per coordinate,
+    $\sqrt{W}\,(|u_i| - U_{lim})_+$ ($W$ the total weight), pulls a trial back from outside.
+    Inside (where every fit ends) the extra residuals are 0 with a 0 Jacobian, so they change
+    neither the estimate nor its covariance."""
+    # A pinned coordinate enters without its derivative: its Jacobian column is 0, so an
+    # optimiser's (damped) step leaves it where it is.
+    u = jnp.where(data.pinned > 0, jax.lax.stop_gradient(u), u)
+    inside = jnp.clip(u, -U_LIMIT, U_LIMIT)
+    r = residuals_of_values(physical(inside, data.base, cfg.free), data, cfg)[0]
+    total = jnp.sum(data.weights) + data.envelope_weight + data.level_weight**2 * NUM_LEVELS + 1.0
+    excess = jnp.sqrt(total) * jnp.maximum(jnp.abs(u) - U_LIMIT, 0.0)
+    return jnp.concatenate([r.astype(u.dtype), excess.astype(u.dtype)])
 
 
 def value_and_jacobian(u, data, cfg):

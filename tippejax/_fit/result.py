@@ -28,6 +28,12 @@ class FIT_RESULTS(eqxi.Enumeration):
         "At the fitted parameters the simulation fails before the end of the record (contact "
         "lost, the R_n singularity or max steps): those save times carry the failure residual."
     )
+    outside_trust_region = (
+        "The fit ended at the edge of its trust region, a factor 5 from the guess in some "
+        "free parameter (|u| = 1.6 in the coordinates of tippejax/_fit/params.py): the "
+        "guess is too far off for the search, or the data do not determine that parameter. "
+        "Start from a better guess, or hold the parameter fixed."
+    )
     local_minimum = (
         "The residuals are not noise (they run in long stretches of one sign, or part of the "
         "record is fitted much worse than the rest): the fit sits in a local minimum, or the "

@@ -15,7 +15,15 @@ import numpy as np
 
 from .optimise import optimise
 from .params import physical
-from .problem import NUM_LEVELS, Config, Data, residuals, residuals_of_values, value_and_jacobian
+from .problem import (
+    NUM_LEVELS,
+    U_LIMIT,
+    Config,
+    Data,
+    residuals,
+    residuals_of_values,
+    value_and_jacobian,
+)
 from .result import FIT_RESULTS
 
 # Weight of the envelope residuals: an rms error of 0.05 rad in the smoothed tilt weighs as
@@ -24,6 +32,7 @@ ENVELOPE_WEIGHT = NUM_LEVELS / 0.05**2
 STAGE_TOL = 1e-4  # optimiser tolerance of the intermediate stages (the last one uses `tol`)
 SEARCH_RTOL = 1e-6  # simulation tolerance of the global search (it ranks, it does not fit)
 STAGE_RTOL = 1e-7  # simulation tolerance of intermediate stages, unless `rtol` is looser
+CHUNK = 64  # points per batch of simulations in searches and scans (one compilation)
 
 
 def bucket(n: int) -> int:
@@ -60,15 +69,21 @@ class Setup:
         return np.concatenate([x, np.zeros(x.shape[:-1] + (self.padded - self.n,), x.dtype)], -1)
 
     def data(self, *, window_end=None, theta=True, slow=0.0, tol=STAGE_TOL, rtol=None,
-             final=False) -> Data:
+             final=False, pin=()) -> Data:
         """`Data` for one optimisation: tilt samples up to `window_end` (all if None; none if
-        `theta` is False) and the slow observables with weight `slow` (per record or scalar).
-        The simulation runs at `rtol` if given, else at the fit's own `rtol` when `final`,
-        else at `STAGE_RTOL` (or the fit's, if looser)."""
+        `theta` is False; a scalar or one per record) and the slow observables with weight
+        `slow` (per record or scalar). Without slow observables the simulation stops at the
+        window's end. It runs at `rtol` if given, else at the fit's own `rtol` when `final`,
+        else at `STAGE_RTOL` (or the fit's, if looser). The free parameters named in `pin`
+        are held where they are."""
         ts, bsize = self.ts, self.bsize
         use = self.mask & self.fitted
+        t_end = np.full(bsize, ts[-1])
         if window_end is not None:
-            use = use & (ts <= window_end + 1e-12)[None, :]
+            window_end = np.broadcast_to(np.asarray(window_end, float), (bsize,))
+            use = use & (ts[None, :] <= window_end[:, None] + 1e-12)
+            if not np.any(np.asarray(slow) > 0):  # only tilt samples: simulate the window only
+                t_end = np.minimum(t_end, window_end)
         theta_mask = np.broadcast_to(np.asarray(theta, bool).reshape(-1, 1), use.shape)
         w = np.where(use & theta_mask, self.w, 0.0)
         dtype = self.template.theta_obs.dtype
@@ -85,6 +100,9 @@ class Setup:
             envelope_weight=slow * ENVELOPE_WEIGHT,
             tol=np.full(bsize, max(tol, self.tol)),
             rtol=np.full(bsize, rtol),
+            t_end=t_end,
+            pinned=np.broadcast_to(np.array([n in pin for n in self.cfg.free], float),
+                                   (bsize, len(self.cfg.free))),
         )
         fields = {k: jnp.asarray(np.asarray(v), dtype) for k, v in fields.items()}
         if not self.batched:
@@ -96,9 +114,37 @@ class Setup:
     def optimise(self, u, data: Data):
         return _run_optimise(u, data, self.cfg, self.batched)
 
-    def losses(self, u, data: Data):
-        """Loss of each of the starting points `u` (shape `(K, *batch, p)`), in one batch."""
-        return _run_losses(u, data, self.cfg, self.batched)
+    def optimise_many(self, u, data: Data):
+        """`optimise` from each of the starting points `u` (shape `(K, *batch, p)`) at once
+        (one vmapped batch; K is part of the compiled shape). Returns the end points, shape
+        `(K, *batch, p)`, and their step counts."""
+        k = u.shape[0]
+        if self.batched:
+            flat = jnp.asarray(u).reshape((k * self.bsize,) + u.shape[2:])
+            many = jax.tree_util.tree_map(
+                lambda x: jnp.broadcast_to(x[None], (k,) + x.shape).reshape((k * x.shape[0],) + x.shape[1:]),
+                data,
+            )
+        else:
+            flat = jnp.asarray(u)
+            many = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x[None], (k,) + x.shape), data)
+        out, _, steps, _ = _run_optimise(flat, many, self.cfg, True)
+        return out.reshape(u.shape), steps.reshape(u.shape[:-1])
+
+    def losses(self, u, data: Data) -> np.ndarray:
+        """Loss of each of the points `u` (shape `(K, *batch, p)`), in batches of `CHUNK`
+        (the last one padded), so that every search and scan shares one compilation. Not
+        finite (a failed simulation): inf."""
+        u = np.asarray(u)
+        k = u.shape[0]
+        out = []
+        for lo in range(0, k, CHUNK):
+            part = u[lo: lo + CHUNK]
+            part = np.concatenate([part, np.repeat(part[-1:], CHUNK - part.shape[0], 0)])
+            out.append(np.asarray(_run_losses(jnp.asarray(part, self.template.ts.dtype), data,
+                                              self.cfg, self.batched)))
+        losses = np.concatenate(out)[:k]
+        return np.where(np.isfinite(losses), losses, np.inf)
 
     def nutation_cycles(self, spin_u):
         """Number of fast-nutation cycles, C|n|/(2 pi A) x the record, at spin coordinates
@@ -134,6 +180,8 @@ def _run_losses(u, data, cfg, batched):
 
 def finish(u, code, data: Data, cfg: Config):
     """Covariance and the fitted curve at the final coordinates (one record)."""
+    at_edge = jnp.any(jnp.abs(u) >= U_LIMIT * (1 - 1e-6))
+    u = jnp.clip(u, -U_LIMIT, U_LIMIT)
     value, jac_u = value_and_jacobian(u, data, cfg)
     values = physical(u, data.base, cfg.free)
     dp_du = jax.jacfwd(lambda v: jnp.stack([physical(v, data.base, cfg.free)[n] for n in cfg.free]))(u)
@@ -166,7 +214,10 @@ def finish(u, code, data: Data, cfg: Config):
         theta_fit=theta_fit, phi_fit=phi_fit, loss=0.5 * rss,
         result=FIT_RESULTS.where(
             jnp.all(jnp.isfinite(u)),
-            FIT_RESULTS.where(failed, FIT_RESULTS.simulation_failed, code),
+            FIT_RESULTS.where(
+                failed, FIT_RESULTS.simulation_failed,
+                FIT_RESULTS.where(at_edge, FIT_RESULTS.outside_trust_region, code),
+            ),
             FIT_RESULTS.optimiser_failed,  # (Gauss-Newton can accept a step to nan)
         ),
     )

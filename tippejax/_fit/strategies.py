@@ -2,7 +2,7 @@ r"""The strategies of `fit`: a search for starts (or none) and a chain of stages
 
 | strategy | search | stages |
 |---|---|---|
-| `"global"` (default) | `GlobalSearch` | `Levels`, `PhaseScan`, `Final(final=False)`, `Final` |
+| `"global"` (default) | `GlobalSearch` | `PhaseScan`, `Final(final=False)`, `Final` |
 | `"levels"` | the guess alone | `Levels`, `Windows`, `Final` |
 | `"windows"` | the guess alone | `Windows(slow=False)`, `Final` |
 | `"plain"` | the guess alone | `Final` |
@@ -17,7 +17,7 @@ from __future__ import annotations
 from .stages import Final, GlobalSearch, Levels, PhaseScan, Windows
 
 STRATEGIES = {
-    "global": (GlobalSearch(), (Levels(), PhaseScan(), Final(final=False), Final())),
+    "global": (GlobalSearch(), (PhaseScan(), Final(final=False), Final())),
     "levels": (None, (Levels(), Windows(), Final())),
     "windows": (None, (Windows(slow=False), Final())),
     "plain": (None, (Final(),)),

@@ -31,7 +31,7 @@ def low_discrepancy(n: int, dim: int) -> np.ndarray:
 class GlobalSearch(AbstractSearch):
     """Rank `candidates` points of the box `|u| <= box` (and the guess) by the slow loss."""
 
-    candidates: int = 127  # with the guess: one batch of 128, as the phase scan's chunks
+    candidates: int = 127  # with the guess: two batches of `setup.CHUNK` (64)
     keep: int = 3
     box: float = 0.7
 
@@ -44,8 +44,7 @@ class GlobalSearch(AbstractSearch):
             np.broadcast_to(points.reshape((points.shape[0],) + (1,) * (u.ndim - 1) + (p,)), shape),
             u.dtype,
         ) + u[None]
-        losses = np.asarray(setup.losses(starts, setup.data(theta=False, slow=1.0, rtol=SEARCH_RTOL)))
-        losses = np.where(np.isfinite(losses), losses, np.inf)
+        losses = setup.losses(starts, setup.data(theta=False, slow=1.0, rtol=SEARCH_RTOL))
         order = np.argsort(losses, axis=0)[: self.keep]  # (keep, *batch)
         starts_np = np.asarray(starts)
         if u.ndim == 1:

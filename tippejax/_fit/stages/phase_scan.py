@@ -1,20 +1,41 @@
-r"""Phase scan: find the nutation's valley along the slow loss's valley, in one batch.
+r"""Phase scan: find the nutation's phase by scanning the spin on windows that grow.
 
-The slow observables (`levels.py`) pin the envelope of the tilt, which leaves a valley: a
-change of the spin $\delta$ traded against the other parameters keeps the envelope. Along it
-the nutation's phase slips by about one cycle per $1/N$ of relative spin, $N$ the number of
-nutation cycles in the record, so the raw tilt's loss along the valley has one narrow minimum
-per cycle and an optimiser only finds the nearest.
+The raw tilt's loss has one narrow minimum per slipped nutation cycle: the nutation's phase
+slips by about one cycle per $1/N$ of relative spin, $N$ the number of nutation cycles in
+the window fitted, so an optimiser only finds the nearest minimum. The slow observables
+(`levels.py`) pin the envelope of the tilt but leave a valley: a change of the spin traded
+against the other parameters keeps the envelope. So the stage finds the spin from the nutation
+first and the rest from the envelope, as a frequency is found from a short stretch of signal
+and then refined on longer ones:
 
-With $H$ the Hessian of the slow loss at the stage's start $u^*$ (central second differences
-with step `hessian_step`, all points in one batch of the search's compiled loss) and $s$ the
-index of the spin, the valley is, to first order,
-$u(\delta) = u^* + \delta\,v$ with $v_s = 1$ and $v_o = -H_{oo}^{-1} H_{os}$ (the other
-coordinates re-optimised for each spin). The raw tilt's loss over the whole record is evaluated
-at $\delta$ on a grid over `[-span, span]` with a step of `resolution`$/N$ (one batch of
-simulations, in chunks), and the stage moves to the grid's best point. The default span is the
-global search's box: the slow loss can leave the spin as far off as the box allows. $N$ is estimated from
-the fast-top nutation frequency $C|n|/A$ over the record.
+1. **The spin alone, early in the record.** On a first window of `first_cycles` nutation
+   cycles ($N_0$, at least `min_samples` samples) the raw tilt's loss is evaluated along the
+   spin coordinate $u_s + \delta$ on a grid over `[-span, span]` with a step of
+   `resolution`$/N_0$: a window that short has one minimum per $1/N_0$ of relative spin, and
+   the grid resolves it. The window then grows by `growth` ($N_{k+1} = g N_k$) and the loss is
+   evaluated over `lobe`$/N_k$ either side of the last best point with a step of
+   `resolution`$/N_{k+1}$, until the data's smoothed tilt has moved by `rise` from its start
+   (early on, the other parameters barely change the tilt; the nutation's frequency,
+   $\approx C|n|/(2\pi A)$, is the spin's).
+2. **The other parameters from the slow observables, the spin held**: without the spin's
+   freedom the envelope and the level-crossing times have a valley floor, not a valley. That
+   floor is narrow and the slow loss has plateaus (where a trial top does not turn over at
+   all, a small change does not change the loss), so the other coordinates are first ranked
+   on `search_points` points of a low-discrepancy set in the box `|u_o| <= search_box` around
+   the guess (and the point itself), one batch; optimisations run from the `refine` best at
+   once (one vmapped batch), and the lowest end point is kept. The slow loss has several
+   local minima along the curve of matching inversion times, and the least-squares ranking
+   of a coarse set does not always put the global one's basin first.
+3. **Along the valley, on windows that grow to the whole record.** With $H$ the Hessian of
+   the slow loss at the new point $u^*$ (central second differences with step
+   `hessian_step`, in one batch), the valley is, to first order, $u(\delta) = u^* + \delta v$
+   with $v_s = 1$ and $v_o = -H_{oo}^{-1} H_{os}$ (the other coordinates re-optimised for
+   each spin). The scan of step 1 goes on along $v$ from the last window to the whole record.
+
+Each evaluation is a batch of simulations (`setup.CHUNK` at a time) that stop at the window's
+end, so the whole scan costs about as much as a few batches over the record; a grid over the
+whole record at the final resolution would take some 2000 simulations of it for 300 cycles.
+$N$ is estimated from the fast-top nutation frequency at the fastest spin of the first scan.
 
 Without a free spin the phase is fixed by the known spin, and the stage does nothing.
 """
@@ -26,16 +47,23 @@ import numpy as np
 
 from ..setup import SEARCH_RTOL
 from .base import AbstractStage, StageRun
-
-CHUNK = 128  # starting points per batch (the global search's batch size: one compilation)
+from .global_search import low_discrepancy
 
 
 class PhaseScan(AbstractStage):
-    """Move to the best point of the raw tilt's loss on a fine grid along the slow valley."""
+    """Spin from the early nutation, the others from the envelope, then the phase along the
+    slow valley over the whole record (see the module docstring)."""
 
     span: float = 0.7
     resolution: float = 0.25
-    max_points: int = 2048
+    first_cycles: float = 10.0
+    growth: float = 3.0
+    lobe: float = 1.5
+    min_samples: int = 32
+    rise: float = 0.25
+    search_points: int = 127
+    search_box: float = 0.7
+    refine: int = 8
     hessian_step: float = 0.02
 
     def run(self, u, setup) -> StageRun:
@@ -44,38 +72,96 @@ class PhaseScan(AbstractStage):
             return StageRun(u=u, histories=[], counts=[], code=None)
         s = free.index("spin")
         batched = u.ndim == 2
-        u_np = np.asarray(u).reshape(-1, len(free))
-        hessians = self._hessians(u_np, setup, batched, u.dtype)
+        p = len(free)
+        u_np = np.asarray(u, float).reshape(-1, p)
+        bsize = u_np.shape[0]
+        ts = setup.ts
+        start, end = ts[0], ts[-1]
+        # nutation cycles per second at the fastest spin of the scan, per record
+        rate = setup.nutation_cycles(u_np[:, s] + self.span) / max(end - start, 1e-300)
+        rate = np.maximum(rate, 1e-300)
+        first = ts[min(self.min_samples, ts.size) - 1]
+        window = np.clip(start + self.first_cycles / rate, first, end)  # (bsize,)
+        # the early part: until the data's smoothed tilt has moved by `rise`
+        grid = np.broadcast_to(np.asarray(setup.template.grid), (bsize, setup.template.grid.shape[-1]))
+        smooth = np.asarray(setup.template.smooth_obs).reshape(bsize, -1)
+        moved = np.abs(smooth - smooth[:, :1]) > self.rise
+        early = np.where(moved.any(1), grid[np.arange(bsize), np.argmax(moved, 1)], end)
+        early = np.maximum(early, window)
+
+        # 1. the spin alone
+        along_spin = np.zeros((bsize, p))
+        along_spin[:, s] = 1.0
+        centre, window = self._scan(u_np, along_spin, setup, rate, window,
+                                    np.full(bsize, self.span), early, batched, u.dtype)
+        u_np = u_np + centre[:, None] * along_spin
+        # 2. the others from the slow observables, the spin held
+        histories, counts, code = [], [], None
+        if p > 1:
+            others = [i for i in range(p) if i != s]
+            offsets = np.zeros((self.search_points + 1, p))
+            offsets[1:, others] = self.search_box * low_discrepancy(self.search_points, p - 1)
+            points = np.repeat(u_np[None], offsets.shape[0], 0)  # (K, bsize, p)
+            points[1:, :, others] = offsets[1:, None, others]  # around the guess (u = 0)
+            losses = setup.losses(points if batched else points[:, 0],
+                                  setup.data(theta=False, slow=1.0, rtol=SEARCH_RTOL))
+            order = np.argsort(losses.reshape(points.shape[0], -1), axis=0)[: self.refine]
+            starts = points[order, np.arange(bsize)[None, :]]  # (refine, bsize, p)
+            slow = setup.data(theta=False, slow=1.0, pin=("spin",))
+            ends, _ = setup.optimise_many(
+                jnp.asarray(starts if batched else starts[:, 0], u.dtype), slow)
+            ends = np.asarray(ends, float).reshape(self.refine, bsize, p)
+            end_losses = setup.losses(ends if batched else ends[:, 0], slow)
+            best = np.argmin(end_losses.reshape(self.refine, -1), axis=0)
+            u_np = ends[best, np.arange(bsize)]
+        # 3. along the valley, from the last window to the whole record
+        if np.any(window < end):
+            directions = self._valleys(u_np, setup, batched, u.dtype, s)
+            cycles = np.maximum((window - start) * rate, 1.0)
+            half = np.minimum(self.lobe / cycles, self.span)
+            nxt = np.minimum(start + self.growth * (window - start), end)
+            centre, _ = self._scan(u_np, directions, setup, rate, nxt, half,
+                                   np.full(bsize, end), batched, u.dtype)
+            u_np = u_np + centre[:, None] * directions
+        new = u_np if batched else u_np[0]
+        return StageRun(u=jnp.asarray(new, u.dtype), histories=histories, counts=counts, code=code)
+
+    def _scan(self, u_np, directions, setup, rate, window, half, stop, batched, dtype):
+        """Coarse-to-fine scan of the raw tilt's loss along `directions` on windows from
+        `window` to `stop` (per record); returns the best offset and the last window."""
+        start = setup.ts[0]
+        centre = np.zeros(u_np.shape[0])
+        while True:
+            data = setup.data(window_end=window, rtol=SEARCH_RTOL)
+            cycles = np.maximum((window - start) * rate, 1.0)
+            step = self.resolution / cycles
+            count = int(max(np.max(np.ceil(2 * half / step)) + 1, 3))
+            grid = np.linspace(-1.0, 1.0, count)
+            deltas = centre[None, :] + grid[:, None] * half[None, :]  # (count, bsize)
+            points = u_np[None] + deltas[:, :, None] * directions[None]  # (count, bsize, p)
+            points = points if batched else points[:, 0]
+            losses = setup.losses(points, data).reshape(count, -1)
+            best = np.argmin(losses, axis=0)
+            centre = deltas[best, np.arange(deltas.shape[1])]
+            if np.all(window >= stop):
+                return centre, window
+            half = np.minimum(self.lobe / cycles, self.span)
+            window = np.minimum(start + self.growth * (window - start), stop)
+
+    def _valleys(self, u_np, setup, batched, dtype, s):
+        """The slow loss's valley direction at each record's `u` (spin component 1)."""
+        p = u_np.shape[1]
         directions = []
-        for h in hessians:
-            others = [i for i in range(len(free)) if i != s]
-            v = np.zeros(len(free))
+        for h in self._hessians(u_np, setup, batched, dtype):
+            others = [i for i in range(p) if i != s]
+            v = np.zeros(p)
             v[s] = 1.0
             if others:
                 h_oo = h[np.ix_(others, others)]
                 h_oo = h_oo + 1e-9 * abs(np.trace(h_oo)) * np.eye(len(others))
                 v[others] = -np.linalg.solve(h_oo, h[others, s])
             directions.append(v)
-        directions = np.stack(directions)  # (bsize, p)
-        # the most cycles over the scan: at its fastest spin
-        cycles = setup.nutation_cycles(u_np[:, s]) * np.exp(self.span)
-        step = self.resolution / max(float(np.max(cycles)), 1.0)
-        count = int(min(self.max_points, 2 * np.ceil(self.span / step) + 1))
-        deltas = np.linspace(-self.span, self.span, count)
-        data = setup.data(rtol=SEARCH_RTOL)
-        losses = []
-        for lo in range(0, count, CHUNK):
-            d = deltas[lo: lo + CHUNK]
-            d = np.concatenate([d, np.full(CHUNK - d.size, d[-1])])
-            points = u_np[None] + d[:, None, None] * directions[None]  # (CHUNK, bsize, p)
-            points = points if batched else points[:, 0]
-            losses.append(np.asarray(setup.losses(jnp.asarray(points, u.dtype), data))[: min(CHUNK, count - lo)])
-        losses = np.concatenate(losses).reshape(count, -1)
-        losses = np.where(np.isfinite(losses), losses, np.inf)
-        best = np.argmin(losses, axis=0)  # (bsize,)
-        new = u_np + deltas[best][:, None] * directions
-        new = new if batched else new[0]
-        return StageRun(u=jnp.asarray(new, u.dtype), histories=[], counts=[], code=None)
+        return np.stack(directions)
 
     def _hessians(self, u_np, setup, batched, dtype):
         """Hessian of the slow loss at each record's `u` by central second differences."""
@@ -91,12 +177,10 @@ class PhaseScan(AbstractStage):
                         h * (-eye[i] + eye[j]), -h * (eye[i] + eye[j])]
         offsets = np.array(offsets)
         count = offsets.shape[0]
-        padded = np.concatenate([offsets, np.zeros((CHUNK - count, p))])
-        points = u_np[None] + padded[:, None, :]
+        points = u_np[None] + offsets[:, None, :]
         points = points if batched else points[:, 0]
         data = setup.data(theta=False, slow=1.0, rtol=SEARCH_RTOL)
-        loss = np.asarray(setup.losses(jnp.asarray(points, dtype), data))[:count]
-        loss = loss.reshape(count, -1)  # (count, bsize)
+        loss = setup.losses(points, data).reshape(count, -1)  # (count, bsize)
         out = np.zeros((loss.shape[1], p, p))
         for i in range(p):
             out[:, i, i] = (loss[1 + 2 * i] - 2 * loss[0] + loss[2 + 2 * i]) / (4 * h * h)
