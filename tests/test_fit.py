@@ -252,6 +252,41 @@ def test_non_finite_trial_is_a_failed_trial_not_an_error(short_problem):
     )
 
 
+def test_pinned_coordinate_has_no_derivative_and_stays_put(short_problem):
+    """A stage that holds a coordinate (`Data.pinned`) sees a zero Jacobian column for it, the
+    others unchanged; an optimiser's step then leaves it where it is."""
+    data, cfg = short_problem
+    p = len(cfg.free)
+    u = jnp.asarray(np.random.default_rng(3).normal(0.0, 0.05, p))
+    s = cfg.free.index("spin")
+    held = eqx.tree_at(lambda d: d.pinned, data, jnp.zeros(p).at[s].set(1.0))
+    _, jac_free = jax.jit(lambda v: problem.value_and_jacobian(v, data, cfg))(u)
+    r_held, jac_held = jax.jit(lambda v: problem.value_and_jacobian(v, held, cfg))(u)
+    jac_free, jac_held = np.asarray(jac_free), np.asarray(jac_held)
+    assert np.abs(jac_free[:, s]).max() > 0
+    assert np.all(jac_held[:, s] == 0.0)
+    np.testing.assert_allclose(np.delete(jac_held, s, 1), np.delete(jac_free, s, 1), rtol=1e-12)
+    sub = eqx.tree_at(lambda c: (c.max_steps, c.free), cfg, (3, cfg.free))
+    u_end, *_ = jax.jit(lambda v: fit_setup.optimise(v, held, sub))(u)
+    assert float(u_end[s]) == float(u[s])
+    assert not np.allclose(np.asarray(u_end), np.asarray(u))
+
+
+def test_trust_region_pulls_back_and_never_simulates_outside(short_problem):
+    """Outside |u| <= U_LIMIT the simulated residuals are those at the edge, and one more
+    residual per coordinate grows with the excess: the loss rises as a trial leaves."""
+    data, cfg = short_problem
+    p = len(cfg.free)
+    m = cfg.free.index("mu")
+    res = jax.jit(lambda v: problem.residuals(v, data, cfg))
+    edge = jnp.zeros(p).at[m].set(problem.U_LIMIT)
+    r_edge = np.asarray(res(edge))
+    r_out = np.asarray(res(edge.at[m].set(problem.U_LIMIT + 0.5)))
+    np.testing.assert_allclose(r_out[:-p], r_edge[:-p], rtol=1e-12)
+    assert np.all(r_edge[-p:] == 0.0)
+    assert r_out[-p:][m] > 0 and np.sum(r_out**2) > np.sum(r_edge**2)
+
+
 def test_reparametrisation_keeps_constraints(short_problem):
     data, cfg = short_problem
     physical = jax.jit(lambda u: params.physical(u, data.base, cfg.free))
@@ -277,6 +312,7 @@ def test_covariance_matches_finite_difference_jacobian(short_problem):
     data, cfg = short_problem
     free = ("mu", "eps", "spin")
     sub = eqx.tree_at(lambda c: c.free, cfg, free)
+    data = eqx.tree_at(lambda d: d.pinned, data, jnp.zeros(3))
     out = jax.jit(lambda u: fit_setup.finish(u, tj.FIT_RESULTS.successful, data, sub))(jnp.zeros(3))
 
     def res_p(values):

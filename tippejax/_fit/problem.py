@@ -156,7 +156,7 @@ def residuals_of_values(values, data: Data, cfg: Config):
 
 
 def residuals(u, data: Data, cfg: Config):
-    """The residuals at coordinates `u`, with the trust region of `U_LIMIT`: the simulation
+    r"""The residuals at coordinates `u`, with the trust region of `U_LIMIT`: the simulation
     sees `u` clipped to `[-U_LIMIT, U_LIMIT]` and one more residual per coordinate,
     $\sqrt{W}\,(|u_i| - U_{lim})_+$ ($W$ the total weight), pulls a trial back from outside.
     Inside (where every fit ends) the extra residuals are 0 with a 0 Jacobian, so they change
@@ -168,6 +168,7 @@ def residuals(u, data: Data, cfg: Config):
     r = residuals_of_values(physical(inside, data.base, cfg.free), data, cfg)[0]
     total = jnp.sum(data.weights) + data.envelope_weight + data.level_weight**2 * NUM_LEVELS + 1.0
     excess = jnp.sqrt(total) * jnp.maximum(jnp.abs(u) - U_LIMIT, 0.0)
+    excess = jnp.where(jnp.isfinite(u), excess, 0.0)  # a non-finite trial: failed residuals
     return jnp.concatenate([r.astype(u.dtype), excess.astype(u.dtype)])
 
 
