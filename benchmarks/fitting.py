@@ -14,7 +14,7 @@ truth and within 3 of its own standard errors. A fit that does not succeed must 
 Reported per group and per sampling rate: success from the truth and from 30% off, flagged
 failures, unflagged failures; SE / CRB; the coverage |estimate - truth| / SE; time per fit.
 With `--compare K`, the first K records are also fitted from 30% off with the other
-strategies (`levels`, `windows`, `plain`) and with `scipy.optimize.least_squares` over
+strategies (`search`, `levels`, `windows`, `plain`) and with `scipy.optimize.least_squares` over
 `tj.simulate` (finite-difference Jacobian, the whole record), in the same run.
 
 Run from the repository root:
@@ -297,9 +297,11 @@ def main():
     if not args.report:
         records = draw_records(args.n, args.seed)
         done = {(r["index"], r["start"], r["strategy"]) for r in rows}
-        jobs = [(i, s, "global") for i in range(args.n) for s in ("truth", "off")]
-        jobs += [(i, "off", s) for i in range(min(args.compare, args.n))
-                 for s in ("levels", "windows", "plain", "scipy")]
+        jobs = []
+        for i in range(args.n):  # record by record, so that a partial run is a usable sample
+            jobs += [(i, s, "global") for s in ("truth", "off")]
+            if i < args.compare:
+                jobs += [(i, "off", s) for s in ("search", "levels", "windows", "plain", "scipy")]
         for i, s, strategy in jobs:
             if (i, s, strategy) in done:
                 continue

@@ -10,16 +10,29 @@ where $\theta(t; p)$ comes from `simulate` at the chosen level of model, with fr
 mapped to unconstrained coordinates (`params.py`). Jacobians are taken in forward mode through
 the ODE solve, one pass per optimiser step for the residuals and all columns.
 
-The loss is multimodal: the nutation's phase slips by a cycle for about 1% of error in the
-spin, and each slip is a valley. The default strategy (`"global"`, `strategies.py`) therefore
+The loss is multimodal: the nutation's phase slips by a cycle for about 1/N of relative error
+in the spin (N nutation cycles in the record), and each slip is a valley. The slow loss (the
+smoothed tilt's envelope and level-crossing times, blind to the phase) has a valley of its own
+(spin traded against mu and eps), plateaus (trial tops that do not turn over) and several
+minima along the curve of matching inversion times. The default strategy (`"global"`,
+`strategies.py`) therefore
 
-1. ranks ~100 starting points around the guess by a loss blind to the nutation's phase (the
-   smoothed tilt's envelope and level-crossing times), simulated in one batch;
-2. refines the best start: the slow loss alone, then the raw tilt in windows that double
-   from 1/64 of the record, then the whole record alone (the loss the covariance is about);
-3. tests the residuals (`diagnostics.py`: runs test and windowed chi-square); if they are not
-   noise, the next start is refined, and if none passes, the best fit is flagged
-   `local_minimum` rather than returned with confident error bars.
+0. first fits the raw tilt on windows that double from 1/64 of the record, from the guess,
+   with each simulation stopped at its window's end (a few simulations of the record); if
+   the residuals pass the diagnostics (step 6), that is the fit. Otherwise it
+1. ranks 128 starting points in a box of a factor 2 around the guess by the slow loss,
+   simulated in one batch (`stages/global_search.py`);
+2. from the best, finds the spin from the early nutation: the raw tilt on a window of ~10
+   nutation cycles, scanned along the spin on a grid finer than one cycle, the window then
+   growing by 3 with the scan narrowed each time (`stages/phase_scan.py`);
+3. with the spin held, ranks 128 points of the other parameters by the slow loss and refines
+   the best 8 at once; keeps the lowest;
+4. scans the phase along the slow loss's valley on windows that grow to the whole record;
+5. fits the whole record at the stage tolerance, then at the fit's own (the loss the
+   covariance is about), all coordinates inside a trust region of a factor 5 around the guess;
+6. tests the residuals (`diagnostics.py`: runs test, Ljung-Box and windowed chi-square); if
+   they are not noise, the next start is refined, and if none passes, the fit with the lowest
+   loss is flagged `local_minimum` rather than returned with confident error bars.
 """
 
 from __future__ import annotations
@@ -190,7 +203,7 @@ def fit(
     phi_obs: ArrayLike | None = None,
     model: Literal["full", "so3", "routhian"] = "full",
     method: Literal["levenberg_marquardt", "gauss_newton", "adam"] = "levenberg_marquardt",
-    strategy: Literal["global", "levels", "windows", "plain"] = "global",
+    strategy: Literal["global", "search", "levels", "windows", "plain"] = "global",
     t0: float | None = None,
     weights: ArrayLike | None = None,
     sigma: float | None = None,
@@ -226,8 +239,10 @@ def fit(
     - `model`: level of model to fit with, `"full"`, `"so3"` or `"routhian"`.
     - `method`: `"levenberg_marquardt"` (default; `optimistix.LevenbergMarquardt`),
       `"gauss_newton"` or `"adam"` (`optax.adam` at `learning_rate`).
-    - `strategy`: `"global"` (default: a global search for starts, then the slow observables,
-      growing windows and the whole record; see the module docstring), `"levels"` (the same
+    - `strategy`: `"global"` (default: growing windows from the guess, then, if their fit's
+      residuals are not noise, a global search for starts, the spin from the early nutation,
+      the other parameters from the slow observables, the phase on growing windows and the
+      whole record; see the module docstring), `"search"` (the search alone), `"levels"` (the same
       from the guess alone), `"windows"` (growing windows from the guess) or `"plain"` (the
       whole record at once).
     - `t0`: time of `y0_guess` (default `ts[0]`; must be `<= ts[0]`).
@@ -288,8 +303,8 @@ def fit(
                    free=free, model=model, method=method, max_steps=max_steps, tol=tol,
                    rtol=rtol, atol=atol, solver=solver, sim_max_steps=sim_max_steps,
                    learning_rate=learning_rate, batched=batch is not None)
-    search, stages = STRATEGIES[strategy]
-    out = _fit_starts(setup, search, stages, obs2, sigma)
+    attempts = STRATEGIES[strategy]
+    out = _fit_starts(setup, attempts, obs2, sigma)
     span = ts_np[-1] - ts_np[0]
     ends = np.full(setup.bsize, ts_np[-1])
     if trim:
@@ -300,7 +315,7 @@ def fit(
                 break
             ends = new_ends
             setup.fitted = ts_np[None, :] <= ends[:, None]
-            out = _fit_starts(setup, search, stages, obs2, sigma)
+            out = _fit_starts(setup, attempts, obs2, sigma)
     return _result(out, setup, obs2, ends, batch, free, model, method, strategy)
 
 
@@ -397,26 +412,32 @@ def _judge(out, setup, obs2, sigma):
     return residuals, verdicts
 
 
-def _fit_starts(setup, search, stages, obs2, sigma):
-    """Refine the starts in turn until every record has a fit whose residuals pass."""
+def _fit_starts(setup, attempts, obs2, sigma):
+    """Refine the starts of each attempt in turn until every record has a fit whose residuals
+    pass; keep the lowest loss per record."""
     p = len(setup.cfg.free)
     u0 = jnp.zeros((setup.bsize, p) if setup.batched else (p,), jnp.result_type(float))
-    starts = u0[None] if search is None else search.starts(u0, setup)
     best = None
     total_steps = np.zeros(setup.bsize, int)
-    for s in range(starts.shape[0]):
-        u, histories, counts, code = _refine(starts[s], setup, stages)
-        out = setup.finish(u, code, setup.data(tol=setup.tol))
-        residuals, verdicts = _judge(out, setup, obs2, sigma)
-        steps = np.asarray(sum(jnp.asarray(c) for c in counts)).reshape(-1)
-        total_steps = total_steps + steps
-        hist = _pack(histories, counts, setup.bsize, setup.cfg.max_steps)
-        loss = np.asarray(out["loss"]).reshape(-1)
-        cand = dict(out=out, residuals=residuals, verdicts=verdicts, history=hist, loss=loss,
-                    starts=np.full(setup.bsize, s + 1))
-        best = cand if best is None else _better(best, cand, setup.bsize)
-        if all(v["passes"] for v in best["verdicts"]):  # the lowest minimum so far is noise
-            break
+    tried = 0
+    for search, stages in attempts:
+        starts = u0[None] if search is None else search.starts(u0, setup)
+        for s in range(starts.shape[0]):
+            tried += 1
+            u, histories, counts, code = _refine(starts[s], setup, stages)
+            out = setup.finish(u, code, setup.data(tol=setup.tol))
+            residuals, verdicts = _judge(out, setup, obs2, sigma)
+            steps = np.asarray(sum(jnp.asarray(c) for c in counts)).reshape(-1)
+            total_steps = total_steps + steps
+            hist = _pack(histories, counts, setup.bsize, setup.cfg.max_steps)
+            loss = np.asarray(out["loss"]).reshape(-1)
+            cand = dict(out=out, residuals=residuals, verdicts=verdicts, history=hist, loss=loss,
+                        starts=np.full(setup.bsize, tried))
+            best = cand if best is None else _better(best, cand, setup.bsize)
+            if all(v["passes"] for v in best["verdicts"]):  # the lowest minimum so far is noise
+                best["num_steps"] = total_steps
+                best["describes"] = np.array([v["describes_until"] for v in best["verdicts"]])
+                return best
     best["num_steps"] = total_steps
     best["describes"] = np.array([v["describes_until"] for v in best["verdicts"]])
     return best
