@@ -61,11 +61,13 @@ def fast_record():
     return obs, spin
 
 
-@pytest.mark.slow  # minutes per fit on 2 cores, and not yet reliable: see benchmarks/RESULTS.md
-def test_recovers_from_30_percent_off_at_240_hz(fast_record):
+@pytest.mark.parametrize("strategy", ["global", "search"])
+def test_recovers_from_30_percent_off_at_240_hz(fast_record, strategy):
+    """The default, and the search alone (global search, spin from the early nutation, the
+    others from the slow loss with the spin held, the phase along the valley)."""
     obs, spin = fast_record
     guess, y0 = _guess(TOP_IIA, spin, (1.3, 0.7, 1.3), 0.2)
-    res = tj.fit(guess, y0, TS_FAST, obs, free=FREE)
+    res = tj.fit(guess, y0, TS_FAST, obs, free=FREE, strategy=strategy)
     _check_success(res, np.array([float(TOP_IIA.mu), float(TOP_IIA.eps), spin]))
     assert np.all(np.isnan(np.asarray(res.residuals)[500:620]))  # the gap is masked
 
@@ -119,7 +121,6 @@ def test_trim_recovers_a_record_whose_end_is_not_described(fast_record):
     assert float(res.rms_fitted) < 1.2 * NOISE
 
 
-@pytest.mark.slow  # minutes per fit on 2 cores, and not yet reliable: see benchmarks/RESULTS.md
 def test_recovers_from_30_percent_off_at_30_hz_group_III():
     """Group III (rises to the intermediate state), 30 Hz: below the nutation frequency."""
     spin = 4.0 * float(tj.thresholds(TOP_III).n1)
@@ -129,7 +130,6 @@ def test_recovers_from_30_percent_off_at_30_hz_group_III():
     _check_success(res, np.array([float(TOP_III.mu), float(TOP_III.eps), spin]))
 
 
-@pytest.mark.slow  # minutes per fit on 2 cores, and not yet reliable: see benchmarks/RESULTS.md
 def test_upright_launch_with_a_tilt_rate():
     """theta0 = 0 with theta_dot = 0.5 rad/s (a top dropped upright): accepted, theta_dot free."""
     spin = 3.0 * float(tj.thresholds(TOP_IIB).n1)
