@@ -16,7 +16,9 @@ and then refined on longer ones:
    evaluated over `lobe`$/N_k$ either side of the last best point with a step of
    `resolution`$/N_{k+1}$, until the data's smoothed tilt has moved by `rise` from its start
    (early on, the other parameters barely change the tilt; the nutation's frequency,
-   $\approx C|n|/(2\pi A)$, is the spin's).
+   $\approx C|n|/(2\pi A)$, is the spin's). For a launch at a pole with a free tilt rate the
+   scan moves $\log\dot\theta_0$ with the spin: the early tilt's size is about
+   $\dot\theta_0 A/(C n)$, so the scan changes the frequency alone.
 2. **The other parameters from the slow observables, the spin held**: without the spin's
    freedom the envelope and the level-crossing times have a valley floor, not a valley. That
    floor is narrow and the slow loss has plateaus (where a trial top does not turn over at
@@ -45,6 +47,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 
+from ..params import _POLE_SIN
 from ..setup import SEARCH_RTOL
 from .base import AbstractStage, StageRun
 from .global_search import low_discrepancy
@@ -92,6 +95,9 @@ class PhaseScan(AbstractStage):
         # 1. the spin alone
         along_spin = np.zeros((bsize, p))
         along_spin[:, s] = 1.0
+        if "theta_dot" in free:  # a launch at a pole: the early tilt's size is ~ theta_dot / n
+            at_pole = np.sin(np.asarray(setup.template.base.launch["theta0"])).reshape(-1) < _POLE_SIN
+            along_spin[:, free.index("theta_dot")] = np.broadcast_to(at_pole, (bsize,)).astype(float)
         centre, window = self._scan(u_np, along_spin, setup, rate, window,
                                     np.full(bsize, self.span), early, batched, u.dtype)
         u_np = u_np + centre[:, None] * along_spin
