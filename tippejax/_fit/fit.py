@@ -17,20 +17,23 @@ smoothed tilt's envelope and level-crossing times, blind to the phase) has a val
 minima along the curve of matching inversion times. The default strategy (`"global"`,
 `strategies.py`) therefore
 
-0. first fits the raw tilt on windows that double from 1/64 of the record, from the guess,
-   with each simulation stopped at its window's end (a few simulations of the record); if
-   the residuals pass the diagnostics (step 6), that is the fit. Otherwise it
-1. ranks 128 starting points in a box of a factor 2 around the guess by the slow loss,
+0. if the residuals at the guess itself pass the diagnostics (step 7), only polishes it (the
+   whole record, step 6); otherwise it
+1. fits the raw tilt on windows that double from 1/64 of the record, from the guess, with
+   each simulation stopped at its window's end (a few simulations of the record); if the
+   residuals pass the diagnostics, that is the fit. Otherwise it
+2. ranks 128 starting points in a box of a factor 2 around the guess by the slow loss,
    simulated in one batch (`stages/global_search.py`);
-2. from the best, finds the spin from the early nutation: the raw tilt on a window of ~10
+3. from the best, finds the spin from the early nutation: the raw tilt on a window of ~10
    nutation cycles, scanned along the spin on a grid finer than one cycle, the window then
    growing by 3 with the scan narrowed each time (`stages/phase_scan.py`);
-3. with the spin held, ranks 128 points of the other parameters by the slow loss and refines
+4. with the spin held, ranks 128 points of the other parameters by the slow loss and refines
    the best 8 at once; keeps the lowest;
-4. scans the phase along the slow loss's valley on windows that grow to the whole record;
-5. fits the whole record at the stage tolerance, then at the fit's own (the loss the
+5. scans the phase along the slow loss's valley on windows that grow to the whole record, and
+   refines its 4 best cycles at once on the whole record;
+6. fits the whole record at the stage tolerance, then at the fit's own (the loss the
    covariance is about), all coordinates inside a trust region of a factor 5 around the guess;
-6. tests the residuals (`diagnostics.py`: runs test, Ljung-Box and windowed chi-square); if
+7. tests the residuals (`diagnostics.py`: runs test, Ljung-Box and windowed chi-square); if
    they are not noise, the next start is refined, and if none passes, the fit with the lowest
    loss is flagged `local_minimum` rather than returned with confident error bars.
 """
@@ -54,7 +57,7 @@ from .params import FREE_NAMES, LAUNCH_FIELDS, TOP_FIELDS, Base, launch_of
 from .problem import Config, Data, ladder, smooth_numpy, smoother
 from .result import FIT_RESULTS, FitResult
 from .setup import Setup, bucket
-from .strategies import STRATEGIES
+from .strategies import IF_NOISE, STRATEGIES
 
 METHODS = ("levenberg_marquardt", "gauss_newton", "adam")
 FIT_MODELS = ("full", "so3", "routhian")
@@ -421,7 +424,13 @@ def _fit_starts(setup, attempts, obs2, sigma):
     total_steps = np.zeros(setup.bsize, int)
     tried = 0
     for search, stages in attempts:
-        starts = u0[None] if search is None else search.starts(u0, setup)
+        if search == IF_NOISE:
+            guess = setup.finish(u0, FIT_RESULTS.successful, setup.data(tol=setup.tol))
+            if not all(v["passes"] for v in _judge(guess, setup, obs2, sigma)[1]):
+                continue
+            starts = u0[None]
+        else:
+            starts = u0[None] if search is None else search.starts(u0, setup)
         for s in range(starts.shape[0]):
             tried += 1
             u, histories, counts, code = _refine(starts[s], setup, stages)

@@ -3,7 +3,7 @@ chain of stages.
 
 | strategy | attempts, in turn |
 |---|---|
-| `"global"` (default) | 1. from the guess: `Windows(slow=False)`, `Final(final=False)`, `Final`; 2. `GlobalSearch`, then `PhaseScan`, `Final(final=False)`, `Final` |
+| `"global"` (default) | 0. if the guess's own residuals pass the diagnostics: `Final(final=False)`, `Final` from it; 1. from the guess: `Windows(slow=False)`, `Final(final=False)`, `Final`; 2. `GlobalSearch`, then `PhaseScan`, `Final(final=False)`, `Final` |
 | `"search"` | attempt 2 of `"global"` alone |
 | `"levels"` | the guess alone: `Levels`, `Windows`, `Final` |
 | `"windows"` | the guess alone: `Windows(slow=False)`, `Final` |
@@ -11,7 +11,9 @@ chain of stages.
 
 After each start the residuals are tested (`diagnostics.py`); the fit stops at the first start
 whose residuals pass, and otherwise returns the fit with the lowest loss of all, flagged
-`local_minimum`. The windows from the guess cost a few simulations of the record and succeed
+`local_minimum`. A guess whose residuals are already noise is in the right valley: it is only
+polished (early windows leave some directions free, and a scan on noisy data can pick a
+neighbouring cycle, so neither is run from a guess that needs neither). The windows from the guess cost a few simulations of the record and succeed
 when the guess is close enough for the phase to be followed window by window; the search
 covers the guesses it cannot follow (a factor 2 either way).
 """
@@ -20,11 +22,13 @@ from __future__ import annotations
 
 from .stages import Final, GlobalSearch, Levels, PhaseScan, Windows
 
+IF_NOISE = "if the guess's residuals are noise"  # a search: the guess, or no start at all
+_POLISH = (IF_NOISE, (Final(final=False), Final()))
 _WINDOWS = (None, (Windows(slow=False), Final(final=False), Final()))
 _SEARCH = (GlobalSearch(), (PhaseScan(), Final(final=False), Final()))
 
 STRATEGIES = {
-    "global": (_WINDOWS, _SEARCH),
+    "global": (_POLISH, _WINDOWS, _SEARCH),
     "search": (_SEARCH,),
     "levels": ((None, (Levels(), Windows(), Final())),),
     "windows": ((None, (Windows(slow=False), Final())),),

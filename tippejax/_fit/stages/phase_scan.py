@@ -33,6 +33,9 @@ and then refined on longer ones:
    `hessian_step`, in one batch), the valley is, to first order, $u(\delta) = u^* + \delta v$
    with $v_s = 1$ and $v_o = -H_{oo}^{-1} H_{os}$ (the other coordinates re-optimised for
    each spin). The scan of step 1 goes on along $v$ from the last window to the whole record.
+4. **The best few cycles.** The valley is straight only to first order, so the last scan's
+   best point can be a neighbouring cycle's. Its `candidates` lowest local minima are each
+   refined on the whole record (one vmapped batch of optimisations), and the lowest end wins.
 
 Each evaluation is a batch of simulations (`setup.CHUNK` at a time) that stop at the window's
 end, so the whole scan costs about as much as a few batches over the record; a grid over the
@@ -67,6 +70,7 @@ class PhaseScan(AbstractStage):
     search_points: int = 127
     search_box: float = 0.7
     refine: int = 8
+    candidates: int = 4
     hessian_step: float = 0.02
 
     def run(self, u, setup) -> StageRun:
@@ -98,7 +102,7 @@ class PhaseScan(AbstractStage):
         if "theta_dot" in free:  # a launch at a pole: the early tilt's size is ~ theta_dot / n
             at_pole = np.sin(np.asarray(setup.template.base.launch["theta0"])).reshape(-1) < _POLE_SIN
             along_spin[:, free.index("theta_dot")] = np.broadcast_to(at_pole, (bsize,)).astype(float)
-        centre, window = self._scan(u_np, along_spin, setup, rate, window,
+        centre, window, _ = self._scan(u_np, along_spin, setup, rate, window,
                                     np.full(bsize, self.span), early, batched, u.dtype)
         u_np = u_np + centre[:, None] * along_spin
         # 2. the others from the slow observables, the spin held
@@ -126,9 +130,19 @@ class PhaseScan(AbstractStage):
             cycles = np.maximum((window - start) * rate, 1.0)
             half = np.minimum(self.lobe / cycles, self.span)
             nxt = np.minimum(start + self.growth * (window - start), end)
-            centre, _ = self._scan(u_np, directions, setup, rate, nxt, half,
-                                   np.full(bsize, end), batched, u.dtype)
-            u_np = u_np + centre[:, None] * directions
+            _, _, minima = self._scan(u_np, directions, setup, rate, nxt, half,
+                                      np.full(bsize, end), batched, u.dtype)
+            # 4. the best few cycles of the last scan, each refined on the whole record at
+            # once; the lowest end wins (the valley is only straight to first order, so the
+            # scan's best point can be a neighbouring cycle's)
+            points = u_np[None] + minima[:, :, None] * directions[None]  # (K, bsize, p)
+            full = setup.data()
+            ends, _ = setup.optimise_many(jnp.asarray(points if batched else points[:, 0], u.dtype),
+                                          full)
+            ends = np.asarray(ends, float).reshape(points.shape)
+            end_losses = setup.losses(ends if batched else ends[:, 0], full)
+            best = np.argmin(end_losses.reshape(points.shape[0], -1), axis=0)
+            u_np = ends[best, np.arange(bsize)]
         new = u_np if batched else u_np[0]
         return StageRun(u=jnp.asarray(new, u.dtype), histories=histories, counts=counts, code=code)
 
@@ -150,7 +164,7 @@ class PhaseScan(AbstractStage):
             best = np.argmin(losses, axis=0)
             centre = deltas[best, np.arange(deltas.shape[1])]
             if np.all(window >= stop):
-                return centre, window
+                return centre, window, _local_minima(losses, deltas, self.candidates)
             half = np.minimum(self.lobe / cycles, self.span)
             window = np.minimum(start + self.growth * (window - start), stop)
 
@@ -195,3 +209,21 @@ class PhaseScan(AbstractStage):
             pp, pm, mp, mm = loss[base + 4 * k: base + 4 * k + 4]
             out[:, i, j] = out[:, j, i] = (pp - pm - mp + mm) / (4 * h * h)
         return out
+
+
+def _local_minima(losses, deltas, k):
+    """The offsets of the `k` lowest local minima of each record's scan (shape `(k, bsize)`;
+    the best one repeated where there are fewer)."""
+    count, bsize = losses.shape
+    out = np.empty((k, bsize))
+    for b in range(bsize):
+        f = losses[:, b]
+        left = np.concatenate([[np.inf], f[:-1]])
+        right = np.concatenate([f[1:], [np.inf]])
+        idx = np.flatnonzero((f <= left) & (f <= right) & np.isfinite(f))
+        if idx.size == 0:
+            idx = np.array([int(np.argmin(f))])
+        idx = idx[np.argsort(f[idx])][:k]
+        idx = np.concatenate([idx, np.full(k - idx.size, idx[0])])
+        out[:, b] = deltas[idx, b]
+    return out
