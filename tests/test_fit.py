@@ -107,11 +107,9 @@ def test_misfit_record_is_flagged(fast_record):
     assert float(whole.rms) > 3 * NOISE
 
 
-@pytest.mark.slow
-@pytest.mark.xfail(reason="known: a fit distorted everywhere by the landing gives trim no clean "
-                          "window to start from (it cuts to 10% of the record); see the note on "
-                          "issue 17", strict=False)
 def test_trim_recovers_a_record_whose_end_is_not_described(fast_record):
+    """With trim=True the landed record is fitted on the part the model describes: windows
+    grow from the start while they pass, and the last one's prediction says where to stop."""
     obs, spin, guess, y0 = _landed(fast_record)
     res = tj.fit(guess, y0, TS_FAST, obs, free=FREE, trim=True, strategy="levels")
     print(res.table())

@@ -57,12 +57,13 @@ from .params import FREE_NAMES, LAUNCH_FIELDS, TOP_FIELDS, Base, launch_of
 from .problem import Config, Data, ladder, smooth_numpy, smoother
 from .result import FIT_RESULTS, FitResult
 from .setup import Setup, bucket
+from .stages import Final
+from .stages.windows import window_ends
 from .strategies import IF_NOISE, STRATEGIES
 
 METHODS = ("levenberg_marquardt", "gauss_newton", "adam")
 FIT_MODELS = ("full", "so3", "routhian")
 MAX_RECORD_SPAN = 600.0  # s: a longer record is taken for times in the wrong unit
-_TRIM_ROUNDS = 4
 
 
 # ---------------------------------------------------------------------------------------------
@@ -260,10 +261,13 @@ def fit(
       a tenth of noise/sqrt(N) for the records of `benchmarks/fitting.py`, where 1e-8 did not
       for a quarter of them.
     - `trim`: for a record whose end the model does not describe (a real top whose stem
-      lands), fit again on the part it describes (`describes_until`, found by a windowed
-      chi-square test at a false-alarm rate of 1e-3), until that moves by less than 2% of the
-      record (at most 4 fits). Off by default: a record the model describes is never trimmed
-      then, and a record it does not describe is flagged (`local_minimum`).
+      lands). When the fit of the whole record fails the diagnostics, windows growing from the
+      record's start (doubling, as in the window stage) are fitted while their residuals pass;
+      the last one that passes predicts the rest of the record, a windowed chi-square test at a
+      false-alarm rate of 1e-3 says how far that prediction holds (`describes_until`), and the
+      record is fitted again up to there (`fitted_until`). Off by default: a record the model
+      describes is never trimmed (its whole-record fit passes), and without trim a record it
+      does not describe is flagged (`local_minimum`).
 
     **Returns:** a `FitResult`, with standard errors from the Gauss-Newton covariance
     $s^2 (J^\top J)^{-1}$, $s^2 = \mathrm{RSS}/(N - p)$, and diagnostics of the residuals
@@ -308,17 +312,9 @@ def fit(
                    learning_rate=learning_rate, batched=batch is not None)
     attempts = STRATEGIES[strategy]
     out = _fit_starts(setup, attempts, obs2, sigma)
-    span = ts_np[-1] - ts_np[0]
     ends = np.full(setup.bsize, ts_np[-1])
     if trim:
-        for _ in range(_TRIM_ROUNDS - 1):
-            new_ends = np.where(np.isfinite(out["describes"]),
-                                np.maximum(out["describes"], ts_np[0] + 0.1 * span), ends)
-            if np.all(np.abs(new_ends - ends) <= 0.02 * span):
-                break
-            ends = new_ends
-            setup.fitted = ts_np[None, :] <= ends[:, None]
-            out = _fit_starts(setup, attempts, obs2, sigma)
+        out, ends = _trim(setup, out, obs2, sigma)
     return _result(out, setup, obs2, ends, batch, free, model, method, strategy)
 
 
@@ -441,7 +437,7 @@ def _fit_starts(setup, attempts, obs2, sigma):
             hist = _pack(histories, counts, setup.bsize, setup.cfg.max_steps)
             loss = np.asarray(out["loss"]).reshape(-1)
             cand = dict(out=out, residuals=residuals, verdicts=verdicts, history=hist, loss=loss,
-                        starts=np.full(setup.bsize, tried))
+                        starts=np.full(setup.bsize, tried), u=u)
             best = cand if best is None else _better(best, cand, setup.bsize)
             if all(v["passes"] for v in best["verdicts"]):  # the lowest minimum so far is noise
                 best["num_steps"] = total_steps
@@ -450,6 +446,110 @@ def _fit_starts(setup, attempts, obs2, sigma):
     best["num_steps"] = total_steps
     best["describes"] = np.array([v["describes_until"] for v in best["verdicts"]])
     return best
+
+
+def _trim(setup, out, obs2, sigma):
+    r"""Refit each record whose whole-record fit fails on the part of it the model describes.
+
+    A fit of the whole record is distorted everywhere by a stretch the model cannot describe
+    (a stem landing), so its own residuals do not say where the description ends. Instead the
+    windows of `Windows` grow from the guess, each fitted from the last, while the residuals
+    of the window pass the diagnostics; the last window that passes is trusted. Its parameters
+    predict the rest of the record, and the windowed chi-square test of that prediction
+    (`describes_until`) says how far the description reaches; the record is fitted again up to
+    there, and kept if it passes (else the last window that passed is kept). Records whose
+    whole-record fit passes are left as they are.
+    """
+    ts = setup.ts
+    bsize = setup.bsize
+    passed = np.array([v["passes"] for v in out["verdicts"]])
+    ends = np.full(bsize, ts[-1])
+    if passed.all():
+        return out, ends
+
+    def per_record(mask_b, a, b):  # a where mask_b, else b (u has shape (*batch, p))
+        if not setup.batched:
+            return a if bool(mask_b[0]) else b
+        return jnp.where(jnp.asarray(mask_b)[:, None], a, b)
+
+    def fit_to(u, fit_ends, stages):
+        setup.fitted = ts[None, :] <= fit_ends[:, None] + 1e-12
+        u, histories, counts, code = _refine(u, setup, stages)
+        cand = setup.finish(u, code, setup.data(tol=setup.tol))
+        residuals, verdicts = _judge(cand, setup, obs2, sigma)
+        return u, cand, residuals, verdicts, histories, counts
+
+    u = per_record(passed, out["u"], jnp.zeros_like(out["u"]))
+    growing = ~passed
+    u_ok, end_ok = u, np.where(passed, ts[-1], np.nan)
+    histories, counts = [], []
+    for end in window_ends(ts)[:-1]:
+        if not growing.any():
+            break
+        fit_ends = np.where(growing, end, end_ok)
+        fit_ends = np.where(np.isfinite(fit_ends), fit_ends, end)
+        u, _, _, verdicts, hist, cnt = fit_to(u, fit_ends, (Final(final=False),))
+        histories += hist
+        counts += cnt
+        ok = np.array([v["passes"] for v in verdicts])
+        now_ok = growing & ok
+        u_ok = per_record(now_ok, u, u_ok)
+        end_ok = np.where(now_ok, end, end_ok)
+        growing = growing & ok
+    trimmed = ~passed & np.isfinite(end_ok)
+    if not trimmed.any():
+        return out, ends
+    # How far does the last trusted window's description reach?
+    setup.fitted = np.ones_like(setup.mask)
+    reach = setup.finish(u_ok, out["out"]["result"], setup.data(tol=setup.tol))
+    _, verdicts = _judge(reach, setup, obs2, sigma)
+    until = np.array([v["describes_until"] for v in verdicts])
+    until = np.where(np.isfinite(until), np.maximum(until, end_ok), end_ok)
+    fit_ends = np.where(trimmed, until, ts[-1])
+    u, cand, residuals, verdicts, hist, cnt = fit_to(u_ok, fit_ends, (Final(final=False), Final()))
+    ok = np.array([v["passes"] for v in verdicts])
+    if np.any(trimmed & ~ok):  # the reach was too long: the last trusted window alone
+        fit_ends = np.where(trimmed & ~ok, end_ok, fit_ends)
+        u, cand, residuals, verdicts, hist2, cnt2 = fit_to(
+            per_record(trimmed & ~ok, u_ok, u), fit_ends, (Final(),))
+        hist += hist2
+        cnt += cnt2
+    histories += hist
+    counts += cnt
+    steps = np.asarray(sum(jnp.asarray(c) for c in counts)).reshape(-1)
+    new = dict(
+        out=cand, residuals=residuals, verdicts=verdicts, u=u,
+        history=_pack(histories, counts, bsize, setup.cfg.max_steps),
+        loss=np.asarray(cand["loss"]).reshape(-1), starts=out["starts"],
+        num_steps=out["num_steps"] + steps,
+        describes=np.array([v["describes_until"] for v in verdicts]),
+    )
+    if (~trimmed).any():  # records not trimmed keep their whole-record fit
+        new = _merge(out, new, ~trimmed, bsize)
+    return new, np.where(trimmed, fit_ends, ts[-1])
+
+
+def _merge(a, b, keep_a, bsize):
+    """Per record of a batch, `a` where `keep_a`, else `b` (dicts of `_fit_starts`)."""
+    take = lambda x, y: jnp.where(  # noqa: E731
+        jnp.asarray(keep_a).reshape((bsize,) + (1,) * (jnp.ndim(x) - 1)), x, y
+    )
+    width = max(a["history"].shape[-1], b["history"].shape[-1])
+
+    def wide(h):
+        return np.pad(h, ((0, 0), (0, width - h.shape[-1])), constant_values=np.nan)
+
+    return dict(
+        out=jax.tree_util.tree_map(take, a["out"], b["out"]),
+        residuals=np.where(keep_a[:, None], a["residuals"], b["residuals"]),
+        verdicts=[a["verdicts"][i] if keep_a[i] else b["verdicts"][i] for i in range(bsize)],
+        u=take(a["u"], b["u"]),
+        history=np.where(keep_a[:, None], wide(a["history"]), wide(b["history"])),
+        loss=np.where(keep_a, a["loss"], b["loss"]),
+        starts=a["starts"],
+        num_steps=np.where(keep_a, a["num_steps"], b["num_steps"]),
+        describes=np.where(keep_a, a["describes"], b["describes"]),
+    )
 
 
 def _better(a, b, bsize):
@@ -472,6 +572,7 @@ def _better(a, b, bsize):
         history=np.where(pick[:, None], b["history"], a["history"]),
         loss=np.where(pick, b["loss"], a["loss"]),
         starts=b["starts"],
+        u=take(a["u"], b["u"]),
     )
 
 
