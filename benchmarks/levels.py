@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import tippejax as tj
-from tippejax._auto import launch_regime
+from tippejax._auto import accepts, launch_regime
 
 HERE = pathlib.Path(__file__).parent
 LEVELS = ("so3", "routhian", "gyroscopic")
@@ -73,10 +73,10 @@ def make_run(model):
     return eqx.filter_jit(run)
 
 
-def timed(run, *args):
+def timed(run, *args, repeats=None):
     sol = jax.block_until_ready(run(*args))
     times = []
-    for _ in range(REPEATS):
+    for _ in range(REPEATS if repeats is None else repeats):
         start = time.perf_counter()
         sol = jax.block_until_ready(run(*args))
         times.append(time.perf_counter() - start)
@@ -117,26 +117,34 @@ def _fmt(x, spec=".2e"):
     return "inf" if x == INF else format(x, spec)
 
 
-def _py(x):
-    return 'float("inf")' if x == INF else format(x, ".3g")
+def _py(x, spec=".3g"):
+    return 'float("inf")' if x == INF else format(x, spec)
 
 
-def scene_row(runs, name, top, y0, t1):
+def scene_row(runs, name, top, y0, t1, *, repeats=None):
+    """One scene in every level: theta error against the full model, cost (median of
+    `repeats`, default `REPEATS`, timed runs after a first one, relative to the full model)."""
     regime = launch_regime(top, y0)
     ts = jnp.linspace(0.0, t1, N_SAVE)
     t1_ = jnp.asarray(t1)
-    ref, t_ref = timed(runs["full"], top, y0, t1_, ts)
+    ref, t_ref = timed(runs["full"], top, y0, t1_, ts, repeats=repeats)
     row = dict(scene=name, regime=regime, t_invert_full=float(ref.t_invert),
                ok_full=bool(ref.result == tj.RESULTS.successful), steps_full=int(ref.num_steps))
     for level in LEVELS:
-        sol, t_level = timed(runs[level], top, y0, t1_, ts)
+        if not accepts(level, top, y0):
+            # outside the level's chart at launch: auto never picks it for this launch (the
+            # level itself would run the full model from the start): not run
+            row[level] = dict(theta_err=INF, t_invert_err=INF, cost=float("nan"),
+                              model="refused", steps=0, ok=False)
+            continue
+        sol, t_level = timed(runs[level], top, y0, t1_, ts, repeats=repeats)
         both = np.isfinite(np.asarray(sol.theta)) & np.isfinite(np.asarray(ref.theta))
         err = float(np.max(np.abs(np.asarray(sol.theta)[both] - np.asarray(ref.theta)[both]),
                            initial=0.0)) if both.any() else INF
         switched = bool(np.isfinite(float(sol.t_chart_switch)))
         label = f"{level}->{FALLBACK[level]}" if switched else level
         if bool(sol.result == tj.RESULTS.no_gyroscopic_balance):
-            # refused at launch (nothing integrated) or stopped on the way: unusable here
+            # stopped on the way (a level without a hand-over): unusable here
             if int(sol.num_steps) == 0:
                 label = "refused"
             else:
@@ -291,6 +299,33 @@ def gyro_speed():
     return out
 
 
+def regime_lines(measured, *, indent):
+    return [
+        f'{indent}"{regime}": {{'
+        + ", ".join(f'"{lv}": ({_py(m[lv][0])}, {_py(m[lv][1], ".2f")})' for lv in LEVELS)
+        + "},"
+        for regime, m in measured.items()
+    ]
+
+
+def per_regime(rows):
+    """{regime: {level: (worst theta error, median cost)}} over the rows of each regime."""
+    regimes = sorted({r["regime"] for r in rows}, key=[r["regime"] for r in rows].index)
+    measured = {}
+    for regime in regimes:
+        sel = [r for r in rows if r["regime"] == regime]
+        measured[regime] = {}
+        for lv in LEVELS:
+            # auto picks a level only for a launch it accepts (`choose_model` checks `in_chart`):
+            # its error and cost are over the scenes of the regime it accepts; a scene where it
+            # stopped on the way counts (inf). None accepted (not run): inf, cost inf.
+            used = [r for r in sel if r[lv]["model"] != "refused"]
+            measured[regime][lv] = (
+                (max(r[lv]["theta_err"] for r in used),
+                 float(np.median([r[lv]["cost"] for r in used]))) if used else (INF, INF))
+    return measured
+
+
 def main():
     t_start = time.perf_counter()
     batch = batch_costs()
@@ -305,18 +340,7 @@ def main():
     spin_rows = gyro_vs_spin(runs)
     mu_rows = gyro_vs_mu(runs)
     speed = gyro_speed()
-    regimes = sorted({r["regime"] for r in rows}, key=[r["regime"] for r in rows].index)
-    measured = {}
-    for regime in regimes:
-        sel = [r for r in rows if r["regime"] == regime]
-        measured[regime] = {}
-        for lv in LEVELS:
-            # auto picks a level only for a launch it accepts (`choose_model` checks `in_chart`):
-            # its error and cost are over the scenes of the regime it accepts; a scene where it
-            # stopped on the way counts (inf). None accepted: inf.
-            used = [r for r in sel if r[lv]["model"] != "refused"] or sel
-            measured[regime][lv] = (max(r[lv]["theta_err"] for r in used),
-                                    float(np.median([r[lv]["cost"] for r in used])))
+    measured = per_regime(rows)
     lines = [
         "# The model ladder: error of each level against the full model",
         "",
@@ -390,12 +414,7 @@ def main():
         "",
         "```python",
         "MEASURED = {",
-        *[
-            f'    "{regime}": {{'
-            + ", ".join(f'"{lv}": ({_py(m[lv][0])}, {m[lv][1]:.2f})' for lv in LEVELS)
-            + "},"
-            for regime, m in measured.items()
-        ],
+        *regime_lines(measured, indent="    "),
         "}",
         "```",
     ]
@@ -622,10 +641,16 @@ def write_spun_section():
         f"{1e3 * f0:.2f} ms.",
         "",
     ]
+    write_section(SPUN_MARK, lines)
+
+
+def write_section(mark, lines):
+    """Replace the section of LEVELS.md that starts with `mark` (up to the next "## "), or
+    append it; the rest of the file is left as it is."""
     path = HERE / "LEVELS.md"
     text = path.read_text()
-    if SPUN_MARK in text:
-        head, tail = text.split(SPUN_MARK, 1)
+    if mark in text:
+        head, tail = text.split(mark, 1)
         nxt = tail.find("\n## ")
         rest = tail[nxt + 1:] if nxt >= 0 else ""
         text = head + "\n".join(lines) + ("\n" + rest if rest else "")

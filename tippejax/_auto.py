@@ -30,6 +30,8 @@ vertical states is stable for that $J$, by the sign of $W''$ at the poles).
 
 from __future__ import annotations
 
+from collections.abc import Collection
+
 import numpy as np
 
 from ._analysis.groups import classify
@@ -79,17 +81,42 @@ def launch_regime(top: TippeTop, y0: State) -> str:
             (False, False): "intermediate", (True, True): "bistable"}[(up, down)]
 
 
+def accepts(level: str, top: TippeTop, y0: State) -> bool:
+    """Whether `level` describes this launch: False for a level with a chart of its own (the
+    gyroscopic level) when the launch is outside it (needs concrete values)."""
+    from ._models.levels import LEVELS
+
+    lvl = LEVELS[level]
+    return lvl.chart_end_result is None or bool(np.asarray(lvl.in_chart(top, y0)))
+
+
+def cheapest_level(table: dict, tolerance: float, *, refused: Collection[str] = ()) -> str:
+    """The level with the lowest measured cost among those of `table` ({level: (worst error,
+    cost)}) whose error is at most `tolerance` and whose cost is below `COST_MARGIN`, leaving
+    out the levels `refused` (those that do not accept the launch); `"full"` if none."""
+    candidates = [(1.0, 0.0, "full")]
+    for level, (error, cost) in table.items():
+        if not (np.isfinite(error) and error <= tolerance and cost < COST_MARGIN):
+            continue
+        if level in refused:
+            continue
+        candidates.append((cost, error, level))
+    return min(candidates)[2]
+
+
 def choose_model(top: TippeTop, y0: State, *, tolerance: float | None) -> str:
     """The level `model="auto"` uses for this launch and `tolerance` (max theta error, rad).
 
     `tolerance=None` means "as accurate as the package can": the full model. Otherwise, in the
-    regime of this launch (`launch_regime`), the level with the lowest measured cost among those
-    whose measured worst error is at most `tolerance` and whose cost is below `COST_MARGIN` (the
-    full model, cost 1, always qualifies). The gyroscopic level qualifies only if it accepts
-    this launch (`in_chart` of the launch): a launch outside its chart would run in the full
+    regime of this launch (`launch_regime`), for a top of a measured group, the level
+    with the lowest measured cost among those whose measured worst error is at most `tolerance`
+    and whose cost is below `COST_MARGIN` (the full model, cost 1, always qualifies;
+    `cheapest_level`). The gyroscopic level qualifies only if it accepts this launch
+    (`accepts`: `in_chart` of the launch); a launch outside its chart would run in the full
     model from the start (`"gyroscopic->full"`). On the way it may still hand over to the full
-    model where the slow manifold repels or balance is lost. Tops of groups the benchmark did not measure, regimes
-    it did not measure, and traced arguments (no regime can be read) keep the full model.
+    model where the slow manifold repels or balance is lost. Tops of groups the benchmark did
+    not measure, regimes it did not measure, and traced arguments (no regime can be read) keep
+    the full model.
     """
     if tolerance is None:
         return "full"
@@ -97,19 +124,11 @@ def choose_model(top: TippeTop, y0: State, *, tolerance: float | None) -> str:
         raise ValueError(f"tolerance must be a positive error in theta (rad), got {tolerance}.")
     try:
         regime = launch_regime(top, y0)
-        group = classify(top)
+        group = str(classify(top))
     except Exception:  # traced values: no regime can be read, stay with the full model
         return "full"
     if group not in MEASURED_GROUPS or regime not in MEASURED:
         return "full"
-    from ._models.levels import LEVELS
-
-    candidates = [(1.0, 0.0, "full")]
-    for level, (error, cost) in MEASURED[regime].items():
-        if not (np.isfinite(error) and error <= tolerance and cost < COST_MARGIN):
-            continue
-        lvl = LEVELS[level]
-        if lvl.chart_end_result is not None and not bool(np.asarray(lvl.in_chart(top, y0))):
-            continue  # the level would refuse this launch
-        candidates.append((cost, error, level))
-    return min(candidates)[2]
+    table = MEASURED[regime]
+    refused = [level for level in table if not accepts(level, top, y0)]
+    return cheapest_level(table, tolerance, refused=refused)
