@@ -10,10 +10,12 @@ the difference in inversion time, and the median wall time after compilation rel
 full model (one jitted function per level, all scenes through it). Then, for the gyroscopic
 level: its error against the SO(3) and full models as a function of the spin (with the fitted
 power law of the t_invert error) and of mu, and its speed against the full model over a 20 s run.
-Writes benchmarks/LEVELS.md; the worst error and median cost per regime go into
-`tippejax/_auto.py` (`MEASURED`).
+Writes benchmarks/LEVELS.md; the worst error and median cost per regime go into group IIb of
+`tippejax/_auto.py`'s `MEASURED`, merged with the per-group scenes of `levels_groups.py`.
 
-    python benchmarks/levels.py
+    python benchmarks/levels.py             # everything (rewrites LEVELS.md)
+    python benchmarks/levels.py --spun      # the spun-launch section only
+    python benchmarks/levels.py --groups    # the section on every group only (and MEASURED)
 """
 
 from __future__ import annotations
@@ -36,6 +38,9 @@ LEVELS = ("so3", "routhian", "gyroscopic")
 FALLBACK = {"so3": "so3", "routhian": "so3", "gyroscopic": "full"}
 N_SAVE = 2001
 REPEATS = 5
+IIB_SCENES_NAME = "MEASURED_IIB_SCENES"
+"""The per-regime table of these (group IIb) scenes in LEVELS.md; `--groups` merges it into
+group IIb of the `MEASURED` table it writes."""
 
 
 def _spin_for_jellet(top, theta0, J):
@@ -370,8 +375,9 @@ def main():
         )
     lines += [
         "",
-        "Per regime (worst theta error over its scenes, median cost), as copied into "
-        "`tippejax/_auto.py` `MEASURED`. For the gyroscopic level, over the scenes of the regime "
+        "Per regime (worst theta error over its scenes, median cost): the group IIb entries of "
+        "`tippejax/_auto.py` `MEASURED`, merged there with the IIb scenes of the section on "
+        "every group below (`--groups`). For the gyroscopic level, over the scenes of the regime "
         "it accepts (`model=\"auto\"` only picks it for a launch it accepts: `choose_model` "
         "checks `in_chart`); a scene where it stopped on the way counts as inf. The error is the "
         "same metric as for the other levels, max |theta - theta_full| over the run, which is "
@@ -413,7 +419,7 @@ def main():
     lines += [
         "",
         "```python",
-        "MEASURED = {",
+        f"{IIB_SCENES_NAME} = {{",
         *regime_lines(measured, indent="    "),
         "}",
         "```",
@@ -664,6 +670,13 @@ if __name__ == "__main__":
 
     if "--spun" in sys.argv[1:]:
         write_spun_section()
+    elif "--groups" in sys.argv[1:]:
+        from levels_groups import write_groups_section
+
+        write_groups_section()
     else:
         main()
         write_spun_section()
+        from levels_groups import write_groups_section
+
+        write_groups_section()

@@ -5,14 +5,26 @@ theta alone; it is only picked for a launch it accepts, i.e. inside its own char
 balance holds and the launch's nutation is small enough to project, see `choose_model`).
 
 The numbers in `MEASURED` are copied from `benchmarks/LEVELS.md`, made by
-`python benchmarks/levels.py`: for each regime, the worst error in theta(t) of each level
-against the full model over the benchmark's scenes of that regime, and the median cost (wall
-time relative to the full model in the same run). For the gyroscopic level, which refuses
-launches it cannot describe, both are over the scenes of the regime it accepts, since auto
-only picks it for a launch it accepts; a scene where it was accepted and then stopped on the way
-counts as error `inf` (never picked in that regime), and so does a regime where it accepted
-none. Re-run the benchmark and update them together when a model or solver changes
-(`tests/test_auto.py` checks they agree).
+`python benchmarks/levels.py --groups`: for each group of tops (`classify`) and each regime of
+launch in it, the worst error in theta(t) of each level against the full model over the
+benchmark's scenes of that group and regime, and the median cost (wall time relative to the
+full model in the same run). The scenes: one top per group, launches (omega = n a, 8 s) on a
+grid of spins 0.7 to 10 times n1 (n2 in group I), mu 0.05, 0.3, 2 s/m and theta0 0.15, 0.3,
+0.5, plus the most tilted launch the gyroscopic level accepts at each spin and mu; group IIb
+also has the scenes of `python benchmarks/levels.py` (stiff friction, a moving centre of mass,
+nutating launches; worst error and highest cost of the two sets). For the gyroscopic level,
+which refuses launches it cannot describe, both are over the scenes of the regime it accepts,
+since auto only picks it for a launch it accepts; a scene where it was accepted and then
+stopped on the way counts as error `inf` (never picked in that regime), and so does a regime
+where it accepted none. Re-run the benchmark and update them together when a model or solver
+changes (`tests/test_auto.py` checks they agree).
+
+The worst error of a regime is met at mu = 2 almost everywhere (0.2-0.43 rad where the top
+stays upright or is bistable, 0.6-2.5 rad where it rises), so below ~0.2 rad auto keeps the
+full model, and the cheaper levels are picked mostly for launches that stay upright or are
+bistable. The numbers hold for 8 s runs of the benchmark's top of each group; other tops of a
+group, other launches and longer runs are extrapolations (`tests/test_auto.py` checks seeded
+random launches of four groups against them).
 
 **What `tolerance` means.** The largest acceptable max |theta(t) - theta_full(t)| over the run
 (rad), the same metric for every level. The gyroscopic level drops the nutation, so its error
@@ -42,18 +54,39 @@ from ._state import State
 from ._top import TippeTop
 
 MEASURED = {
-    "inverts": {"so3": (0.234, 0.90), "routhian": (0.234, 0.90), "gyroscopic": (0.285, 0.06)},
-    "intermediate": {"so3": (0.385, 0.89), "routhian": (0.385, 0.86), "gyroscopic": (0.62, 0.12)},
-    "stays upright": {"so3": (0.0453, 0.97), "routhian": (0.0453, 1.12), "gyroscopic": (0.075, 0.19)},
-    "stiff": {"so3": (0.536, 0.58), "routhian": (0.536, 0.35), "gyroscopic": (0.928, 0.02)},
-    "moving": {"so3": (0.311, 0.93), "routhian": (0.311, 1.01), "gyroscopic": (0.192, 0.08)},
+    "Ia": {
+        "stays upright": {"so3": (0.289, 0.82), "routhian": (0.289, 0.92), "gyroscopic": (0.427, 0.27)},
+        "bistable": {"so3": (0.266, 0.85), "routhian": (0.266, 0.86), "gyroscopic": (0.32, 0.13)},
+    },
+    "Ib": {
+        "stays upright": {"so3": (0.233, 0.81), "routhian": (0.233, 0.88), "gyroscopic": (0.251, 0.19)},
+        "bistable": {"so3": (0.202, 0.99), "routhian": (0.202, 1.04), "gyroscopic": (0.247, 0.11)},
+    },
+    "IIa": {
+        "stays upright": {"so3": (0.218, 0.80), "routhian": (0.218, 0.78), "gyroscopic": (0.249, 0.14)},
+        "intermediate": {"so3": (1.28, 0.81), "routhian": (1.28, 0.77), "gyroscopic": (2.23, 0.13)},
+        "inverts": {"so3": (1.36, 0.94), "routhian": (1.36, 1.04), "gyroscopic": (2.46, 0.11)},
+    },
+    "IIb": {
+        "stays upright": {"so3": (0.231, 0.97), "routhian": (0.231, 1.12), "gyroscopic": (0.249, 0.19)},
+        "intermediate": {"so3": (0.74, 0.89), "routhian": (0.74, 0.86), "gyroscopic": (1.35, 0.15)},
+        "inverts": {"so3": (0.882, 0.91), "routhian": (0.882, 1.00), "gyroscopic": (1.89, 0.15)},
+        "stiff": {"so3": (0.536, 0.58), "routhian": (0.536, 0.35), "gyroscopic": (0.928, 0.02)},
+        "moving": {"so3": (0.311, 0.93), "routhian": (0.311, 1.01), "gyroscopic": (0.192, 0.08)},
+    },
+    "IIc": {
+        "bistable": {"so3": (0.25, 0.84), "routhian": (0.25, 0.86), "gyroscopic": (0.303, 0.15)},
+        "stays upright": {"so3": (0.267, 0.82), "routhian": (0.267, 0.71), "gyroscopic": (float("inf"), float("inf"))},
+        "inverts": {"so3": (1.41, 0.81), "routhian": (1.41, 0.82), "gyroscopic": (2.27, 0.08)},
+    },
+    "III": {
+        "stays upright": {"so3": (0.276, 0.84), "routhian": (0.276, 0.97), "gyroscopic": (0.243, 0.27)},
+        "intermediate": {"so3": (0.62, 0.80), "routhian": (0.62, 0.81), "gyroscopic": (0.994, 0.22)},
+    },
 }
-"""Per regime and level: (worst theta error in rad, median cost relative to the full model);
-for the gyroscopic level over the scenes it accepts (`inf`: it stopped on one, or accepted
-none)."""
-
-MEASURED_GROUPS = ("IIb",)
-"""Groups of tops the benchmark's scenes cover; for other groups `auto` keeps the full model."""
+"""Per group, regime and level: (worst theta error in rad, median cost relative to the full
+model); for the gyroscopic level over the scenes it accepts (`inf`: it stopped on one, or
+accepted none). A group and regime not listed keeps the full model."""
 
 COST_MARGIN = 0.9
 """A cheaper level is used only if its measured cost is below this fraction of the full model's.
@@ -108,15 +141,14 @@ def choose_model(top: TippeTop, y0: State, *, tolerance: float | None) -> str:
     """The level `model="auto"` uses for this launch and `tolerance` (max theta error, rad).
 
     `tolerance=None` means "as accurate as the package can": the full model. Otherwise, in the
-    regime of this launch (`launch_regime`), for a top of a measured group, the level
+    group of the top (`classify`) and the regime of this launch (`launch_regime`), the level
     with the lowest measured cost among those whose measured worst error is at most `tolerance`
     and whose cost is below `COST_MARGIN` (the full model, cost 1, always qualifies;
     `cheapest_level`). The gyroscopic level qualifies only if it accepts this launch
     (`accepts`: `in_chart` of the launch); a launch outside its chart would run in the full
     model from the start (`"gyroscopic->full"`). On the way it may still hand over to the full
-    model where the slow manifold repels or balance is lost. Tops of groups the benchmark did
-    not measure, regimes it did not measure, and traced arguments (no regime can be read) keep
-    the full model.
+    model where the slow manifold repels or balance is lost. A group and regime the benchmark
+    did not measure, and traced arguments (no regime can be read), keep the full model.
     """
     if tolerance is None:
         return "full"
@@ -127,8 +159,8 @@ def choose_model(top: TippeTop, y0: State, *, tolerance: float | None) -> str:
         group = str(classify(top))
     except Exception:  # traced values: no regime can be read, stay with the full model
         return "full"
-    if group not in MEASURED_GROUPS or regime not in MEASURED:
+    table = MEASURED.get(group, {}).get(regime)
+    if table is None:
         return "full"
-    table = MEASURED[regime]
     refused = [level for level in table if not accepts(level, top, y0)]
     return cheapest_level(table, tolerance, refused=refused)

@@ -258,8 +258,9 @@ def simulate(
       the level can project, the run hands over to the full model from the reconstructed
       state, reported as `sol.model == "gyroscopic->full"`), or
       `"auto"` (the cheapest of `"full"`, `"so3"`, `"routhian"`, `"gyroscopic"` whose measured
-      error in the launch's regime, `benchmarks/LEVELS.md`, is below `tolerance`; the
-      gyroscopic level only for a launch it accepts).
+      error for the top's group and the launch's regime, `benchmarks/LEVELS.md`, is below
+      `tolerance`; the gyroscopic level only for a launch it accepts; the full model where
+      that group and regime were not measured).
     - `saveat`: save times within `[t0, t1]`, non-decreasing (default: 1001 points from `t0`
       to `t1`). Grids are padded internally to the next power of two (at least 16), so
       lengths that share that bucket share one compilation. Events (inversion, contact loss, the $R_n$ singularity, the chart edge) are
