@@ -28,9 +28,9 @@ minima along the curve of matching inversion times. The default strategy (`"glob
    nutation cycles, scanned along the spin on a grid finer than one cycle, the window then
    growing by 3 with the scan narrowed each time (`stages/phase_scan.py`);
 4. with the spin held, ranks 128 points of the other parameters by the slow loss and refines
-   the best 8 at once; keeps the lowest;
+   the best 8 (20 steps each); keeps the lowest;
 5. scans the phase along the slow loss's valley on windows that grow to the whole record, and
-   refines its 4 best cycles at once on the whole record;
+   refines its 4 best cycles on the whole record (30 steps each);
 6. fits the whole record at the stage tolerance, then at the fit's own (the loss the
    covariance is about), all coordinates inside a trust region of a factor 5 around the guess;
 7. tests the residuals (`diagnostics.py`: runs test, Ljung-Box and windowed chi-square); if
@@ -377,6 +377,7 @@ def _setup(top_guess, y0_guess, ts_np, obs2, mask2, w2, phi2, fields, launch, t0
         atol=per_rec(atol),
         tol=per_rec(tol),
         pinned=jnp.zeros((bsize, len(free)), dtype),
+        steps=per_rec(float(max_steps)),
     )
     if not batched:
         template = jax.tree_util.tree_map(lambda x: x[0], template)

@@ -3,7 +3,8 @@ r"""The optimisers that run one stage of a fit, inside `jit` (and `vmap` over re
 Levenberg-Marquardt and Gauss-Newton come from optimistix and step inside a `lax.while_loop`
 that also records the loss after each step; Adam comes from optax. Each stage starts from the
 coordinates the previous one ended at and stops on the optimiser's own tolerance (`Data.tol`)
-or after `Config.max_steps` steps.
+or after `Config.max_steps` steps (or the smaller budget `Data.steps` of a stage that only
+ranks or seeds: a budget is a value, not a new compilation).
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ def optimistix_stage(u0, data: Data, cfg: Config):
         u, dynamic, _, k = carry
         state = eqx.combine(dynamic, static)
         done, _ = solver.terminate(fn, u, data, options, state, tags)
-        return (~done) & (k < cfg.max_steps)
+        return (~done) & (k < cfg.max_steps) & (k < data.steps)
 
     def body(carry):
         u, dynamic, history, k = carry
@@ -68,7 +69,7 @@ def optax_stage(u0, data: Data, cfg: Config):
 
     def cond(carry):
         *_, k, done = carry
-        return (~done) & (k < cfg.max_steps)
+        return (~done) & (k < cfg.max_steps) & (k < data.steps)
 
     def body(carry):
         u, opt_state, best, history, k, _ = carry

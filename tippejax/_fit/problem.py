@@ -81,6 +81,7 @@ class Data(eqx.Module):
     atol: Float[Array, ""]
     tol: Float[Array, ""]  # the optimiser's tolerance in this stage
     pinned: Float[Array, " p"]  # 1 for a coordinate this stage holds where it is, else 0
+    steps: Float[Array, ""]  # this optimisation's step budget (at most `Config.max_steps`)
 
 
 def simulated(values, data: Data, cfg: Config):

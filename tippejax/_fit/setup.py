@@ -69,13 +69,14 @@ class Setup:
         return np.concatenate([x, np.zeros(x.shape[:-1] + (self.padded - self.n,), x.dtype)], -1)
 
     def data(self, *, window_end=None, theta=True, slow=0.0, tol=STAGE_TOL, rtol=None,
-             final=False, pin=()) -> Data:
+             final=False, pin=(), steps=None) -> Data:
         """`Data` for one optimisation: tilt samples up to `window_end` (all if None; none if
         `theta` is False; a scalar or one per record) and the slow observables with weight
         `slow` (per record or scalar). Without slow observables the simulation stops at the
         window's end. It runs at `rtol` if given, else at the fit's own `rtol` when `final`,
         else at `STAGE_RTOL` (or the fit's, if looser). The free parameters named in `pin`
-        are held where they are."""
+        are held where they are. `steps` caps the optimiser's steps (default: the fit's
+        `max_steps`)."""
         ts, bsize = self.ts, self.bsize
         use = self.mask & self.fitted
         t_end = np.full(bsize, ts[-1])
@@ -103,6 +104,8 @@ class Setup:
             t_end=t_end,
             pinned=np.broadcast_to(np.array([n in pin for n in self.cfg.free], float),
                                    (bsize, len(self.cfg.free))),
+            steps=np.full(bsize, float(self.cfg.max_steps if steps is None
+                                       else min(steps, self.cfg.max_steps))),
         )
         fields = {k: jnp.asarray(np.asarray(v), dtype) for k, v in fields.items()}
         if not self.batched:
@@ -115,21 +118,19 @@ class Setup:
         return _run_optimise(u, data, self.cfg, self.batched)
 
     def optimise_many(self, u, data: Data):
-        """`optimise` from each of the starting points `u` (shape `(K, *batch, p)`) at once
-        (one vmapped batch; K is part of the compiled shape). Returns the end points, shape
-        `(K, *batch, p)`, and their step counts."""
-        k = u.shape[0]
-        if self.batched:
-            flat = jnp.asarray(u).reshape((k * self.bsize,) + u.shape[2:])
-            many = jax.tree_util.tree_map(
-                lambda x: jnp.broadcast_to(x[None], (k,) + x.shape).reshape((k * x.shape[0],) + x.shape[1:]),
-                data,
-            )
-        else:
-            flat = jnp.asarray(u)
-            many = jax.tree_util.tree_map(lambda x: jnp.broadcast_to(x[None], (k,) + x.shape), data)
-        out, _, steps, _ = _run_optimise(flat, many, self.cfg, True)
-        return out.reshape(u.shape), steps.reshape(u.shape[:-1])
+        """`optimise` from each of the starting points `u` (shape `(K, *batch, p)`) in turn.
+        Returns the end points, shape `(K, *batch, p)`, and their step counts.
+
+        One after the other, through the program the stages already compiled: a vmapped batch
+        of K optimisations is a program of its own, and compiling it (forward-mode Jacobians
+        through the solver, K wide) cost minutes on 2 cores, more than the K optimisations; in
+        lock-step the batch would also run until its slowest member stops."""
+        ends, steps = [], []
+        for k in range(u.shape[0]):
+            end, _, count, _ = self.optimise(jnp.asarray(u[k]), data)
+            ends.append(end)
+            steps.append(count)
+        return jnp.stack(ends), jnp.stack([jnp.asarray(c) for c in steps])
 
     def losses(self, u, data: Data) -> np.ndarray:
         """Loss of each of the points `u` (shape `(K, *batch, p)`), in batches of `CHUNK`

@@ -24,8 +24,9 @@ and then refined on longer ones:
    floor is narrow and the slow loss has plateaus (where a trial top does not turn over at
    all, a small change does not change the loss), so the other coordinates are first ranked
    on `search_points` points of a low-discrepancy set in the box `|u_o| <= search_box` around
-   the guess (and the point itself), one batch; optimisations run from the `refine` best at
-   once (one vmapped batch), and the lowest end point is kept. The slow loss has several
+   the guess (and the point itself), one batch; optimisations run from the `refine` best
+   (at most `refine_steps` steps each: on the slow loss's plateaus an optimisation would
+   otherwise use the fit's whole budget), and the lowest end point is kept. The slow loss has several
    local minima along the curve of matching inversion times, and the least-squares ranking
    of a coarse set does not always put the global one's basin first.
 3. **Along the valley, on windows that grow to the whole record.** With $H$ the Hessian of
@@ -35,7 +36,8 @@ and then refined on longer ones:
    each spin). The scan of step 1 goes on along $v$ from the last window to the whole record.
 4. **The best few cycles.** The valley is straight only to first order, so the last scan's
    best point can be a neighbouring cycle's. Its `candidates` lowest local minima are each
-   refined on the whole record (one vmapped batch of optimisations), and the lowest end wins.
+   refined on the whole record (at most `candidate_steps` steps each: enough to settle each
+   in its cycle; the final stage polishes the winner), and the lowest end wins.
 
 Each evaluation is a batch of simulations (`setup.CHUNK` at a time) that stop at the window's
 end, so the whole scan costs about as much as a few batches over the record; a grid over the
@@ -72,6 +74,8 @@ class PhaseScan(AbstractStage):
     refine: int = 8
     candidates: int = 4
     hessian_step: float = 0.02
+    refine_steps: int = 20
+    candidate_steps: int = 30
 
     def run(self, u, setup) -> StageRun:
         free = setup.cfg.free
@@ -117,7 +121,7 @@ class PhaseScan(AbstractStage):
                                   setup.data(theta=False, slow=1.0, rtol=SEARCH_RTOL))
             order = np.argsort(losses.reshape(points.shape[0], -1), axis=0)[: self.refine]
             starts = points[order, np.arange(bsize)[None, :]]  # (refine, bsize, p)
-            slow = setup.data(theta=False, slow=1.0, pin=("spin",))
+            slow = setup.data(theta=False, slow=1.0, pin=("spin",), steps=self.refine_steps)
             ends, _ = setup.optimise_many(
                 jnp.asarray(starts if batched else starts[:, 0], u.dtype), slow)
             ends = np.asarray(ends, float).reshape(self.refine, bsize, p)
@@ -132,11 +136,11 @@ class PhaseScan(AbstractStage):
             nxt = np.minimum(start + self.growth * (window - start), end)
             _, _, minima = self._scan(u_np, directions, setup, rate, nxt, half,
                                       np.full(bsize, end), batched, u.dtype)
-            # 4. the best few cycles of the last scan, each refined on the whole record at
-            # once; the lowest end wins (the valley is only straight to first order, so the
+            # 4. the best few cycles of the last scan, each refined on the whole record; the
+            # lowest end wins (the valley is only straight to first order, so the
             # scan's best point can be a neighbouring cycle's)
             points = u_np[None] + minima[:, :, None] * directions[None]  # (K, bsize, p)
-            full = setup.data()
+            full = setup.data(steps=self.candidate_steps)
             ends, _ = setup.optimise_many(jnp.asarray(points if batched else points[:, 0], u.dtype),
                                           full)
             ends = np.asarray(ends, float).reshape(points.shape)
