@@ -287,18 +287,29 @@ def main():
                         help="records also fitted with the other strategies and scipy")
     parser.add_argument("--report", action="store_true", help="summarise fitting_rows.json only")
     parser.add_argument("--resume", action="store_true", help="skip fits already in the rows")
+    parser.add_argument("--first", type=int, default=0,
+                        help="start at this record (a second process can take the far end)")
+    parser.add_argument("--rows", type=pathlib.Path, default=ROWS,
+                        help="where this process writes its rows (--report reads every "
+                             "fitting_rows*.json beside the default)")
     parser.add_argument("--speed", action="store_true",
                         help="time one 10 s, 100 Hz fit (twice) against scipy, and stop")
     args = parser.parse_args()
     if args.speed:
         speed()
         return
-    rows = json.loads(ROWS.read_text()) if (args.report or args.resume) and ROWS.exists() else []
-    if not args.report:
+    rows = json.loads(args.rows.read_text()) if args.resume and args.rows.exists() else []
+    if args.report:
+        seen = {}
+        for path in sorted(HERE.glob("fitting_rows*.json")):
+            for r in json.loads(path.read_text()):
+                seen[(r["index"], r["start"], r["strategy"])] = r
+        rows = sorted(seen.values(), key=lambda r: r["index"])
+    else:
         records = draw_records(args.n, args.seed)
         done = {(r["index"], r["start"], r["strategy"]) for r in rows}
         jobs = []
-        for i in range(args.n):  # record by record, so that a partial run is a usable sample
+        for i in range(args.first, args.n):  # record by record: a partial run is a usable sample
             jobs += [(i, s, "global") for s in ("truth", "off")]
             if i < args.compare:
                 jobs += [(i, "off", s) for s in ("search", "levels", "windows", "plain", "scipy")]
@@ -310,7 +321,7 @@ def main():
             else:
                 row = fit_row(records[i], i, s, strategy)
             rows.append(row)
-            ROWS.write_text(json.dumps(rows, indent=0))
+            args.rows.write_text(json.dumps(rows, indent=0))
             print(f"[{len(rows)}/{len(jobs)}] record {i} {s} {strategy}: "
                   f"{'ok' if succeeded(row) else 'FAIL'} {np.round(row['rel_error'], 4).tolist()} "
                   f"{row.get('message', '')!r} {row['wall']:.1f} s", flush=True)
