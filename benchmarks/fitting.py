@@ -147,12 +147,18 @@ def summarise(rows) -> str:
         flagged = sum(not r["converged"] for r in bad)
         within3 = [r for r in truth if np.all(np.abs(r["z"]) < 3)]
         walls = [r["wall"] for r in subset]
+        good = [r for r in subset if succeeded(r)]
+        ratio = np.concatenate([r["se_over_crb"] for r in good]) if good else np.array([])
+        z = np.abs(np.concatenate([r["z"] for r in subset])) if subset else np.array([])
         return [label, f"{ok_t}/{len(truth)}", f"{len(within3)}/{len(truth)}", f"{ok_o}/{len(off)}",
                 f"{flagged}/{len(bad)}", f"{len(bad) - flagged}",
+                f"{np.median(ratio):.2f}" if ratio.size else "-",
+                f"{np.mean(z < 2):.0%}" if z.size else "-",
                 f"{np.median(walls):.1f}" if walls else "-"]
 
     head = ["records", "success from truth", "truth within 3 SE", "success from 30% off",
-            "failures flagged", "unflagged failures", "median s/fit"]
+            "failures flagged", "unflagged failures", "SE / CRB (successes, median)",
+            "error / SE within 2 (all fits)", "median s/fit"]
     body = [line("all", main)]
     for g in ("IIa", "IIb", "IIc", "III"):
         body.append(line(g, [r for r in main if r["group"] == g]))
