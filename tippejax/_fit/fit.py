@@ -530,27 +530,34 @@ def _trim(setup, out, obs2, sigma):
     return new, np.where(trimmed, fit_ends, ts[-1])
 
 
-def _merge(a, b, keep_a, bsize):
-    """Per record of a batch, `a` where `keep_a`, else `b` (dicts of `_fit_starts`)."""
+def _select(a, b, take_b, bsize):
+    """Per record of a batch, the fit in `b` where `take_b`, else the one in `a` (dicts of
+    `_fit_starts`; keys both have). Loss histories of different lengths are nan-padded."""
+    pick = np.asarray(take_b)
     take = lambda x, y: jnp.where(  # noqa: E731
-        jnp.asarray(keep_a).reshape((bsize,) + (1,) * (jnp.ndim(x) - 1)), x, y
+        jnp.asarray(pick).reshape((bsize,) + (1,) * (jnp.ndim(x) - 1)), y, x
     )
     width = max(a["history"].shape[-1], b["history"].shape[-1])
 
     def wide(h):
         return np.pad(h, ((0, 0), (0, width - h.shape[-1])), constant_values=np.nan)
 
-    return dict(
+    out = dict(
         out=jax.tree_util.tree_map(take, a["out"], b["out"]),
-        residuals=np.where(keep_a[:, None], a["residuals"], b["residuals"]),
-        verdicts=[a["verdicts"][i] if keep_a[i] else b["verdicts"][i] for i in range(bsize)],
+        residuals=np.where(pick[:, None], b["residuals"], a["residuals"]),
+        verdicts=[b["verdicts"][i] if pick[i] else a["verdicts"][i] for i in range(bsize)],
+        history=np.where(pick[:, None], wide(b["history"]), wide(a["history"])),
         u=take(a["u"], b["u"]),
-        history=np.where(keep_a[:, None], wide(a["history"]), wide(b["history"])),
-        loss=np.where(keep_a, a["loss"], b["loss"]),
-        starts=a["starts"],
-        num_steps=np.where(keep_a, a["num_steps"], b["num_steps"]),
-        describes=np.where(keep_a, a["describes"], b["describes"]),
     )
+    for key in ("loss", "num_steps", "describes"):
+        if key in a and key in b:
+            out[key] = np.where(pick, b[key], a[key])
+    return out
+
+
+def _merge(a, b, keep_a, bsize):
+    """Per record of a batch, `a` where `keep_a`, else `b`."""
+    return dict(_select(a, b, ~np.asarray(keep_a), bsize), starts=a["starts"])
 
 
 def _better(a, b, bsize):
@@ -562,19 +569,7 @@ def _better(a, b, bsize):
         return a
     if pick.all():
         return b
-    take = lambda x, y: jnp.where(  # noqa: E731
-        jnp.asarray(pick).reshape((bsize,) + (1,) * (jnp.ndim(x) - 1)), y, x
-    )
-    out = jax.tree_util.tree_map(take, a["out"], b["out"])
-    return dict(
-        out=out,
-        residuals=np.where(pick[:, None], b["residuals"], a["residuals"]),
-        verdicts=[b["verdicts"][i] if pick[i] else a["verdicts"][i] for i in range(bsize)],
-        history=np.where(pick[:, None], b["history"], a["history"]),
-        loss=np.where(pick, b["loss"], a["loss"]),
-        starts=b["starts"],
-        u=take(a["u"], b["u"]),
-    )
+    return dict(_select(a, b, pick, bsize), starts=b["starts"])
 
 
 def _pack(histories, counts, bsize, max_steps):
