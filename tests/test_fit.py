@@ -4,6 +4,8 @@ Records come from `tests/vector_reference.py` (Newton-Euler in vector form, no t
 physics). The fits that share a time grid and free set share one compilation.
 """
 
+import importlib
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -117,6 +119,28 @@ def test_trim_recovers_a_record_whose_end_is_not_described(fast_record):
     _check_success(res, np.array([float(TOP_IIA.mu), float(TOP_IIA.eps), spin]))
     assert float(res.rms) > 3 * NOISE  # over the whole record, the landing is not described
     assert float(res.rms_fitted) < 1.2 * NOISE
+
+
+def test_phase_check_leaves_a_slipped_cycle_for_the_lower_one(monkeypatch):
+    """A guess whose spin is two nutation cycles off: a plain fit settles a few cycles
+    away from the truth. The phase check profiles the loss along the slow valley, finds the
+    lower cycle, refits there and ends within half a cycle of the truth's spin, converged
+    and at a lower rms. The same fit with the check switched off stays on the slipped cycle,
+    so the test sees the check's own work."""
+    fit_module = importlib.import_module("tippejax._fit.fit")
+    spin = 3.0 * float(tj.thresholds(TOP_IIA).n1)
+    obs, _ = _record(TOP_IIA, TS_FAST, 0.2, spin, seed=3)
+    cycles = float(TOP_IIA.C) * spin / (2 * np.pi * float(TOP_IIA.A)) * (TS_FAST[-1] - TS_FAST[0])
+    guess, y0 = _guess(TOP_IIA, spin, (1.0, 1.0, 1.0 + 2.0 / cycles), 0.2)
+    checked = tj.fit(guess, y0, TS_FAST, obs, free=FREE, strategy="plain")
+    with monkeypatch.context() as m:
+        m.setattr(fit_module, "_check_phase", lambda setup, best, obs2, sigma: best)
+        unchecked = tj.fit(guess, y0, TS_FAST, obs, free=FREE, strategy="plain")
+    slip = lambda res: (float(res.values[2]) / spin - 1.0) * cycles  # noqa: E731
+    assert abs(slip(unchecked)) > 0.5, slip(unchecked)  # plain alone: a slipped cycle
+    assert abs(slip(checked)) < 0.5, slip(checked)
+    assert float(checked.rms) < float(unchecked.rms)
+    assert bool(checked.converged), checked.message()
 
 
 def test_recovers_from_30_percent_off_at_30_hz_group_III():

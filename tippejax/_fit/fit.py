@@ -52,7 +52,7 @@ from jaxtyping import ArrayLike
 from .._simulate import MODELS
 from .._state import State
 from .._top import TippeTop, _checks
-from . import diagnostics
+from . import diagnostics, profile
 from .params import FREE_NAMES, LAUNCH_FIELDS, TOP_FIELDS, Base, launch_of
 from .problem import Config, Data, ladder, smooth_numpy, smoother
 from .result import FIT_RESULTS, FitResult
@@ -312,6 +312,8 @@ def fit(
                    learning_rate=learning_rate, batched=batch is not None)
     attempts = STRATEGIES[strategy]
     out = _fit_starts(setup, attempts, obs2, sigma)
+    if "spin" in free:
+        out = _check_phase(setup, out, obs2, sigma)
     ends = np.full(setup.bsize, ts_np[-1])
     if trim:
         out, ends = _trim(setup, out, obs2, sigma)
@@ -446,6 +448,63 @@ def _fit_starts(setup, attempts, obs2, sigma):
                 return best
     best["num_steps"] = total_steps
     best["describes"] = np.array([v["describes_until"] for v in best["verdicts"]])
+    return best
+
+
+def _check_phase(setup, best, obs2, sigma):
+    """The phase check of `profile.py`: refine a lower point of each record's profile along
+    the valley if there is one (once; kept if its end is lower), then, for the fits whose
+    residuals pass, widen the covariance and flag `phase_ambiguous` where cycles beyond the
+    error bars fit as well."""
+    bsize = setup.bsize
+    spin = setup.cfg.free.index("spin")
+
+    def passing(b):
+        return np.array([v["passes"] for v in b["verdicts"]])
+
+    prof = profile.phase_profile(best["u"], setup, spin)
+    lower, points = profile.lower_points(prof)
+    if lower.any():
+        u_old = np.asarray(best["u"]).reshape(bsize, -1)
+        start = np.where(lower[:, None], points, u_old)
+        start = jnp.asarray(start if setup.batched else start[0], best["u"].dtype)
+        u, histories, counts, code = _refine(start, setup, (Final(final=False), Final()))
+        out = setup.finish(u, code, setup.data(tol=setup.tol))
+        residuals, verdicts = _judge(out, setup, obs2, sigma)
+        steps = np.asarray(sum(jnp.asarray(c) for c in counts)).reshape(-1)
+        cand = dict(out=out, residuals=residuals, verdicts=verdicts, u=u,
+                    history=_pack(histories, counts, bsize, setup.cfg.max_steps),
+                    loss=np.asarray(out["loss"]).reshape(-1),
+                    num_steps=best["num_steps"] + np.where(lower, steps, 0),
+                    describes=np.array([v["describes_until"] for v in verdicts]))
+        take = lower & (cand["loss"] < best["loss"])
+        if take.any():
+            starts = best["starts"]
+            # (`_select` is per record of a batch; a single record takes `cand` whole)
+            best = cand if take.all() else _select(best, cand, take, bsize)
+            best["starts"] = starts
+            best["num_steps"] = cand["num_steps"]
+            prof = profile.phase_profile(best["u"], setup, spin)
+    out = best["out"]
+    spin_values = np.asarray(out["values"]).reshape(bsize, -1)[:, spin]
+    se_rel = np.asarray(out["std_errors"]).reshape(bsize, -1)[:, spin] / np.abs(spin_values)
+    flat, reach = profile.ambiguity(prof, se_rel)
+    flat &= passing(best)  # (a fit that fails its diagnostics is flagged already)
+    if not flat.any():
+        return best
+    cov = profile.widen(out["covariance"], best["u"], setup.template.base, setup.cfg.free,
+                        prof.direction if setup.batched else prof.direction[0],
+                        np.where(flat, reach, 0.0) if setup.batched else np.where(flat, reach, 0.0)[0])
+    dtype = out["covariance"].dtype
+    std = np.sqrt(np.maximum(np.diagonal(cov, axis1=-2, axis2=-1), 0.0))
+    code = out["result"]
+    flag = jnp.asarray(flat if setup.batched else flat[0])
+    code = FIT_RESULTS.where(flag & (code == FIT_RESULTS.successful),
+                             FIT_RESULTS.phase_ambiguous, code)
+    best = dict(best)
+    best["out"] = dict(out, covariance=jnp.asarray(cov, dtype), std_errors=jnp.asarray(std, dtype),
+                       correlation=jnp.asarray(cov / (std[..., :, None] * std[..., None, :]), dtype),
+                       result=code)
     return best
 
 

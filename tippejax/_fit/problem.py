@@ -216,7 +216,9 @@ def smoother(ts: np.ndarray, nutation_period: float):
     grid = np.linspace(ts[0], ts[-1], num)
     lo = np.searchsorted(ts, grid - 4 * width, side="left")
     hi = np.searchsorted(ts, grid + 4 * width, side="right")
-    band = int(np.max(hi - lo))
+    # The band in buckets as well: it follows the guess's nutation period, and a guess with
+    # another spin must not compile the fit's programs again.
+    band = min(bucket(int(np.max(hi - lo))), ts.size)
     index = np.minimum(lo[:, None] + np.arange(band)[None, :], ts.size - 1)
     inside = (lo[:, None] + np.arange(band)[None, :]) < hi[:, None]
     weight = np.where(inside, np.exp(-0.5 * ((grid[:, None] - ts[index]) / width) ** 2), 0.0)

@@ -41,6 +41,14 @@ class FIT_RESULTS(eqxi.Enumeration):
         "guess, more starts (strategy), or trim=True for a record whose end the model does "
         "not describe."
     )
+    phase_ambiguous = (
+        "The nutation's phase does not pin the spin: along the valley of the slow motion, "
+        "spins one or more nutation cycles away fit the record as well (chi-square within 9 "
+        "of this fit), so the fit may sit on a neighbouring cycle. The standard errors are "
+        "widened along that valley to cover them (a lower bound when the flat stretch "
+        "reaches the end of the scan, 20 cycles or 10% of the spin). A longer or less noisy "
+        "record, phi_obs, or a known spin narrows it."
+    )
 
 
 class FitResult(eqx.Module):

@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._cache import cacheable
 from .optimise import optimise
 from .params import physical
 from .problem import (
@@ -115,7 +116,8 @@ class Setup:
                            tuple(fields[k] for k in names))
 
     def optimise(self, u, data: Data):
-        return _run_optimise(u, data, self.cfg, self.batched)
+        with cacheable():  # the fit's programs go to the persistent cache too (`_cache.py`)
+            return _run_optimise(u, data, self.cfg, self.batched)
 
     def optimise_many(self, u, data: Data):
         """`optimise` from each of the starting points `u` (shape `(K, *batch, p)`) in turn.
@@ -142,8 +144,9 @@ class Setup:
         for lo in range(0, k, CHUNK):
             part = u[lo: lo + CHUNK]
             part = np.concatenate([part, np.repeat(part[-1:], CHUNK - part.shape[0], 0)])
-            out.append(np.asarray(_run_losses(jnp.asarray(part, self.template.ts.dtype), data,
-                                              self.cfg, self.batched)))
+            with cacheable():
+                out.append(np.asarray(_run_losses(jnp.asarray(part, self.template.ts.dtype),
+                                                  data, self.cfg, self.batched)))
         losses = np.concatenate(out)[:k]
         return np.where(np.isfinite(losses), losses, np.inf)
 
@@ -156,7 +159,8 @@ class Setup:
         return (self.ts[-1] - self.ts[0]) / period
 
     def finish(self, u, code, data: Data):
-        return _run_finish(u, code, data, self.cfg, self.batched)
+        with cacheable():
+            return _run_finish(u, code, data, self.cfg, self.batched)
 
 
 @eqx.filter_jit

@@ -130,7 +130,7 @@ class PhaseScan(AbstractStage):
             u_np = ends[best, np.arange(bsize)]
         # 3. along the valley, from the last window to the whole record
         if np.any(window < end):
-            directions = self._valleys(u_np, setup, batched, u.dtype, s)
+            directions = valley_directions(u_np, setup, batched, s, self.hessian_step)
             cycles = np.maximum((window - start) * rate, 1.0)
             half = np.minimum(self.lobe / cycles, self.span)
             nxt = np.minimum(start + self.growth * (window - start), end)
@@ -172,47 +172,50 @@ class PhaseScan(AbstractStage):
             half = np.minimum(self.lobe / cycles, self.span)
             window = np.minimum(start + self.growth * (window - start), stop)
 
-    def _valleys(self, u_np, setup, batched, dtype, s):
-        """The slow loss's valley direction at each record's `u` (spin component 1)."""
-        p = u_np.shape[1]
-        directions = []
-        for h in self._hessians(u_np, setup, batched, dtype):
-            others = [i for i in range(p) if i != s]
-            v = np.zeros(p)
-            v[s] = 1.0
-            if others:
-                h_oo = h[np.ix_(others, others)]
-                h_oo = h_oo + 1e-9 * abs(np.trace(h_oo)) * np.eye(len(others))
-                v[others] = -np.linalg.solve(h_oo, h[others, s])
-            directions.append(v)
-        return np.stack(directions)
 
-    def _hessians(self, u_np, setup, batched, dtype):
-        """Hessian of the slow loss at each record's `u` by central second differences."""
-        p = u_np.shape[1]
-        h = self.hessian_step
-        eye = np.eye(p)
-        offsets = [np.zeros(p)]
-        for i in range(p):
-            offsets += [2 * h * eye[i], -2 * h * eye[i]]
-        pairs = [(i, j) for i in range(p) for j in range(i + 1, p)]
-        for i, j in pairs:
-            offsets += [h * (eye[i] + eye[j]), h * (eye[i] - eye[j]),
-                        h * (-eye[i] + eye[j]), -h * (eye[i] + eye[j])]
-        offsets = np.array(offsets)
-        count = offsets.shape[0]
-        points = u_np[None] + offsets[:, None, :]
-        points = points if batched else points[:, 0]
-        data = setup.data(theta=False, slow=1.0, rtol=SEARCH_RTOL)
-        loss = setup.losses(points, data).reshape(count, -1)  # (count, bsize)
-        out = np.zeros((loss.shape[1], p, p))
-        for i in range(p):
-            out[:, i, i] = (loss[1 + 2 * i] - 2 * loss[0] + loss[2 + 2 * i]) / (4 * h * h)
-        base = 1 + 2 * p
-        for k, (i, j) in enumerate(pairs):
-            pp, pm, mp, mm = loss[base + 4 * k: base + 4 * k + 4]
-            out[:, i, j] = out[:, j, i] = (pp - pm - mp + mm) / (4 * h * h)
-        return out
+def valley_directions(u_np, setup, batched, s, step):
+    """The slow loss's valley direction at each record's `u` (shape `(bsize, p)`; spin
+    component 1): $v_o = -H_{oo}^{-1} H_{os}$, the other coordinates re-optimised for a change
+    of the spin coordinate, from the Hessian by central second differences of size `step`."""
+    p = u_np.shape[1]
+    directions = []
+    for h in _hessians(u_np, setup, batched, step):
+        others = [i for i in range(p) if i != s]
+        v = np.zeros(p)
+        v[s] = 1.0
+        if others:
+            h_oo = h[np.ix_(others, others)]
+            h_oo = h_oo + 1e-9 * abs(np.trace(h_oo)) * np.eye(len(others))
+            v[others] = -np.linalg.solve(h_oo, h[others, s])
+        directions.append(v)
+    return np.stack(directions)
+
+
+def _hessians(u_np, setup, batched, h):
+    """Hessian of the slow loss at each record's `u` by central second differences."""
+    p = u_np.shape[1]
+    eye = np.eye(p)
+    offsets = [np.zeros(p)]
+    for i in range(p):
+        offsets += [2 * h * eye[i], -2 * h * eye[i]]
+    pairs = [(i, j) for i in range(p) for j in range(i + 1, p)]
+    for i, j in pairs:
+        offsets += [h * (eye[i] + eye[j]), h * (eye[i] - eye[j]),
+                    h * (-eye[i] + eye[j]), -h * (eye[i] + eye[j])]
+    offsets = np.array(offsets)
+    count = offsets.shape[0]
+    points = u_np[None] + offsets[:, None, :]
+    points = points if batched else points[:, 0]
+    data = setup.data(theta=False, slow=1.0, rtol=SEARCH_RTOL)
+    loss = setup.losses(points, data).reshape(count, -1)  # (count, bsize)
+    out = np.zeros((loss.shape[1], p, p))
+    for i in range(p):
+        out[:, i, i] = (loss[1 + 2 * i] - 2 * loss[0] + loss[2 + 2 * i]) / (4 * h * h)
+    base = 1 + 2 * p
+    for k, (i, j) in enumerate(pairs):
+        pp, pm, mp, mm = loss[base + 4 * k: base + 4 * k + 4]
+        out[:, i, j] = out[:, j, i] = (pp - pm - mp + mm) / (4 * h * h)
+    return out
 
 
 def _local_minima(losses, deltas, k):
