@@ -35,7 +35,11 @@ minima along the curve of matching inversion times. The default strategy (`"glob
    covariance is about), all coordinates inside a trust region of a factor 5 around the guess;
 7. tests the residuals (`diagnostics.py`: runs test, Ljung-Box and windowed chi-square); if
    they are not noise, the next start is refined, and if none passes, the fit with the lowest
-   loss is flagged `local_minimum` rather than returned with confident error bars.
+   loss is flagged `local_minimum` rather than returned with confident error bars;
+8. profiles the loss along the slow valley through the fit, +-20 nutation cycles
+   (`profile.py`): a lower cycle is refitted (steps 6-7) and kept if it ends lower; where
+   cycles beyond 3 standard errors fit within a chi-square of 9, the covariance is widened
+   along the valley and the fit is flagged `phase_ambiguous`.
 """
 
 from __future__ import annotations

@@ -65,7 +65,9 @@ class FitResult(eqx.Module):
       \mathrm{RSS}/(N - p)$ the residual variance ($N$ used points, $p$ free parameters). It
       assumes independent errors of equal variance and a model that describes the data (the
       diagnostics below test both); it is linear, so it understates the uncertainty of badly
-      determined parameters.
+      determined parameters. When the phase check (`profile.py`) finds nutation cycles beyond
+      these error bars that fit as well (`phase_ambiguous`), it is widened along the slow
+      valley to cover them: $\Sigma + a^2 (Gv)(Gv)^\top$, $G = \partial p/\partial u$.
     - `correlation`: $\Sigma_{ij}/\sqrt{\Sigma_{ii}\Sigma_{jj}}$.
     - `loss_history`: $\tfrac12\sum r_k^2$ after each optimiser step, all stages one after the
       other, of the start that was kept (nan-padded to a fixed length).
@@ -93,8 +95,9 @@ class FitResult(eqx.Module):
     - `fitted_until`: the end of the part of the record the fit used (`trim`; else the end).
     - `phi_fit`, `phi_residuals`: the fitted precession angle and its wrapped residual (nan
       unless `phi_obs` was given).
-    - `converged`: the optimiser met its tolerance and the residuals pass the diagnostics
-      (runs test, Ljung-Box, windows; and their level against `sigma` when it is given).
+    - `converged`: the optimiser met its tolerance, the residuals pass the diagnostics
+      (runs test, Ljung-Box, windows; and their level against `sigma` when it is given) and
+      the phase check found no other nutation cycle that fits as well.
     - `result`: a `FIT_RESULTS` code; `message` gives its text.
     - `num_steps`: optimiser steps, all stages and starts.
     - `starts`: how many starting points were refined before one passed the diagnostics.
