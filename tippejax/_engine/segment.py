@@ -7,7 +7,6 @@ downward crossing of each observed condition (see `watch.py`).
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Callable
 
 import diffrax
@@ -18,7 +17,13 @@ from diffrax._root_finder import use_stepsize_tol  # diffrax exports no public n
 from jaxtyping import Array, Bool, Float, PyTree
 
 from .._models.base import AbstractLevel
-from .watch import WatchedSolver, event_root_finder, locate_observed
+from .watch import (
+    WatchedSolver,
+    ended_on_event,
+    event_root_finder,
+    locate_observed,
+    locate_terminating,
+)
 
 
 def as_event_dtype(x):
@@ -145,15 +150,14 @@ def run_segment(
         kind = "lax" if isinstance(adjoint, diffrax.ForwardMode) else "checkpointed"
         solver = eqx.tree_at(lambda s: s.scan_kind, solver, kind, is_leaf=lambda x: x is None)
     watched = WatchedSolver(
-        solver, watch, tuple(range(len(terminating), len(names))), samples=samples
+        solver,
+        watch,
+        tuple(range(len(terminating), len(names))),
+        samples=samples,
+        terminating=tuple(range(len(terminating))),
     )
     dtype = jnp.result_type(t0)
     finder = event_root_finder(dtype)
-
-    def first_terminating(t, y, args, **kwargs):
-        return functools.reduce(jnp.minimum, list(watch(y, args)[: len(terminating)]))
-
-    event = diffrax.Event(first_terminating, finder, direction=False)
     subs = [diffrax.SubSaveAt(t1=True)]
     if ts is not None:
         subs.append(diffrax.SubSaveAt(ts=jnp.clip(ts, t0, t1)))
@@ -168,18 +172,27 @@ def run_segment(
         top,
         saveat=diffrax.SaveAt(subs=subs, solver_state=True),
         stepsize_controller=controller,
-        event=event,
         max_steps=max_steps,
         adjoint=adjoint,
         throw=False,
         progress_meter=progress_meter,
     )
-    t_end = sol.ts[0][-1]
-    flat_end = jax.tree_util.tree_map(lambda x: x[-1], sol.ys[0])
+    # The watch ends the solve on the step where a terminating condition fell through zero
+    # (its result is `event_occurred`); the crossing is then located inside that step.
+    stopped = ended_on_event(sol.result, sol.solver_state)
+    solver_result = diffrax.RESULTS.where(stopped, diffrax.RESULTS.event_occurred, sol.result)
+    flat_last = jax.tree_util.tree_map(lambda x: x[-1], sol.ys[0])
+    if terminating:
+        t_event, flat_event = locate_terminating(watched, top, sol.solver_state, finder)
+        t_end = jnp.where(stopped, t_event.astype(sol.ts[0].dtype), sol.ts[0][-1])
+        flat_end = jax.tree_util.tree_map(
+            lambda a, b: jnp.where(stopped, a.astype(b.dtype), b), flat_event, flat_last
+        )
+    else:
+        t_end, flat_end = sol.ts[0][-1], flat_last
     y_end = unravel(flat_end)
     # Which terminating condition fired: at the located event it is (to the root finder's
     # tolerance) zero and the others are positive, so it is the smallest.
-    stopped = sol.result == diffrax.RESULTS.event_occurred
     end_values = watch(flat_end, top)[: len(terminating)]
     first = jnp.argmin(end_values)
     fired = {name: stopped & (first == i) for i, name in enumerate(terminating)}
@@ -193,7 +206,7 @@ def run_segment(
         ys=jax.vmap(unravel)(sol.ys[1]) if ts is not None else None,
         y_end=y_end,
         t_end=t_end,
-        solver_result=sol.result,
+        solver_result=solver_result,
         fired=fired,
         observed=observed_times,
         num_steps=sol.stats["num_steps"],

@@ -10,9 +10,10 @@ on the step's dense output at `samples - 1` interior points. If one condition ch
 than once along those points, the step is rejected (its error estimate is set to infinity, so
 the step-size controller shrinks it) until no step holds more than one crossing. Then
 
-- a *terminating* event (contact loss, the $R_n$ singularity, the end of a chart) is seen by
-  diffrax's own event machinery at the end of the step that holds it, and located inside it by
-  `EventBisection`;
+- a *terminating* event (contact loss, the $R_n$ singularity, the end of a chart) ends the
+  solve at the step in which its condition fell through zero (the watch sees it on the values
+  it computes anyway, so no `diffrax.Event` evaluates the conditions again at every step), and
+  `locate_terminating` finds the crossing on that step's dense output with `EventBisection`;
 - an *observed* event, which does not stop the run (the inversion, contact loss when the run
   goes on past it), is recorded in the solver state: the first accepted step in which its
   condition fell through zero, with its dense output. After the solve, `locate_observed` finds
@@ -35,6 +36,15 @@ import jax
 import jax.numpy as jnp
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, PyTree
+
+STOP = diffrax.RESULTS.internal_error
+"""The result a step returns when a terminating condition fell in it (see `WatchedSolver`):
+a code diffrax keeps to the end of the solve, and that no diffrax solver returns."""
+
+
+def ended_on_event(result, state) -> Bool[Array, ""]:
+    """Whether a solve with a `WatchedSolver` ended on one of its terminating events."""
+    return (result == STOP) & state.stopped
 
 
 class EventBisection(optx.Bisection):
@@ -60,6 +70,10 @@ def event_root_finder(dtype) -> EventBisection:
 class _WatchState(eqx.Module):
     inner: PyTree
     previous: Float[Array, " n"]  # watched conditions at the start of the step
+    last_t0: Float[Array, ""]  # the last accepted step (where a terminating event is located)
+    last_t1: Float[Array, ""]
+    last_dense: PyTree
+    stopped: Bool[Array, ""]  # a terminating condition fell in the last step
     found: Bool[Array, " m"]  # observed event m already recorded
     step_t0: Float[Array, " m"]
     step_t1: Float[Array, " m"]
@@ -76,12 +90,23 @@ class WatchedSolver(diffrax.AbstractWrappedSolver):
     - `watch`: `watch(y, args) -> Float[Array, "n"]`, the watched conditions of one state.
     - `observed`: indices (into `watch`'s output) of the observed, non-terminating events.
     - `samples`: number of sub-intervals of each step on which signs are checked.
+    - `terminating`: indices of the terminating events. A step in which one of them falls
+      through zero ends the solve: the step returns `STOP`, a failure code that diffrax
+      keeps as the solve's result (the step itself is kept, and it is the last), and sets
+      `stopped` in its state; `ended_on_event` reads the two together. (A solver's
+      `event_occurred` would not do: diffrax replaces it by the step-size controller's
+      `successful`.) The step is kept in the state (`last_t0`, `last_t1`, `last_dense`) for
+      `locate_terminating`.
+      Watching here, on the values the step computes anyway, replaces a `diffrax.Event`,
+      which would evaluate the conditions a second time at every step and carry its own
+      bookkeeping through the loop.
     """
 
     solver: diffrax.AbstractSolver
     watch: Callable[[PyTree, Any], Array]
     observed: tuple[int, ...] = eqx.field(static=True)
     samples: int = eqx.field(static=True, default=8)
+    terminating: tuple[int, ...] = eqx.field(static=True, default=())
 
     @property
     def term_structure(self):
@@ -138,6 +163,10 @@ class WatchedSolver(diffrax.AbstractWrappedSolver):
         return _WatchState(
             inner=self.solver.init(terms, t0, t1, y0, args),
             previous=self.watch(y0, args),
+            last_t0=t0,
+            last_t1=t0 + 1,
+            last_dense=dense,
+            stopped=jnp.array(False),
             found=jnp.zeros(m, bool),
             step_t0=stack(t0),
             step_t1=stack(t0 + 1),
@@ -169,9 +198,22 @@ class WatchedSolver(diffrax.AbstractWrappedSolver):
             new.reshape(new.shape + (1,) * (jnp.ndim(a) - 1)), a, b
         )
         stack = lambda x: jnp.broadcast_to(x, new.shape + jnp.shape(x))  # noqa: E731
+        stopped = jnp.array(False)
+        if self.terminating:
+            stops = jnp.asarray(self.terminating, int)
+            stopped = jnp.any(positive[:-1, stops] & ~positive[1:, stops]) & (
+                result == diffrax.RESULTS.successful
+            )
+            result = diffrax.RESULTS.where(stopped, STOP, result)
         state = _WatchState(
             inner=inner,
             previous=end,
+            last_t0=t0,
+            last_t1=t1,
+            last_dense=jax.tree_util.tree_map(
+                lambda a, b: a.astype(b.dtype), dense_info, solver_state.last_dense
+            ),
+            stopped=stopped,
             found=solver_state.found | new,
             step_t0=take(stack(t0), solver_state.step_t0),
             step_t1=take(stack(t1), solver_state.step_t1),
@@ -201,3 +243,22 @@ def locate_observed(
         fn, root_finder, y0=t1, options=dict(lower=t0, upper=t1), throw=False
     )
     return jnp.where(state.found[k], root.value, jnp.nan)
+
+
+def locate_terminating(
+    solver: WatchedSolver, args, state: _WatchState, root_finder
+) -> tuple[Float[Array, ""], PyTree]:
+    """Time and state of the first terminating crossing in the last step of a solve that
+    ended on one: the root of the smallest terminating condition on that step's dense
+    output (differentiable through the implicit function theorem, as `locate_observed`)."""
+    t0, t1 = state.last_t0, state.last_t1
+    interpolation = solver.solver.interpolation_cls(t0=t0, t1=t1, **state.last_dense)
+    stops = jnp.asarray(solver.terminating, int)
+
+    def fn(t, _):
+        return jnp.min(solver.watch(interpolation.evaluate(t), args)[stops]).astype(t1.dtype)
+
+    root = optx.root_find(
+        fn, root_finder, y0=t1, options=dict(lower=t0, upper=t1), throw=False
+    )
+    return root.value, interpolation.evaluate(root.value)
