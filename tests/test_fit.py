@@ -143,6 +143,25 @@ def test_phase_check_leaves_a_slipped_cycle_for_the_lower_one(monkeypatch):
     assert bool(checked.converged), checked.message()
 
 
+def test_batched_fit_checks_the_phase_per_recording():
+    """Two recordings fitted in one call, one from its truth's cycle and one from a guess two
+    nutation cycles off (plain strategy): the phase check refits the second alone, and both
+    end within half a cycle, 2% and 3 standard errors of the truth."""
+    spin = 3.0 * float(tj.thresholds(TOP_IIA).n1)
+    obs = np.stack([_record(TOP_IIA, TS_FAST, 0.2, spin, seed=s)[0] for s in (4, 5)])
+    cycles = float(TOP_IIA.C) * spin / (2 * np.pi * float(TOP_IIA.A)) * (TS_FAST[-1] - TS_FAST[0])
+    spins = jnp.array([spin, spin * (1.0 + 2.0 / cycles)])
+    y0 = jax.vmap(lambda n: tj.initial_state(TOP_IIA, 0.2, n))(spins)
+    res = tj.fit(TOP_IIA, y0, TS_FAST, obs, free=FREE, strategy="plain")
+    truth = np.array([float(TOP_IIA.mu), float(TOP_IIA.eps), spin])
+    values, errors = np.asarray(res.values), np.asarray(res.std_errors)
+    assert values.shape == (2, 3)
+    assert np.all(np.asarray(res.converged)), res.message()
+    assert np.all(np.abs(values[:, 2] / spin - 1.0) * cycles < 0.5), values[:, 2] / spin - 1.0
+    assert np.all(np.abs(values - truth) < 0.02 * truth)
+    assert np.all(np.abs(values - truth) < 3 * errors), (values - truth) / errors
+
+
 def test_recovers_from_30_percent_off_at_30_hz_group_III():
     """Group III (rises to the intermediate state), 30 Hz: below the nutation frequency."""
     spin = 4.0 * float(tj.thresholds(TOP_III).n1)
