@@ -208,6 +208,19 @@ def summarise(rows) -> str:
                           f"{sum(not r['converged'] for r in bad)}/{len(bad)}",
                           f"{np.median([r['wall'] for r in sub]):.1f}"])
         lines.append(table(head2, body2))
+    flagged_ok = [r for r in main if succeeded(r) and not r["converged"]]
+    if flagged_ok:
+        lines.append("")
+        lines.append(
+            f"Successful but flagged (`converged=False`; counted as successes above, their "
+            f"SE widened by the phase check, so SE / CRB > 1): {len(flagged_ok)}"
+        )
+        for r in flagged_ok:
+            lines.append(
+                f"- record {r['index']} ({r['group']}, {r['rate']:.0f} Hz) from {r['start']}: "
+                f"rel. errors {np.round(r['rel_error'], 4).tolist()}, SE/CRB "
+                f"{np.round(r['se_over_crb'], 1).tolist()}, {r['message']!r}"
+            )
     fails = [r for r in main if not succeeded(r)]
     if fails:
         lines.append("")
