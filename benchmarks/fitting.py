@@ -26,11 +26,13 @@ and the summary goes to its section of benchmarks/RESULTS.md and to benchmarks/f
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import pathlib
 import sys
 import time
 
+import jax
 import matplotlib
 import numpy as np
 
@@ -334,9 +336,17 @@ def main():
             jobs += [(i, s, "global") for s in ("truth", "off")]
             if i < args.compare:
                 jobs += [(i, "off", s) for s in ("search", "levels", "windows", "plain", "scipy")]
+        last = None
         for i, s, strategy in jobs:
             if (i, s, strategy) in done:
                 continue
+            if i != last:
+                # Each record brings new shapes, so new programs; a process that keeps them
+                # all runs into the kernel's limit on memory maps (vm.max_map_count, 65530)
+                # after some 30 records and LLVM fails to allocate. Drop them between records.
+                jax.clear_caches()
+                gc.collect()
+                last = i
             if strategy == "scipy":
                 row = scipy_row(records[i], i)
             else:
