@@ -418,6 +418,19 @@ def _judge(out, setup, obs2, sigma):
     return residuals, verdicts
 
 
+def _candidate(setup, refined, obs2, sigma):
+    """A refined start (`_refine`'s output) finished and judged: the dict `_better` and
+    `_select` compare, and the steps it took per record."""
+    u, histories, counts, code = refined
+    out = setup.finish(u, code, setup.data(tol=setup.tol))
+    residuals, verdicts = _judge(out, setup, obs2, sigma)
+    steps = np.asarray(sum(jnp.asarray(c) for c in counts)).reshape(-1)
+    cand = dict(out=out, residuals=residuals, verdicts=verdicts, u=u,
+                history=_pack(histories, counts, setup.bsize, setup.cfg.max_steps),
+                loss=np.asarray(out["loss"]).reshape(-1))
+    return cand, steps
+
+
 def _fit_starts(setup, attempts, obs2, sigma):
     """Refine the starts of each attempt in turn until every record has a fit whose residuals
     pass; keep the lowest loss per record."""
@@ -436,15 +449,9 @@ def _fit_starts(setup, attempts, obs2, sigma):
             starts = u0[None] if search is None else search.starts(u0, setup)
         for s in range(starts.shape[0]):
             tried += 1
-            u, histories, counts, code = _refine(starts[s], setup, stages)
-            out = setup.finish(u, code, setup.data(tol=setup.tol))
-            residuals, verdicts = _judge(out, setup, obs2, sigma)
-            steps = np.asarray(sum(jnp.asarray(c) for c in counts)).reshape(-1)
+            cand, steps = _candidate(setup, _refine(starts[s], setup, stages), obs2, sigma)
             total_steps = total_steps + steps
-            hist = _pack(histories, counts, setup.bsize, setup.cfg.max_steps)
-            loss = np.asarray(out["loss"]).reshape(-1)
-            cand = dict(out=out, residuals=residuals, verdicts=verdicts, history=hist, loss=loss,
-                        starts=np.full(setup.bsize, tried), u=u)
+            cand["starts"] = np.full(setup.bsize, tried)
             best = cand if best is None else _better(best, cand, setup.bsize)
             if all(v["passes"] for v in best["verdicts"]):  # the lowest minimum so far is noise
                 best["num_steps"] = total_steps
@@ -472,15 +479,10 @@ def _check_phase(setup, best, obs2, sigma):
         u_old = np.asarray(best["u"]).reshape(bsize, -1)
         start = np.where(lower[:, None], points, u_old)
         start = jnp.asarray(start if setup.batched else start[0], best["u"].dtype)
-        u, histories, counts, code = _refine(start, setup, (Final(final=False), Final()))
-        out = setup.finish(u, code, setup.data(tol=setup.tol))
-        residuals, verdicts = _judge(out, setup, obs2, sigma)
-        steps = np.asarray(sum(jnp.asarray(c) for c in counts)).reshape(-1)
-        cand = dict(out=out, residuals=residuals, verdicts=verdicts, u=u,
-                    history=_pack(histories, counts, bsize, setup.cfg.max_steps),
-                    loss=np.asarray(out["loss"]).reshape(-1),
-                    num_steps=best["num_steps"] + np.where(lower, steps, 0),
-                    describes=np.array([v["describes_until"] for v in verdicts]))
+        refined = _refine(start, setup, (Final(final=False), Final()))
+        cand, steps = _candidate(setup, refined, obs2, sigma)
+        cand["num_steps"] = best["num_steps"] + np.where(lower, steps, 0)
+        cand["describes"] = np.array([v["describes_until"] for v in cand["verdicts"]])
         take = lower & (cand["loss"] < best["loss"])
         if take.any():
             starts = best["starts"]
@@ -496,15 +498,16 @@ def _check_phase(setup, best, obs2, sigma):
     flat &= passing(best)  # (a fit that fails its diagnostics is flagged already)
     if not flat.any():
         return best
+    one = (lambda x: x) if setup.batched else (lambda x: x[0])  # noqa: E731
     cov = profile.widen(out["covariance"], best["u"], setup.template.base, setup.cfg.free,
-                        prof.direction if setup.batched else prof.direction[0],
-                        np.where(flat, reach, 0.0) if setup.batched else np.where(flat, reach, 0.0)[0])
+                        one(prof.direction), one(np.where(flat, reach, 0.0)))
     dtype = out["covariance"].dtype
     std = np.sqrt(np.maximum(np.diagonal(cov, axis1=-2, axis2=-1), 0.0))
-    code = out["result"]
-    flag = jnp.asarray(flat if setup.batched else flat[0])
-    code = FIT_RESULTS.where(flag & (code == FIT_RESULTS.successful),
-                             FIT_RESULTS.phase_ambiguous, code)
+
+    def mark(f, c):  # (FIT_RESULTS.where takes a scalar predicate: vmapped for a batch)
+        return FIT_RESULTS.where(f & (c == FIT_RESULTS.successful), FIT_RESULTS.phase_ambiguous, c)
+
+    code = (jax.vmap(mark) if setup.batched else mark)(jnp.asarray(one(flat)), out["result"])
     best = dict(best)
     best["out"] = dict(out, covariance=jnp.asarray(cov, dtype), std_errors=jnp.asarray(std, dtype),
                        correlation=jnp.asarray(cov / (std[..., :, None] * std[..., None, :]), dtype),
