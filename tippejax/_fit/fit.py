@@ -431,11 +431,16 @@ def _candidate(setup, refined, obs2, sigma):
     return cand, steps
 
 
+def _start(setup):
+    """The guess's coordinates (all 0: each coordinate is relative to the guess)."""
+    p = len(setup.cfg.free)
+    return jnp.zeros((setup.bsize, p) if setup.batched else (p,), jnp.result_type(float))
+
+
 def _fit_starts(setup, attempts, obs2, sigma):
     """Refine the starts of each attempt in turn until every record has a fit whose residuals
     pass; keep the lowest loss per record."""
-    p = len(setup.cfg.free)
-    u0 = jnp.zeros((setup.bsize, p) if setup.batched else (p,), jnp.result_type(float))
+    u0 = _start(setup)
     best = None
     total_steps = np.zeros(setup.bsize, int)
     tried = 0

@@ -157,7 +157,12 @@ def residuals_of_values(values, data: Data, cfg: Config):
 
 
 def residuals(u, data: Data, cfg: Config):
-    r"""The residuals at coordinates `u`, with the trust region of `U_LIMIT`: the simulation
+    r"""The residuals at `u` (see `residuals_and_solution`)."""
+    return residuals_and_solution(u, data, cfg)[0]
+
+
+def residuals_and_solution(u, data: Data, cfg: Config):
+    r"""The residuals, and the simulation they came from, at coordinates `u`, with the trust region of `U_LIMIT`: the simulation
     sees `u` clipped to `[-U_LIMIT, U_LIMIT]` and one more residual per coordinate,
     $\sqrt{W}\,(|u_i| - U_{lim})_+$ ($W$ the total weight), pulls a trial back from outside.
     Inside (where every fit ends) the extra residuals are 0 with a 0 Jacobian, so they change
@@ -166,17 +171,29 @@ def residuals(u, data: Data, cfg: Config):
     # optimiser's (damped) step leaves it where it is.
     u = jnp.where(data.pinned > 0, jax.lax.stop_gradient(u), u)
     inside = jnp.clip(u, -U_LIMIT, U_LIMIT)
-    r = residuals_of_values(physical(inside, data.base, cfg.free), data, cfg)[0]
+    r, sol = residuals_of_values(physical(inside, data.base, cfg.free), data, cfg)
     total = jnp.sum(data.weights) + data.envelope_weight + data.level_weight**2 * NUM_LEVELS + 1.0
     excess = jnp.sqrt(total) * jnp.maximum(jnp.abs(u) - U_LIMIT, 0.0)
     excess = jnp.where(jnp.isfinite(u), excess, 0.0)  # a non-finite trial: failed residuals
-    return jnp.concatenate([r.astype(u.dtype), excess.astype(u.dtype)])
+    return jnp.concatenate([r.astype(u.dtype), excess.astype(u.dtype)]), sol
 
 
 def value_and_jacobian(u, data, cfg):
     """Residuals and their Jacobian in one forward-mode pass (primal plus p tangents)."""
-    jac, value = jax.jacfwd(lambda v: (residuals(v, data, cfg),) * 2, has_aux=True)(u)
+    value, jac, _ = value_jacobian_solution(u, data, cfg)
     return value, jac
+
+
+def value_jacobian_solution(u, data, cfg):
+    """Residuals, their Jacobian and the primal simulation, in one forward-mode pass: `finish`
+    takes the fitted curves from it rather than compiling and running a second solve."""
+
+    def both(v):
+        r, sol = residuals_and_solution(v, data, cfg)
+        return r, (r, sol)
+
+    jac, (value, sol) = jax.jacfwd(both, has_aux=True)(u)
+    return value, jac, sol
 
 
 def residual_fn(cfg: Config):

@@ -22,8 +22,7 @@ from .problem import (
     Config,
     Data,
     residuals,
-    residuals_of_values,
-    value_and_jacobian,
+    value_jacobian_solution,
 )
 from .result import FIT_RESULTS
 
@@ -187,7 +186,7 @@ def finish(u, code, data: Data, cfg: Config):
     """Covariance and the fitted curve at the final coordinates (one record)."""
     at_edge = jnp.any(jnp.abs(u) >= U_LIMIT * (1 - 1e-6))
     u = jnp.clip(u, -U_LIMIT, U_LIMIT)
-    value, jac_u = value_and_jacobian(u, data, cfg)
+    value, jac_u, sol = value_jacobian_solution(u, data, cfg)
     values = physical(u, data.base, cfg.free)
     dp_du = jax.jacfwd(lambda v: jnp.stack([physical(v, data.base, cfg.free)[n] for n in cfg.free]))(u)
     n_used = jnp.sum(data.weights > 0) + (jnp.sum(data.phi_weights > 0) if cfg.has_phi else 0)
@@ -203,7 +202,6 @@ def finish(u, code, data: Data, cfg: Config):
     std = jnp.sqrt(jnp.maximum(jnp.diag(cov), 0.0))
     std = jnp.where(jnp.isfinite(std), std, jnp.inf)
     corr = cov / (std[:, None] * std[None, :])
-    _, sol = residuals_of_values(values, data, cfg)
     theta_fit = jnp.where(sol.ts > sol.t_contact_loss, jnp.nan, sol.theta)
     phi_fit = jnp.where(jnp.isfinite(theta_fit), sol.phi, jnp.nan)
     if not cfg.has_phi:
