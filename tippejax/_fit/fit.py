@@ -422,7 +422,7 @@ def _candidate(setup, refined, obs2, sigma):
     """A refined start (`_refine`'s output) finished and judged: the dict `_better` and
     `_select` compare, and the steps it took per record."""
     u, histories, counts, code = refined
-    out = setup.finish(u, code, setup.data(tol=setup.tol))
+    out = setup.finish(u, code, setup.data(tol=setup.tol, final=True))
     residuals, verdicts = _judge(out, setup, obs2, sigma)
     steps = np.asarray(sum(jnp.asarray(c) for c in counts)).reshape(-1)
     cand = dict(out=out, residuals=residuals, verdicts=verdicts, u=u,
@@ -547,7 +547,7 @@ def _trim(setup, out, obs2, sigma):
     def fit_to(u, fit_ends, stages):
         setup.fitted = ts[None, :] <= fit_ends[:, None] + 1e-12
         u, histories, counts, code = _refine(u, setup, stages)
-        cand = setup.finish(u, code, setup.data(tol=setup.tol))
+        cand = setup.finish(u, code, setup.data(tol=setup.tol, final=True))
         residuals, verdicts = _judge(cand, setup, obs2, sigma)
         return u, cand, residuals, verdicts, histories, counts
 
@@ -573,7 +573,7 @@ def _trim(setup, out, obs2, sigma):
         return out, ends
     # How far does the last trusted window's description reach?
     setup.fitted = np.ones_like(setup.mask)
-    reach = setup.finish(u_ok, out["out"]["result"], setup.data(tol=setup.tol))
+    reach = setup.finish(u_ok, out["out"]["result"], setup.data(tol=setup.tol, final=True))
     _, verdicts = _judge(reach, setup, obs2, sigma)
     until = np.array([v["describes_until"] for v in verdicts])
     until = np.where(np.isfinite(until), np.maximum(until, end_ok), end_ok)
