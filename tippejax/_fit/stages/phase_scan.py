@@ -19,6 +19,12 @@ and then refined on longer ones:
    $\approx C|n|/(2\pi A)$, is the spin's). For a launch at a pole with a free tilt rate the
    scan moves $\log\dot\theta_0$ with the spin: the early tilt's size is about
    $\dot\theta_0 A/(C n)$, so the scan changes the frequency alone.
+   A window narrows the scan only where its best point stands out of the noise: its
+   chi-square gap between the scan's median and its lowest point (`_contrast`) must exceed
+   `significance`. When the early nutation is below the noise, the lowest point of a short
+   window is a draw from the noise, and narrowing around it would lock every later window
+   onto a wrong cycle; such a window leaves the centre and the width as they were, and the
+   next, longer window (which averages more samples) decides.
 2. **The other parameters from the slow observables, the spin held**: without the spin's
    freedom the envelope and the level-crossing times have a valley floor, not a valley. That
    floor is narrow and the slow loss has plateaus (where a trial top does not turn over at
@@ -76,6 +82,7 @@ class PhaseScan(AbstractStage):
     hessian_step: float = 0.02
     refine_steps: int = 20
     candidate_steps: int = 30
+    significance: float = 25.0
 
     def run(self, u, setup) -> StageRun:
         free = setup.cfg.free
@@ -166,11 +173,27 @@ class PhaseScan(AbstractStage):
             points = points if batched else points[:, 0]
             losses = setup.losses(points, data).reshape(count, -1)
             best = np.argmin(losses, axis=0)
-            centre = deltas[best, np.arange(deltas.shape[1])]
+            # Narrow only where the window's best point stands out of the noise: on a window
+            # whose nutation is below the noise the lowest point is a draw from it, and
+            # narrowing around it would lock the scan onto a wrong cycle for good.
+            clear = (window >= stop) | (_contrast(losses, setup, window) > self.significance)
+            centre = np.where(clear, deltas[best, np.arange(deltas.shape[1])], centre)
             if np.all(window >= stop):
                 return centre, window, _local_minima(losses, deltas, self.candidates)
-            half = np.minimum(self.lobe / cycles, self.span)
+            half = np.where(clear, np.minimum(self.lobe / cycles, self.span), half)
             window = np.minimum(start + self.growth * (window - start), stop)
+
+
+def _contrast(losses, setup, window):
+    r"""How far each record's scan stands out of the noise: the chi-square gap between the
+    scan's median and its lowest point, $n\,(L_{med} - L_{min}) / L_{min}$ with $n$ the
+    samples in the window. The noise variance is taken from the lowest point itself
+    ($2 L_{min} / n$ with unit weights, an upper bound on it), so the gap is never
+    overstated."""
+    n = np.sum(setup.mask & setup.fitted & (setup.ts[None, :] <= window[:, None] + 1e-12), 1)
+    low = np.min(losses, axis=0)
+    gap = np.median(losses, axis=0) - low
+    return np.where(low > 0, n * gap / np.maximum(low, 1e-300), np.inf)
 
 
 def valley_directions(u_np, setup, batched, s, step):
