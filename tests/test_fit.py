@@ -492,3 +492,39 @@ def test_bad_input_raises(kwargs, error, match):
     args.update({k: kwargs.pop(k) for k in list(kwargs) if k in args})
     with pytest.raises(error, match=match):
         tj.fit(args["top_guess"], args["y0_guess"], args["ts"], args["theta_obs"], **kwargs)
+
+
+@pytest.mark.parametrize("rate", [30.0, 240.0])
+def test_smoother_removes_the_nutation_and_its_shapes_ignore_the_guess(rate):
+    """The smoother behind the slow observables: it averages a nutation of the period it was
+    built for out of a slow tilt, the model's (jax) and the data's (numpy) versions agree, and
+    its array shapes do not depend on the guess's nutation period, so that a guess with another
+    spin runs the fit's compiled programs instead of compiling them again."""
+    ts = np.arange(0.0, 8.0, 1 / rate)
+    ts = ts[(ts < 3.0) | (ts > 3.4)]  # a gap
+    period = 0.07
+    trend = 0.2 + 0.15 * ts + 0.02 * ts**2
+    nutation = 0.05 * np.sin(2 * np.pi * ts / period + 0.3)
+    mask = np.ones_like(ts)
+    band, grid = problem.smoother(ts, period)
+    smooth_trend = problem.smooth_numpy(trend, mask, band)
+    smooth_both = problem.smooth_numpy(trend + nutation, mask, band)
+    # The nutation is averaged out to well under a percent of its amplitude, except within 4
+    # kernel widths (here 0.175 s) of the ends and the gap, where the kernel is cut.
+    far = (grid > 0.7) & (grid < 7.3) & ((grid < 2.3) | (grid > 4.1))
+    assert np.max(np.abs(smooth_both - smooth_trend)[far]) < 0.005 * 0.05
+    # A constant is kept exactly; away from the cuts the trend is kept to the kernel's bias,
+    # w^2 y''/2 = 6e-4 rad here.
+    assert np.allclose(problem.smooth_numpy(np.full_like(ts, 0.7), mask, band), 0.7, atol=1e-12)
+    exact = 0.2 + 0.15 * grid + 0.02 * grid**2
+    assert np.max(np.abs(smooth_trend - exact)[far]) < 1e-3
+    # jax (the model's smoothing) equals numpy (the data's), masked samples included.
+    mask[::7] = 0.0
+    y = trend + nutation
+    bins, kernel = band
+    got = problem.smoothed(jnp.asarray(y), jnp.asarray(mask), jnp.asarray(bins), jnp.asarray(kernel))
+    np.testing.assert_allclose(np.asarray(got), problem.smooth_numpy(y, mask, band), rtol=1e-12)
+    # Shapes from the record alone: a guess spun 4x slower or faster builds the same arrays.
+    for other in (period / 4, period * 4):
+        (bins2, kernel2), grid2 = problem.smoother(ts, other)
+        assert (bins2.shape, kernel2.shape, grid2.shape) == (bins.shape, kernel.shape, grid.shape)

@@ -355,11 +355,8 @@ def _setup(top_guess, y0_guess, ts_np, obs2, mask2, w2, phi2, fields, launch, t0
     def pad(x):
         return np.concatenate([x, np.zeros((bsize, size - n))], -1)
 
-    index, weight = band
-    band_size = bucket(index.shape[1])
-    index = np.concatenate([index, np.zeros((index.shape[0], band_size - index.shape[1]), int)], 1)
-    weight = np.concatenate([weight, np.zeros((weight.shape[0], band_size - weight.shape[1]))], 1)
-    band = (index, weight)
+    bins = np.concatenate([band[0], np.zeros(size - n, int)])  # padding: mask 0, any bin
+    kernel = band[1]
     zeros = np.zeros((bsize, size))
     template = Data(
         base=base,
@@ -371,8 +368,8 @@ def _setup(top_guess, y0_guess, ts_np, obs2, mask2, w2, phi2, fields, launch, t0
         mask=jnp.asarray(pad(mask2.astype(float)), dtype),
         phi_obs=jnp.asarray(pad(np.nan_to_num(phi2)) if phi2 is not None else zeros, dtype),
         phi_weights=jnp.asarray(zeros, dtype),
-        smoother_index=jnp.asarray(np.broadcast_to(band[0], (bsize,) + band[0].shape)),
-        smoother_weight=jnp.asarray(np.broadcast_to(band[1], (bsize,) + band[1].shape), dtype),
+        smoother_bin=jnp.asarray(np.broadcast_to(bins, (bsize,) + bins.shape)),
+        smoother_kernel=jnp.asarray(np.broadcast_to(kernel, (bsize,) + kernel.shape), dtype),
         grid=jnp.asarray(np.broadcast_to(grid, (bsize,) + grid.shape), dtype),
         smooth_obs=jnp.asarray(smooth_obs, dtype),
         envelope_weight=per_rec(0.0),

@@ -69,8 +69,8 @@ class Data(eqx.Module):
     mask: Float[Array, " N"]  # 1 where a sample exists (for the smoothing), whatever the stage
     phi_obs: Float[Array, " N"]
     phi_weights: Float[Array, " N"]
-    smoother_index: Int[Array, "G M"]  # samples near each grid point (a band of the kernel)
-    smoother_weight: Float[Array, "G M"]  # their Gaussian weights (0 for padding)
+    smoother_bin: Int[Array, " N"]  # the smoother's time bin of each sample (0 for padding)
+    smoother_kernel: Float[Array, "G B"]  # Gaussian weights from the bins to the grid
     grid: Float[Array, " G"]
     smooth_obs: Float[Array, " G"]  # the data's smoothed tilt on the grid
     envelope_weight: Float[Array, ""]
@@ -117,10 +117,13 @@ def first_crossings(smooth, grid, levels):
     return jax.vmap(one)(levels)
 
 
-def smoothed(y, mask, index, weight):
-    """Kernel regression onto the grid: sum_k w_gk m_k y_k / sum_k w_gk m_k over the band."""
-    numerator = jnp.sum(weight * (mask * y)[index], axis=-1)
-    return numerator / jnp.maximum(jnp.sum(weight * mask[index], axis=-1), 1e-300)
+def smoothed(y, mask, bins, kernel):
+    """Kernel regression onto the grid through time bins (see `smoother`):
+    sum_j K_gj sum_{k in j} m_k y_k / sum_j K_gj sum_{k in j} m_k."""
+    count = kernel.shape[-1]
+    sums = jax.ops.segment_sum(mask * y, bins, num_segments=count)
+    weights = jax.ops.segment_sum(mask, bins, num_segments=count)
+    return (kernel @ sums) / jnp.maximum(kernel @ weights, 1e-300)
 
 
 def residuals_of_values(values, data: Data, cfg: Config):
@@ -148,7 +151,7 @@ def residuals_of_values(values, data: Data, cfg: Config):
     # reached (max steps, the R_n singularity) counts as -pi, below any tilt, never as a value
     # that could mimic the data (pi would look like an inverted top).
     theta_slow = jnp.where(finite, theta_safe, -FAILED_RESIDUAL)
-    smooth = smoothed(theta_slow, data.mask, data.smoother_index, data.smoother_weight)
+    smooth = smoothed(theta_slow, data.mask, data.smoother_bin, data.smoother_kernel)
     grid_size = data.grid.shape[-1]
     parts.append(jnp.sqrt(data.envelope_weight / grid_size) * (smooth - data.smooth_obs))
     t_cross = first_crossings(smooth, data.grid, data.levels)
@@ -217,35 +220,50 @@ def residual_fn(cfg: Config):
 # Set-up in numpy: the smoother and the level ladder.
 
 
-def smoother(ts: np.ndarray, nutation_period: float):
-    """A Gaussian kernel from the data times onto a uniform grid, as a band: for each grid point
-    the indices of the samples within 4 kernel widths and their weights (memory G x M, with M
-    the most samples in one band, not G x N).
+MAX_BINS = 512  # the smoother's time bins (fewer for a record with fewer samples)
 
-    The kernel is wider than 2.5 nutation periods (so that it averages the nutation out), than
-    4 sample spacings and than 1/80 of the record."""
+
+def smoother(ts: np.ndarray, nutation_period: float):
+    r"""A Gaussian kernel smoother from the data times onto a uniform grid, through time bins.
+
+    The samples are first summed into `B` uniform time bins (each bin stands at the mean time of
+    its samples), and the bin sums are then smoothed onto the grid by a Gaussian kernel of
+    width $w$ cut at $4w$:
+    $$\bar y(g) = \frac{\sum_j K(g - c_j)\,\sum_{k \in j} m_k y_k}
+                      {\sum_j K(g - c_j)\,\sum_{k \in j} m_k}.$$
+    Returns `((bins, kernel), grid)`: the bin of each sample, shape `(n,)`, the kernel from
+    the bins to the grid, shape `(G, B)`, and the grid.
+
+    The width is wider than 2.5 nutation periods (so that it averages the nutation out), than
+    4 sample spacings and than 1/80 of the record (and at most 1/8 of it). It follows the
+    guess's spin, but no shape does: `G` is set by the narrowest width the record allows and
+    `B` by its number of samples, so a guess with another spin runs the programs already
+    compiled. With `B` = min(512, n) bins, a bin is at most 1/6 of the narrowest width."""
     span = ts[-1] - ts[0]
-    width = max(span / 80.0, 4.0 * float(np.median(np.diff(ts))), 2.5 * nutation_period)
-    width = min(width, span / 8.0)
+    floor = min(max(span / 80.0, 4.0 * float(np.median(np.diff(ts)))), span / 8.0)
+    width = min(max(floor, 2.5 * nutation_period), span / 8.0)
     from .setup import bucket  # grid sizes in buckets too: fewer compilations
 
-    num = bucket(int(min(max(np.ceil(4 * span / width) + 1, 50), 1500)))
+    num = bucket(int(min(max(np.ceil(4 * span / floor) + 1, 50), 1500)))
     grid = np.linspace(ts[0], ts[-1], num)
-    lo = np.searchsorted(ts, grid - 4 * width, side="left")
-    hi = np.searchsorted(ts, grid + 4 * width, side="right")
-    # The band in buckets as well: it follows the guess's nutation period, and a guess with
-    # another spin must not compile the fit's programs again.
-    band = min(bucket(int(np.max(hi - lo))), ts.size)
-    index = np.minimum(lo[:, None] + np.arange(band)[None, :], ts.size - 1)
-    inside = (lo[:, None] + np.arange(band)[None, :]) < hi[:, None]
-    weight = np.where(inside, np.exp(-0.5 * ((grid[:, None] - ts[index]) / width) ** 2), 0.0)
-    return (index, weight), grid
+    count = min(MAX_BINS, bucket(ts.size))
+    bins = np.clip(np.floor((ts - ts[0]) / span * count).astype(int), 0, count - 1)
+    filled = np.bincount(bins, minlength=count)
+    centres = np.where(filled > 0, np.bincount(bins, weights=ts, minlength=count)
+                       / np.maximum(filled, 1), ts[0] + (np.arange(count) + 0.5) * span / count)
+    offset = (grid[:, None] - centres[None, :]) / width
+    kernel = np.where(np.abs(offset) <= 4.0, np.exp(-0.5 * offset**2), 0.0)
+    return (bins, kernel), grid
 
 
 def smooth_numpy(theta: np.ndarray, mask: np.ndarray, band) -> np.ndarray:
-    index, weight = band
+    """`smoothed` in numpy (for the data)."""
+    bins, kernel = band
+    count = kernel.shape[-1]
     y = mask * np.nan_to_num(theta)
-    return np.sum(weight * y[index], -1) / np.maximum(np.sum(weight * mask[index], -1), 1e-300)
+    sums = np.bincount(bins, weights=y[: bins.size], minlength=count)
+    weights = np.bincount(bins, weights=mask[: bins.size], minlength=count)
+    return (kernel @ sums) / np.maximum(kernel @ weights, 1e-300)
 
 
 def ladder(smooth: np.ndarray, grid: np.ndarray):
