@@ -183,7 +183,7 @@ def run_segment(
     solver_result = diffrax.RESULTS.where(stopped, diffrax.RESULTS.event_occurred, sol.result)
     flat_last = jax.tree_util.tree_map(lambda x: x[-1], sol.ys[0])
     if terminating:
-        t_event, flat_event = locate_terminating(watched, top, sol.solver_state, finder)
+        t_event, flat_event = locate_terminating(watched, terms, top, sol.solver_state, finder)
         t_end = jnp.where(stopped, t_event.astype(sol.ts[0].dtype), sol.ts[0][-1])
         flat_end = jax.tree_util.tree_map(
             lambda a, b: jnp.where(stopped, a.astype(b.dtype), b), flat_event, flat_last

@@ -16,8 +16,9 @@ the step-size controller shrinks it) until no step holds more than one crossing.
   `locate_terminating` finds the crossing on that step's dense output with `EventBisection`;
 - an *observed* event, which does not stop the run (the inversion, contact loss when the run
   goes on past it), is recorded in the solver state: the first accepted step in which its
-  condition fell through zero, with its dense output. After the solve, `locate_observed` finds
-  the crossing on it by a root find, which is differentiable through the
+  condition fell through zero (its times and the state it started from). After the solve the
+  step is taken again for its dense output, and `locate_observed` finds the crossing on it
+  by a root find, which is differentiable through the
   implicit function theorem (as diffrax's events are).
 
 Event times therefore do not depend on the save grid, and they are exact to the root finder's
@@ -72,12 +73,12 @@ class _WatchState(eqx.Module):
     previous: Float[Array, " n"]  # watched conditions at the start of the step
     last_t0: Float[Array, ""]  # the last accepted step (where a terminating event is located)
     last_t1: Float[Array, ""]
-    last_dense: PyTree
+    last_y0: PyTree  # the state at its start (the step is taken again to locate the event)
     stopped: Bool[Array, ""]  # a terminating condition fell in the last step
     found: Bool[Array, " m"]  # observed event m already recorded
     step_t0: Float[Array, " m"]
     step_t1: Float[Array, " m"]
-    step_dense: PyTree  # the step's dense output (diffrax's dense_info), leading axis m
+    step_y0: PyTree  # the state at the start of that step, leading axis m
 
 
 class WatchedSolver(diffrax.AbstractWrappedSolver):
@@ -95,7 +96,7 @@ class WatchedSolver(diffrax.AbstractWrappedSolver):
       keeps as the solve's result (the step itself is kept, and it is the last), and sets
       `stopped` in its state; `ended_on_event` reads the two together. (A solver's
       `event_occurred` would not do: diffrax replaces it by the step-size controller's
-      `successful`.) The step is kept in the state (`last_t0`, `last_t1`, `last_dense`) for
+      `successful`.) The step is kept in the state (`last_t0`, `last_t1`, `last_y0`) for
       `locate_terminating`.
       Watching here, on the values the step computes anyway, replaces a `diffrax.Event`,
       which would evaluate the conditions a second time at every step and carry its own
@@ -150,27 +151,22 @@ class WatchedSolver(diffrax.AbstractWrappedSolver):
         dtype = jnp.result_type(t0, t1)
         t0 = jnp.asarray(t0, dtype)
         stack = lambda x: jnp.broadcast_to(x, (m,) + jnp.shape(x))  # noqa: E731
-        # The shape of a step's dense output, filled with a constant interpolant (y0
-        # everywhere) on a dummy step of nonzero length: harmless to evaluate.
-        dense_struct = jax.eval_shape(
-            lambda: self.solver.step(
-                terms, t0, t0 + 1, y0, args, self.solver.init(terms, t0, t0 + 1, y0, args),
-                False,
-            )[2]
-        )
-        dense = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), dense_struct)
-        dense = {k: (y0 if k in ("y0", "y1") else v) for k, v in dense.items()}
+        # Until an event is found its "step" is a dummy from y0, short enough that taking it
+        # again after the solve is harmless (finite values and derivatives, which the masked
+        # event time multiplies by zero), and long enough to be a step in this precision.
+        tiny = jnp.finfo(dtype).eps * 64 * jnp.maximum(1.0, jnp.abs(t0))
+        dummy = t0 + jnp.maximum(1e-6 * jnp.abs(jnp.asarray(t1, dtype) - t0), tiny)
         return _WatchState(
             inner=self.solver.init(terms, t0, t1, y0, args),
             previous=self.watch(y0, args),
             last_t0=t0,
-            last_t1=t0 + 1,
-            last_dense=dense,
+            last_t1=dummy,
+            last_y0=y0,
             stopped=jnp.array(False),
             found=jnp.zeros(m, bool),
             step_t0=stack(t0),
-            step_t1=stack(t0 + 1),
-            step_dense=jax.tree_util.tree_map(stack, dense),
+            step_t1=stack(dummy),
+            step_y0=jax.tree_util.tree_map(stack, y0),
         )
 
     def step(self, terms, t0, t1, y0, args, solver_state: _WatchState, made_jump):
@@ -210,15 +206,15 @@ class WatchedSolver(diffrax.AbstractWrappedSolver):
             previous=end,
             last_t0=t0,
             last_t1=t1,
-            last_dense=jax.tree_util.tree_map(
-                lambda a, b: a.astype(b.dtype), dense_info, solver_state.last_dense
+            last_y0=jax.tree_util.tree_map(
+                lambda a, b: a.astype(b.dtype), y0, solver_state.last_y0
             ),
             stopped=stopped,
             found=solver_state.found | new,
             step_t0=take(stack(t0), solver_state.step_t0),
             step_t1=take(stack(t1), solver_state.step_t1),
-            step_dense=jax.tree_util.tree_map(
-                lambda a, b: take(stack(a), b).astype(b.dtype), dense_info, solver_state.step_dense
+            step_y0=jax.tree_util.tree_map(
+                lambda a, b: take(stack(a), b).astype(b.dtype), y0, solver_state.step_y0
             ),
         )
         return y1, y_error, dense_info, state, result
@@ -233,8 +229,8 @@ def locate_observed(
     """
     k = solver.observed.index(index)
     t0, t1 = state.step_t0[k], state.step_t1[k]
-    dense_info = jax.tree_util.tree_map(lambda x: x[k], state.step_dense)
-    interpolation = solver.solver.interpolation_cls(t0=t0, t1=t1, **dense_info)
+    y0 = jax.tree_util.tree_map(lambda x: x[k], state.step_y0)
+    interpolation = _retake(solver, terms, t0, t1, y0, args)
 
     def fn(t, _):
         return solver.watch(interpolation.evaluate(t), args)[index].astype(t1.dtype)
@@ -246,13 +242,13 @@ def locate_observed(
 
 
 def locate_terminating(
-    solver: WatchedSolver, args, state: _WatchState, root_finder
+    solver: WatchedSolver, terms, args, state: _WatchState, root_finder
 ) -> tuple[Float[Array, ""], PyTree]:
     """Time and state of the first terminating crossing in the last step of a solve that
     ended on one: the root of the smallest terminating condition on that step's dense
     output (differentiable through the implicit function theorem, as `locate_observed`)."""
     t0, t1 = state.last_t0, state.last_t1
-    interpolation = solver.solver.interpolation_cls(t0=t0, t1=t1, **state.last_dense)
+    interpolation = _retake(solver, terms, t0, t1, state.last_y0, args)
     stops = jnp.asarray(solver.terminating, int)
 
     def fn(t, _):
@@ -262,3 +258,16 @@ def locate_terminating(
         fn, root_finder, y0=t1, options=dict(lower=t0, upper=t1), throw=False
     )
     return root.value, interpolation.evaluate(root.value)
+
+
+def _retake(solver: WatchedSolver, terms, t0, t1, y0, args):
+    """The dense output of the step from `y0` over `[t0, t1]`, taken again after the solve.
+
+    The watch keeps only where an event's step started (its times and state), not the step's
+    dense output: carrying the dense output (for Dopri8, its 14 stages) through every step
+    of the loop cost more than the one step taken again here. From the same state over the
+    same interval the step's stages are the same (a first-same-as-last stage is recomputed
+    from the same state), so the interpolant is the one the solve saw."""
+    inner = solver.solver.init(terms, t0, t1, y0, args)
+    _, _, dense_info, _, _ = solver.solver.step(terms, t0, t1, y0, args, inner, False)
+    return solver.solver.interpolation_cls(t0=t0, t1=t1, **dense_info)
