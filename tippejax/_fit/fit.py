@@ -34,7 +34,10 @@ minima along the curve of matching inversion times. The default strategy (`"glob
 6. fits the whole record at the stage tolerance, then at the fit's own (the loss the
    covariance is about), all coordinates inside a trust region of a factor 5 around the guess;
 7. tests the residuals (`diagnostics.py`: runs test, Ljung-Box and windowed chi-square); if
-   they are not noise, the next start is refined, and if none passes, the fit with the lowest
+   they are not noise, the same start is refined the other way (`stages/valley_scan.py`:
+   onto the slow loss's valley with every parameter free, then the phase scanned along the
+   valley on growing windows, so that the spin is never traded against the others' error in
+   the slow rise; then step 6), then the next start; if none passes, the fit with the lowest
    loss is flagged `local_minimum` rather than returned with confident error bars;
 8. profiles the loss along the slow valley through the fit, +-20 nutation cycles
    (`profile.py`): a lower cycle is refitted (steps 6-7) and kept if it ends lower; where
@@ -449,16 +452,18 @@ def _fit_starts(setup, attempts, obs2, sigma):
             starts = u0[None]
         else:
             starts = u0[None] if search is None else search.starts(u0, setup)
+        chains = stages if isinstance(stages[0], tuple) else (stages,)
         for s in range(starts.shape[0]):
-            tried += 1
-            cand, steps = _candidate(setup, _refine(starts[s], setup, stages), obs2, sigma)
-            total_steps = total_steps + steps
-            cand["starts"] = np.full(setup.bsize, tried)
-            best = cand if best is None else _better(best, cand, setup.bsize)
-            if all(v["passes"] for v in best["verdicts"]):  # the lowest minimum so far is noise
-                best["num_steps"] = total_steps
-                best["describes"] = np.array([v["describes_until"] for v in best["verdicts"]])
-                return best
+            for chain in chains:  # alternative chains from the same start, in turn
+                tried += 1
+                cand, steps = _candidate(setup, _refine(starts[s], setup, chain), obs2, sigma)
+                total_steps = total_steps + steps
+                cand["starts"] = np.full(setup.bsize, tried)
+                best = cand if best is None else _better(best, cand, setup.bsize)
+                if all(v["passes"] for v in best["verdicts"]):  # the lowest minimum is noise
+                    best["num_steps"] = total_steps
+                    best["describes"] = np.array([v["describes_until"] for v in best["verdicts"]])
+                    return best
     best["num_steps"] = total_steps
     best["describes"] = np.array([v["describes_until"] for v in best["verdicts"]])
     return best
