@@ -146,14 +146,8 @@ class PhaseScan(AbstractStage):
             # 4. the best few cycles of the last scan, each refined on the whole record; the
             # lowest end wins (the valley is only straight to first order, so the
             # scan's best point can be a neighbouring cycle's)
-            points = u_np[None] + minima[:, :, None] * directions[None]  # (K, bsize, p)
-            full = setup.data(steps=self.candidate_steps)
-            ends, _ = setup.optimise_many(jnp.asarray(points if batched else points[:, 0], u.dtype),
-                                          full)
-            ends = np.asarray(ends, float).reshape(points.shape)
-            end_losses = setup.losses(ends if batched else ends[:, 0], full)
-            best = np.argmin(end_losses.reshape(points.shape[0], -1), axis=0)
-            u_np = ends[best, np.arange(bsize)]
+            u_np = refine_candidates(u_np, minima, directions, setup, batched, u.dtype,
+                                     self.candidate_steps)
         new = u_np if batched else u_np[0]
         return StageRun(u=jnp.asarray(new, u.dtype), histories=histories, counts=counts, code=code)
 
@@ -182,6 +176,19 @@ class PhaseScan(AbstractStage):
                 return centre, window, _local_minima(losses, deltas, self.candidates)
             half = np.where(clear, np.minimum(self.lobe / cycles, self.span), half)
             window = np.minimum(start + self.growth * (window - start), stop)
+
+
+def refine_candidates(u_np, offsets, directions, setup, batched, dtype, steps):
+    """Each record's candidates `u + offset * direction` (`offsets` of shape `(K, bsize)`)
+    refined on the whole record for at most `steps` steps; the lowest end wins. Returns the
+    winners, shape `(bsize, p)`."""
+    points = u_np[None] + offsets[:, :, None] * directions[None]  # (K, bsize, p)
+    full = setup.data(steps=steps)
+    ends, _ = setup.optimise_many(jnp.asarray(points if batched else points[:, 0], dtype), full)
+    ends = np.asarray(ends, float).reshape(points.shape)
+    end_losses = setup.losses(ends if batched else ends[:, 0], full)
+    best = np.argmin(end_losses.reshape(points.shape[0], -1), axis=0)
+    return ends[best, np.arange(points.shape[1])]
 
 
 def _contrast(losses, setup, window):

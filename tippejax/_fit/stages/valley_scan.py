@@ -44,7 +44,7 @@ import numpy as np
 
 from ..setup import SEARCH_RTOL
 from .base import AbstractStage, StageRun
-from .phase_scan import _contrast, _local_minima, valley_directions
+from .phase_scan import _contrast, _local_minima, refine_candidates, valley_directions
 
 
 class ValleyScan(AbstractStage):
@@ -132,13 +132,7 @@ class ValleyScan(AbstractStage):
             window = np.minimum(start + self.growth * (window - start), end)
         # 4. the best few cycles, each refined on the whole record; the lowest end wins
         minima = _local_minima(losses, deltas, self.candidates)
-        points = u_np[None] + minima[:, :, None] * directions[None]  # (K, bsize, p)
-        full = setup.data(steps=self.candidate_steps)
-        ends, _ = setup.optimise_many(as_u(points) if batched else jnp.asarray(points[:, 0], dtype),
-                                      full)
-        ends = np.asarray(ends, float).reshape(points.shape)
-        end_losses = setup.losses(ends if batched else ends[:, 0], full)
-        pick = np.argmin(end_losses.reshape(points.shape[0], -1), axis=0)
-        new = ends[pick, np.arange(bsize)]
+        new = refine_candidates(u_np, minima, directions, setup, batched, dtype,
+                                self.candidate_steps)
         return StageRun(u=as_u(new), histories=histories, counts=counts, code=None)
 
