@@ -107,7 +107,10 @@ def main() -> None:
         "Each row is a new Python process. off: `TIPPEJAX_COMPILATION_CACHE=0`; cold: an empty "
         "cache directory (compiles and stores); warm: a second process with that directory. "
         "first: the first call (trace, compile or load, run); second: the same call again in "
-        "that process (run only); first - second: what a new process pays for compiling.",
+        "that process (run only); first - second: what a new process pays for compiling. "
+        "A warm process loads both the XLA programs (JAX's persistent cache) and the traced "
+        "programs of `simulate` and `fit` (`jax.export`, `tippejax/_cache.py`); `grad` is "
+        "traced again (the differentiated function is the caller's).",
         "",
         table(["case", "cache", "import (s)", "first call (s)", "second call (s)",
                "first - second (s)"], rows),

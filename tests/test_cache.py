@@ -44,19 +44,81 @@ SIMULATE = """
 import logging, jax
 logging.basicConfig()
 logging.getLogger("jax._src.compiler").setLevel(logging.DEBUG)
+jax.config.update("jax_log_compiles", True)
 import tippejax as tj
 top = tj.default_top()
 sol = tj.simulate(top, tj.initial_state(top, 0.1, 50.0), 0.2, saveat=[0.0, 0.1, 0.2])
-print(float(sol.theta[-1]))
+print(repr(float(sol.theta[-1])), int(sol.outcome), str(sol.result == tj.RESULTS.successful))
 """
 
 
 def test_the_solve_is_stored_and_a_second_process_loads_it(tmp_path):
     cache = str(tmp_path / "cache")
     first, log1 = _run(SIMULATE, TIPPEJAX_COMPILATION_CACHE=cache)
-    assert "Not writing persistent cache entry for 'jit__run'" not in log1
-    assert any(name.startswith("jit__run") for name in os.listdir(cache)), os.listdir(cache)
+    assert "Not writing persistent cache entry" not in log1
+    # the traced programs (the solve, the outcome) are kept beside the XLA programs
+    exports = os.listdir(cache + "-exports")
+    assert any(name.startswith("run-") for name in exports), exports
+    assert any(name.startswith("outcome-") for name in exports), exports
+    assert os.listdir(cache)
+    # a second process neither traces nor compiles them: it loads both
     second, log2 = _run(SIMULATE, TIPPEJAX_COMPILATION_CACHE=cache)
-    assert "cache hit for 'jit__run'" in log2.lower()
-    assert "cache hit for 'jit__outcome'" in log2.lower()
+    traced = [line for line in log2.splitlines() if "Finished tracing" in line]
+    assert not any(" run " in line or "_run" in line or "outcome" in line for line in traced), traced
+    assert "persistent compilation cache hit" in log2.lower()
     assert first == second  # the loaded program computes the same numbers
+    # ... as a process that traces the functions anew, with no cache at all
+    third, log3 = _run(SIMULATE, TIPPEJAX_COMPILATION_CACHE="0")
+    assert any("_run" in line for line in log3.splitlines() if "Finished tracing" in line)
+    assert third == first
+
+
+def test_a_stored_program_that_cannot_be_read_is_traced_again(tmp_path):
+    cache = str(tmp_path / "cache")
+    first, _ = _run(SIMULATE, TIPPEJAX_COMPILATION_CACHE=cache)
+    for name in os.listdir(cache + "-exports"):
+        with open(os.path.join(cache + "-exports", name), "wb") as f:
+            f.write(b"not a program")
+    second, log2 = _run(SIMULATE, TIPPEJAX_COMPILATION_CACHE=cache)
+    assert second == first
+    traced = [line for line in log2.splitlines() if "Finished tracing" in line]
+    assert any("run" in line for line in traced), traced  # traced again, not failed
+
+
+def test_cached_call_stores_only_what_another_process_could_reuse(tmp_path, monkeypatch):
+    """In one process: a call is stored and loaded back with the same result; a traced call
+    (under `jit`), and an option printed by its memory address, take the plain path."""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    import tippejax._cache as cache
+
+    monkeypatch.setattr(cache, "EXPORT_DIR", str(tmp_path))
+    monkeypatch.setattr(cache, "_LOADED", {})
+
+    @eqx.filter_jit
+    def affine(x, *, scale, shift):
+        return {"y": x * scale + shift, "n": jnp.sum(x > 0)}
+
+    x = jnp.array([1.0, -2.0, 3.0])
+    out = cache.cached_call(affine, x, scale=2.0, shift=jnp.float64(0.5).item())
+    assert jnp.allclose(out["y"], x * 2.0 + 0.5) and int(out["n"]) == 2
+    assert len(os.listdir(tmp_path)) == 1
+    monkeypatch.setattr(cache, "_LOADED", {})  # as a new process would: read from disk
+    again = cache.cached_call(affine, x, scale=2.0, shift=0.5)
+    assert jnp.array_equal(again["y"], out["y"]) and int(again["n"]) == 2
+    # another option value is another program
+    assert jnp.allclose(cache.cached_call(affine, x, scale=3.0, shift=0.5)["y"], 3.0 * x + 0.5)
+    assert len(os.listdir(tmp_path)) == 2
+    # traced arguments: the plain jitted call, nothing stored
+    traced = jax.jit(lambda v: cache.cached_call(affine, v, scale=5.0, shift=0.0)["y"])(x)
+    assert jnp.allclose(traced, 5.0 * x)
+    assert len(os.listdir(tmp_path)) == 2
+
+    @eqx.filter_jit
+    def apply(x, *, op):
+        return op(x)
+
+    assert jnp.allclose(cache.cached_call(apply, x, op=lambda v: v + 1.0), x + 1.0)
+    assert len(os.listdir(tmp_path)) == 2  # a lambda's repr holds its address: not stored

@@ -21,14 +21,37 @@ first `simulate` on a loaded 2-core machine, `benchmarks/compile_cache.py`).
 
 JAX does not store programs with host callbacks, which every `eqx.error_if` is; see
 `cacheable` for how the solve is kept free of them.
+
+**Traced programs too.** The XLA cache does not spare a new process the tracing of the Python
+functions (diffrax's loop, the events, the fit's optimiser): 3-4 s of a first `simulate`, 8-15 s
+of a first `fit`. `cached_call` keeps the traced programs as well: the first call with a
+configuration exports the jitted function (`jax.export`) and stores the serialized program
+beside the XLA cache (`<cache>-exports`); a later process deserializes it and runs it, compiled
+from the XLA cache, without tracing. The entry's key holds everything the trace depended on:
+the static options' repr, the arguments' tree, shapes and dtypes, the platform, the versions of
+jax, jaxlib, equinox, diffrax, optimistix, lineax and optax, and a hash of tippejax's own
+source. Anything unusual falls back to the plain jitted call: traced arguments (under `jit`,
+`vmap` or `grad`), a static option whose repr is not stable (one that prints a memory address),
+arguments on several devices, the cache off, or any error while exporting or loading (set
+`TIPPEJAX_EXPORT_DEBUG=1` to print why a program was not stored). Entries of older versions
+are never read again; the directory may be deleted at any time.
 """
 
 from __future__ import annotations
 
 import contextlib
+import copyreg
+import hashlib
+import importlib.metadata
 import os
+import pathlib
+import pickle
+import re
+import tempfile
 
 import jax
+import jax.numpy as jnp
+import numpy as np
 
 _OFF = ("0", "false", "no", "off")
 MIN_COMPILE_TIME_SECS = 0.0
@@ -87,3 +110,192 @@ def cacheable():
 
 CACHE_DIR = enable_compilation_cache()
 """The directory this process caches in (None: off, or a directory the user configured)."""
+
+EXPORT_DIR = None if CACHE_DIR is None else CACHE_DIR.rstrip(os.sep) + "-exports"
+"""Where `cached_call` keeps traced programs (None: off, with the persistent cache)."""
+
+_LOADED: dict[str, tuple] = {}  # key -> (jitted call of the exported program, output tree)
+_PACKAGES = ("jax", "jaxlib", "equinox", "diffrax", "optimistix", "lineax", "optax")
+
+
+def _missing():
+    import equinox._module._flatten as flatten  # equinox's `MISSING` sentinel
+
+    return flatten.MISSING
+
+
+def _register_missing() -> bool:
+    """Unpickle equinox's `MISSING` marker (in every Module's tree) as the singleton itself,
+    so that a pickled output tree unflattens again. False if equinox has no such marker."""
+    try:
+        import equinox._module._flatten as flatten
+
+        copyreg.pickle(type(flatten.MISSING), lambda _: (_missing, ()))
+        return True
+    except (ImportError, AttributeError):  # pragma: no cover - other equinox versions
+        return False
+
+
+_PICKLABLE_TREES = _register_missing()
+
+
+def _versions() -> str:
+    parts = []
+    for name in _PACKAGES:
+        try:
+            parts.append(f"{name}={importlib.metadata.version(name)}")
+        except importlib.metadata.PackageNotFoundError:  # pragma: no cover
+            parts.append(f"{name}=?")
+    source = hashlib.sha256()
+    root = pathlib.Path(__file__).resolve().parent
+    for path in sorted(root.rglob("*.py")):
+        source.update(str(path.relative_to(root)).encode())
+        source.update(path.read_bytes())
+    return ";".join(parts) + ";tippejax=" + source.hexdigest()
+
+
+_VERSIONS: str | None = None
+
+
+def _key(name: str, in_tree, leaves, static: dict) -> str | None:
+    global _VERSIONS
+    if any(hasattr(x, "shape") for x in jax.tree_util.tree_leaves(static)):
+        return None  # an array among the options: its repr may be abridged
+    text = repr(sorted(static.items()))
+    if " at 0x" in text:  # a function or object printed by address: not stable across runs
+        return None
+    if _VERSIONS is None:
+        _VERSIONS = _versions()
+    avals = ";".join(str(jax.typeof(x)) for x in leaves)
+    flags = f"x64={jax.config.jax_enable_x64};platform={jax.default_backend()}"
+    blob = "\n".join([name, text, str(in_tree), avals, flags, _VERSIONS])
+    return name + "-" + hashlib.sha256(blob.encode()).hexdigest()[:40]
+
+
+def _single_device(leaves) -> bool:
+    for x in leaves:
+        sharding = getattr(x, "sharding", None)
+        if sharding is not None and len(sharding.device_set) > 1:
+            return False
+    return True
+
+
+def cached_call(fn, *args, **static):
+    """`fn(*args, **static)` for a jitted `fn`, through the on-disk store of traced programs
+    (see the module docstring). `args` are pytrees; their arrays (jax or numpy) are the
+    program's inputs and their other leaves (Python numbers, strings) are fixed in it, as
+    `eqx.filter_jit` does. `static` are the options `fn` takes as static (hashable, with a
+    stable repr). Returns what `fn` returns."""
+    leaves, in_tree = jax.tree_util.tree_flatten(args)
+    leaves = [jnp.asarray(x) if isinstance(x, (np.ndarray, np.generic)) else x for x in leaves]
+    dynamic = [i for i, x in enumerate(leaves) if isinstance(x, jax.Array)]
+    inputs = [leaves[i] for i in dynamic]
+    if (
+        EXPORT_DIR is None
+        or not _PICKLABLE_TREES
+        or any(isinstance(x, jax.core.Tracer) for x in leaves)
+        or not _single_device(inputs)
+    ):
+        return fn(*args, **static)
+    fixed = {i: x for i, x in enumerate(leaves) if i not in set(dynamic)}
+    name = getattr(fn, "__name__", None) or getattr(getattr(fn, "__wrapped__", None), "__name__", "fn")
+    key = _key(name.strip("_"), in_tree, inputs, dict(static, _fixed_leaves=fixed))
+    if key is None:
+        return fn(*args, **static)
+
+    def rebuild(flat_inputs):
+        full = list(leaves)
+        for i, x in zip(dynamic, flat_inputs):
+            full[i] = x
+        return jax.tree_util.tree_unflatten(in_tree, full)
+
+    if key not in _LOADED:
+        _LOADED[key] = _load(key) or _export(key, fn, rebuild, inputs, static)
+    call, out_tree = _LOADED[key]
+    if call is not None:
+        # Committed and uncommitted arrays are different signatures to `jit`, and an
+        # exported program is compiled again for each: commit every input to its device.
+        inputs = [
+            x if getattr(x, "committed", True) else jax.device_put(x, next(iter(x.devices())))
+            for x in inputs
+        ]
+        try:
+            return jax.tree_util.tree_unflatten(out_tree, call(*inputs))
+        except Exception:  # the stored program does not take these arguments: trace instead
+            _LOADED[key] = (None, None)
+    return fn(*args, **static)
+
+
+def _load(key: str):
+    path = os.path.join(EXPORT_DIR, key)
+    try:
+        with open(path, "rb") as f:
+            blob, tree = pickle.load(f)
+        exported = jax.export.deserialize(bytearray(blob))
+        return jax.jit(exported.call), pickle.loads(tree)
+    except FileNotFoundError:
+        return None
+    except Exception:  # a damaged or stale entry: drop it and trace again
+        with contextlib.suppress(OSError):
+            os.remove(path)
+        return None
+
+
+def _kernel(target: str) -> bool:
+    """A compiled library kernel (LAPACK, cuSOLVER), not a call back into this process's
+    Python (a progress meter, a debug print), which no other process could run."""
+    return not any(word in target.lower() for word in ("callback", "python"))
+
+
+def _export_allowing_this_jaxlib(jitted, leaves):
+    """`jax.export.export`, allowing the custom calls (LAPACK kernels such as lineax's QR
+    solves use) that jax does not promise to keep compatible across versions: an entry is only
+    ever loaded by the same jax and jaxlib (they are in its key)."""
+    try:
+        return jax.export.export(jitted)(*leaves)
+    except ValueError as error:
+        if "no compatibility guarantees" not in str(error):
+            raise
+        targets = sorted(set(re.findall(r"custom_call @([A-Za-z0-9_]+)", str(error))))
+        if not targets or not all(map(_kernel, targets)):
+            raise
+    checks = [jax.export.DisabledSafetyCheck.custom_call(t) for t in targets]
+    for _ in range(8):  # jax names a few offending targets at a time
+        try:
+            return jax.export.export(jitted, disabled_checks=checks)(*leaves)
+        except ValueError as error:
+            more = set(re.findall(r"custom_call @([A-Za-z0-9_]+)", str(error))) - set(targets)
+            if "no compatibility guarantees" not in str(error) or not more:
+                raise
+            if not all(map(_kernel, more)):
+                raise
+            targets += sorted(more)
+            checks += [jax.export.DisabledSafetyCheck.custom_call(t) for t in sorted(more)]
+    raise ValueError("too many custom calls without compatibility guarantees")
+
+
+def _export(key: str, fn, rebuild, leaves, static):
+    box = {}
+
+    def flat(*flat_args):
+        out = fn(*rebuild(flat_args), **static)
+        out_leaves, box["tree"] = jax.tree_util.tree_flatten(out)
+        return out_leaves
+
+    flat.__name__ = key.split("-")[0]
+    try:
+        exported = _export_allowing_this_jaxlib(jax.jit(flat), leaves)
+        tree = pickle.dumps(box["tree"])
+        pickle.loads(tree).unflatten(range(box["tree"].num_leaves))  # it must come back
+        blob = pickle.dumps((bytes(exported.serialize()), tree))
+    except Exception as error:
+        if os.environ.get("TIPPEJAX_EXPORT_DEBUG"):
+            print(f"tippejax: not exported ({key}): {type(error).__name__}: {error}"[:2000])
+        return (None, None)  # not exportable (a host callback, an unpicklable tree): plain jit
+    with contextlib.suppress(OSError):
+        os.makedirs(EXPORT_DIR, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=EXPORT_DIR, prefix=".tmp-")
+        with os.fdopen(fd, "wb") as f:
+            f.write(blob)
+        os.replace(tmp, os.path.join(EXPORT_DIR, key))
+    return jax.jit(exported.call), box["tree"]

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike
 
-from ._cache import cacheable
+from ._cache import cacheable, cached_call
 from ._engine.chain import run_chain
 from ._engine.solver_choice import (
     IMPLICIT_RATE,
@@ -339,8 +339,8 @@ def simulate(
     if adjoint is None:
         adjoint = diffrax.RecursiveCheckpointAdjoint()
     with cacheable():
-        out = _run(
-            top, y0, ts, jnp.asarray(t0, dtype), jnp.asarray(t1, dtype),
+        out = cached_call(
+            _run, top, y0, ts, jnp.asarray(t0, dtype), jnp.asarray(t1, dtype),
             jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype),
             level=LEVELS[model], solver=solver, guard_stiff=guard_stiff,
             stop_on_contact=on_contact_loss == "stop", max_steps=int(max_steps),
@@ -360,7 +360,7 @@ def simulate(
             name = f"{model}(->{fallback} where t_chart_switch is finite)"
     theta_end, jellet_launch = out.pop("theta_end"), out.pop("jellet_launch")
     with cacheable():
-        outcome, settled = _outcome(top, jellet_launch, theta_end, out["result"])
+        outcome, settled = cached_call(_outcome, top, jellet_launch, theta_end, out["result"])
     sol = Solution(model=name, outcome=outcome, settled=settled, **out)
     if throw:
         sol = _raise_if_failed(sol, on_contact_loss, top)

@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._cache import cacheable
+from .._cache import cacheable, cached_call
 from .optimise import optimise
 from .params import physical
 from .problem import (
@@ -116,7 +116,7 @@ class Setup:
 
     def optimise(self, u, data: Data):
         with cacheable():  # the fit's programs go to the persistent cache too (`_cache.py`)
-            return _run_optimise(u, data, self.cfg, self.batched)
+            return cached_call(_run_optimise, u, data, cfg=self.cfg, batched=self.batched)
 
     def optimise_many(self, u, data: Data):
         """`optimise` from each of the starting points `u` (shape `(K, *batch, p)`) in turn.
@@ -144,8 +144,9 @@ class Setup:
             part = u[lo: lo + CHUNK]
             part = np.concatenate([part, np.repeat(part[-1:], CHUNK - part.shape[0], 0)])
             with cacheable():
-                out.append(np.asarray(_run_losses(jnp.asarray(part, self.template.ts.dtype),
-                                                  data, self.cfg, self.batched)))
+                out.append(np.asarray(cached_call(
+                    _run_losses, jnp.asarray(part, self.template.ts.dtype), data,
+                    cfg=self.cfg, batched=self.batched)))
         losses = np.concatenate(out)[:k]
         return np.where(np.isfinite(losses), losses, np.inf)
 
@@ -159,7 +160,7 @@ class Setup:
 
     def finish(self, u, code, data: Data):
         with cacheable():
-            return _run_finish(u, code, data, self.cfg, self.batched)
+            return cached_call(_run_finish, u, code, data, cfg=self.cfg, batched=self.batched)
 
 
 @eqx.filter_jit
