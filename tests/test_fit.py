@@ -526,6 +526,23 @@ def test_bad_input_raises(kwargs, error, match):
         tj.fit(args["top_guess"], args["y0_guess"], args["ts"], args["theta_obs"], **kwargs)
 
 
+def test_level_crossing_times_of_the_data_equal_the_models():
+    """The data's level-crossing times (numpy) are the model's (jax) on the same curve:
+    levels crossed between grid points, at the first point, never reached, and a curve that
+    crosses a level, falls back and crosses it again (the first crossing counts)."""
+    grid = np.linspace(0.0, 6.0, 61)
+    curve = 0.1 + 0.5 * np.sin(grid) ** 2 + 0.05 * np.sin(7.0 * grid)
+    levels = np.array([0.1, 0.1001, 0.2, 0.35, 0.5, 0.61, 2.0])
+    got = problem.first_crossings_numpy(curve, grid, levels)
+    want = np.asarray(problem.first_crossings(jnp.asarray(curve), jnp.asarray(grid),
+                                              jnp.asarray(levels)))
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
+    # a crossing between grid points is interpolated; one never reached lies past the end
+    k = int(np.argmax(curve >= 0.35))
+    assert grid[k - 1] < got[3] <= grid[k]
+    assert got[-1] > grid[-1]
+
+
 @pytest.mark.parametrize("rate", [30.0, 240.0])
 def test_smoother_removes_the_nutation_and_its_shapes_ignore_the_guess(rate):
     """The smoother behind the slow observables: it averages a nutation of the period it was

@@ -386,7 +386,8 @@ def _setup(top_guess, y0_guess, ts_np, obs2, mask2, w2, phi2, fields, launch, t0
         steps=per_rec(float(max_steps)),
     )
     if not batched:
-        template = jax.tree_util.tree_map(lambda x: x[0], template)
+        # (indexed in numpy: a jax index is a small program to compile in each new process)
+        template = jax.tree_util.tree_map(lambda x: jnp.asarray(np.asarray(x)[0], x.dtype), template)
     cfg = Config(
         free=free, model=model, method=method, max_steps=int(max_steps),
         sim_max_steps=int(sim_max_steps), has_phi=phi2 is not None, solver=solver,

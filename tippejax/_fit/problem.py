@@ -117,6 +117,22 @@ def first_crossings(smooth, grid, levels):
     return jax.vmap(one)(levels)
 
 
+def first_crossings_numpy(smooth: np.ndarray, grid: np.ndarray, levels: np.ndarray) -> np.ndarray:
+    """`first_crossings` in numpy (for the data: no small programs to compile in a new
+    process)."""
+    smooth, grid = np.asarray(smooth, float), np.asarray(grid, float)
+    out = np.empty(len(levels))
+    for i, level in enumerate(np.asarray(levels, float)):
+        above = smooth >= level
+        k = max(int(np.argmax(above)), 1)
+        lo, hi = smooth[k - 1], smooth[k]
+        frac = np.clip((level - lo) / (hi - lo if hi > lo else 1.0), 0.0, 1.0)
+        t_hit = grid[k - 1] + frac * (grid[k] - grid[k - 1])
+        t_miss = grid[-1] + (level - smooth.max()) * (grid[-1] - grid[0]) / np.pi
+        out[i] = t_hit if above.any() else t_miss
+    return out
+
+
 def smoothed(y, mask, bins, kernel):
     """Kernel regression onto the grid through time bins (see `smoother`):
     sum_j K_gj sum_{k in j} m_k y_k / sum_j K_gj sum_{k in j} m_k."""
@@ -275,5 +291,5 @@ def ladder(smooth: np.ndarray, grid: np.ndarray):
     rises = top - start > 0.3
     lo, hi = start + 0.1 * (top - start), top - 0.1 * (top - start)
     levels = np.linspace(lo, hi, NUM_LEVELS) if rises else np.zeros(NUM_LEVELS)
-    times = np.asarray(first_crossings(jnp.asarray(smooth), jnp.asarray(grid), jnp.asarray(levels)))
+    times = first_crossings_numpy(smooth, grid, levels)
     return levels, times, rises

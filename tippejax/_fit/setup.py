@@ -107,9 +107,9 @@ class Setup:
             steps=np.full(bsize, float(self.cfg.max_steps if steps is None
                                        else min(steps, self.cfg.max_steps))),
         )
-        fields = {k: jnp.asarray(np.asarray(v), dtype) for k, v in fields.items()}
-        if not self.batched:
-            fields = {k: v[0] for k, v in fields.items()}
+        # (indexed in numpy: a jax index is a small program to compile in each new process)
+        fields = {k: np.asarray(v) if self.batched else np.asarray(v)[0] for k, v in fields.items()}
+        fields = {k: jnp.asarray(v, dtype) for k, v in fields.items()}
         names = tuple(fields)
         return eqx.tree_at(lambda d: tuple(getattr(d, k) for k in names), self.template,
                            tuple(fields[k] for k in names))
