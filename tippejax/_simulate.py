@@ -34,25 +34,32 @@ from ._top import TippeTop
 MODELS = (*LEVELS, "auto")
 
 
-def _observe(top, states: State, friction_model: str, valid):
-    """The `Solution` fields of states at the save times (nan where not `valid`)."""
+OBSERVED = ("theta", "phi", "psi", "theta_dot", "phi_dot", "psi_dot", "spin", "position",
+            "velocity", "jellet", "energy", "normal_force", "slip_speed")
+"""The `Solution` fields computed from the states at the save times."""
+
+
+def _observe(top, states: State, friction_model: str, valid, names=OBSERVED):
+    """The `Solution` fields `names` of states at the save times (nan where not `valid`)."""
     theta, phi, psi = euler_angles(states)
-    theta_dot, phi_dot, psi_dot = euler_rates(states)
-    fields = dict(
-        theta=theta,
-        phi=jnp.unwrap(jnp.where(valid, phi, 0.0)),
-        psi=jnp.unwrap(jnp.where(valid, psi, 0.0)),
-        theta_dot=theta_dot,
-        phi_dot=phi_dot,
-        psi_dot=psi_dot,
-        spin=spin(states),
-        position=states.position,
-        velocity=states.velocity,
-        jellet=jellet(top, states),
-        energy=energy(top, states, model=friction_model),
-        normal_force=normal_force(top, states, model=friction_model),
-        slip_speed=jnp.linalg.norm(slip_velocity(top, states, model=friction_model), axis=-1),
+    makers = dict(
+        theta=lambda: theta,
+        phi=lambda: jnp.unwrap(jnp.where(valid, phi, 0.0)),
+        psi=lambda: jnp.unwrap(jnp.where(valid, psi, 0.0)),
+        theta_dot=lambda: euler_rates(states)[0],
+        phi_dot=lambda: euler_rates(states)[1],
+        psi_dot=lambda: euler_rates(states)[2],
+        spin=lambda: spin(states),
+        position=lambda: states.position,
+        velocity=lambda: states.velocity,
+        jellet=lambda: jellet(top, states),
+        energy=lambda: energy(top, states, model=friction_model),
+        normal_force=lambda: normal_force(top, states, model=friction_model),
+        slip_speed=lambda: jnp.linalg.norm(
+            slip_velocity(top, states, model=friction_model), axis=-1
+        ),
     )
+    fields = {k: makers[k]() for k in names}
 
     def mask(x):
         return jnp.where(valid.reshape(valid.shape + (1,) * (x.ndim - valid.ndim)), x, jnp.nan)
@@ -62,7 +69,7 @@ def _observe(top, states: State, friction_model: str, valid):
 
 @eqx.filter_jit
 def _run(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_on_contact,
-         max_steps, adjoint, progress, samples):
+         max_steps, adjoint, progress, samples, names=OBSERVED, inversion=True, locate=True):
     dtype = jnp.result_type(top.m)
     too_stiff = jnp.array(False)
     if guard_stiff:
@@ -74,7 +81,7 @@ def _run(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_on
     out = run_chain(
         level, top, y0, t0, t1, ts, stop_on_contact=stop_on_contact, solver=solver,
         rtol=rtol, atol=atol, max_steps=max_steps, adjoint=adjoint, progress_meter=meter,
-        samples=samples,
+        samples=samples, inversion=inversion, locate=locate,
     )
     result = RESULTS.where(too_stiff, RESULTS.stiff_under_trace, out.result)
     friction_model = level.friction_model
@@ -83,12 +90,14 @@ def _run(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_on
         times = out.t_final[None]
         states = jax.tree_util.tree_map(lambda x: x[None], out.state_end)
         valid = jnp.ones(1, bool)
-        fields = _observe(top, states, friction_model, valid)
+        fields = _observe(top, states, friction_model, valid, names)
     else:
         times = ts
         states = out.states
         valid = (ts <= out.t_final) & jnp.all(jnp.isfinite(states.axis), axis=-1)
-        fields = _observe(top, states, friction_model, valid)
+        # (the normal force is needed for the safety net below; it is dropped after)
+        fields = _observe(top, states, friction_model, valid,
+                          tuple(dict.fromkeys(names + ("normal_force",))))
         # Safety net: R_n < 0 at a save time before any located contact loss means a dip
         # shorter than the event watch's resolution went unseen. Report it; return nothing
         # from that save time on, nor a later loss time as if it were the first.
@@ -104,14 +113,15 @@ def _run(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_on
         valid = valid & (ts < t_missed)
         fields = {
             k: jnp.where(valid.reshape(valid.shape + (1,) * (v.ndim - 1)), v, jnp.nan)
-            for k, v in fields.items()
+            for k, v in fields.items() if k in names
         }
         states = jax.tree_util.tree_map(
             lambda x: jnp.where(valid.reshape(valid.shape + (1,) * (x.ndim - 1)), x, jnp.nan),
             states,
         )
     nonfinite = jnp.any(
-        jnp.stack([jnp.any(valid & ~jnp.isfinite(fields[k])) for k in ("theta", "jellet")])
+        jnp.stack([jnp.any(valid & ~jnp.isfinite(fields[k])) for k in ("theta", "jellet")
+                   if k in fields])
     )
     result = RESULTS.where((result == RESULTS.successful) & nonfinite, RESULTS.nonfinite, result)
     return dict(
@@ -365,6 +375,34 @@ def simulate(
     if throw:
         sol = _raise_if_failed(sol, on_contact_loss, top)
     return sol
+
+
+def simulate_tilt(top: TippeTop, y0: State, ts, *, t0, t1, model: str, rtol, atol,
+                  solver=None, max_steps: int, adjoint, event_samples: int = 8) -> dict:
+    """The tilt and precession angle at the save times `ts`, and the contact-loss time, of the
+    run `simulate(..., saveat=ts, on_contact_loss="continue", throw=False)` would make.
+
+    For a fit's residuals, traced inside its programs: only what they read is computed (not the
+    other `Solution` fields, the outcome, nor the inversion event), and events are not located
+    inside their step (`run_segment`'s `locate=False`: the contact loss is dated to the start of
+    the step it fell in, less than a step early, so at most the samples inside that step are
+    counted as after it), which makes the fit's programs smaller to trace and compile. No argument checks (the fit makes its own) and no
+    save-grid bucketing (its grids are bucketed already). Returns a dict with `ts`, `theta`,
+    `phi`, `t_contact_loss` and `result`."""
+    dtype = jnp.result_type(top.m)
+    if dtype != jnp.float64:
+        rtol, atol = jnp.maximum(rtol, 1e-5), jnp.maximum(atol, 1e-7)
+    guard_stiff = solver is None and not _concrete(top)
+    if solver is None:
+        solver = default_solver(top, slow_flow=LEVELS[model].slow_flow)
+    out = _run(
+        top, y0, jnp.asarray(ts, dtype), jnp.asarray(t0, dtype), jnp.asarray(t1, dtype),
+        jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype), level=LEVELS[model], solver=solver,
+        guard_stiff=guard_stiff, stop_on_contact=False, max_steps=int(max_steps),
+        adjoint=adjoint, progress=False, samples=int(event_samples), names=("theta", "phi"),
+        inversion=False, locate=False,
+    )
+    return {k: out[k] for k in ("ts", "theta", "phi", "t_contact_loss", "result")}
 
 
 def _max_steps_hint(top: TippeTop) -> str:

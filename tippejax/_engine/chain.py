@@ -4,9 +4,9 @@ The Routhian level hands over to the SO(3) level near a pole; the full and SO(3)
 one segment. A level whose chart ends with no fallback (the gyroscopic level) stops there and
 reports its `chart_end_result`; started outside its chart, it is not integrated at all.
 Contact loss either ends the run (a terminating event) or is observed and the run goes on past
-it (`stop_on_contact=False`); the inversion is always observed. The chain is static (it depends
-on the level only), so under `jit`/`vmap` every segment is compiled once and a member that does
-not need a segment runs it with zero length.
+it (`stop_on_contact=False`); the inversion is observed (unless `inversion=False`). The chain
+is static (it depends on the level only), so under `jit`/`vmap` every segment is compiled once
+and a member that does not need a segment runs it with zero length.
 """
 
 from __future__ import annotations
@@ -81,8 +81,12 @@ def run_chain(
     ts,
     *,
     stop_on_contact: bool,
+    inversion: bool = True,
     **segment_options,
 ) -> ChainOutput:
+    """Run `level`, then its fallbacks, from `state0` at `t0` to `t1` (see the module
+    docstring). With `inversion=False` the inversion is not watched (`t_invert` is nan): a
+    caller that needs only the motion (a fit's residuals) compiles a smaller program."""
     chain = level_chain(level)
     dtype = jnp.result_type(top.m)
     nan = jnp.array(jnp.nan, dtype)
@@ -125,7 +129,9 @@ def run_chain(
         terminating = ("singular",) + (("chart",) if lvl.has_chart else ()) + (
             ("contact",) if stop_on_contact else ()
         )
-        observed = ("upright",) + (() if stop_on_contact else ("contact",))
+        observed = (("upright",) if inversion else ()) + (
+            () if stop_on_contact else ("contact",)
+        )
         seg = run_segment(
             lvl, top, y0, t_start, t_stop, ts, terminating=terminating, observed=observed,
             **segment_options,
@@ -149,8 +155,9 @@ def run_chain(
         end = lvl.to_state(top, seg.y_end)
         state_end = _where_tree(runs, end, state_end)
         t_final = jnp.where(runs, seg.t_end, t_final)
-        upright = seg.observed["upright"]
-        t_invert = jnp.where(runs & jnp.isnan(t_invert), upright, t_invert)
+        if inversion:
+            upright = seg.observed["upright"]
+            t_invert = jnp.where(runs & jnp.isnan(t_invert), upright, t_invert)
         if stop_on_contact:
             contact = jnp.where(seg.fired["contact"], seg.t_end, nan)
         else:

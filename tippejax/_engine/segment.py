@@ -122,8 +122,16 @@ def run_segment(
     adjoint: diffrax.AbstractAdjoint,
     progress_meter: diffrax.AbstractProgressMeter,
     samples: int,
+    locate: bool = True,
 ) -> Segment:
-    """Integrate `level` from `(t0, y0)` to `t1` or the first terminating event."""
+    """Integrate `level` from `(t0, y0)` to `t1` or the first terminating event.
+
+    With `locate=False` no event is located inside its step: an event's time is the start of
+    the step in which its condition fell through zero (earlier than the crossing by less than
+    a step), and a run that ends on a terminating event ends there, at the state that step
+    started from. No step is taken again and no root is found, so the program is smaller to
+    compile; for callers that need to know only which save times lie before an event (a
+    fit's residuals)."""
     names = terminating + observed
     y0_flat, unravel = ravel_state(y0)
     field = FlatField(level, unravel)
@@ -182,8 +190,12 @@ def run_segment(
     stopped = ended_on_event(sol.result, sol.solver_state)
     solver_result = diffrax.RESULTS.where(stopped, diffrax.RESULTS.event_occurred, sol.result)
     flat_last = jax.tree_util.tree_map(lambda x: x[-1], sol.ys[0])
-    if terminating:
+    if terminating and not locate:
+        state = sol.solver_state
+        t_event, flat_event = state.last_t0, state.last_y0
+    if terminating and locate:
         t_event, flat_event = locate_terminating(watched, terms, top, sol.solver_state, finder)
+    if terminating:
         t_end = jnp.where(stopped, t_event.astype(sol.ts[0].dtype), sol.ts[0][-1])
         flat_end = jax.tree_util.tree_map(
             lambda a, b: jnp.where(stopped, a.astype(b.dtype), b), flat_event, flat_last
@@ -192,15 +204,20 @@ def run_segment(
         t_end, flat_end = sol.ts[0][-1], flat_last
     y_end = unravel(flat_end)
     # Which terminating condition fired: at the located event it is (to the root finder's
-    # tolerance) zero and the others are positive, so it is the smallest.
-    end_values = watch(flat_end, top)[: len(terminating)]
+    # tolerance) zero and the others are positive, so it is the smallest. Unlocated, it is the
+    # smallest at the end of the step it fell in (where it is negative).
+    end_values = watch(flat_end if locate else flat_last, top)[: len(terminating)]
     first = jnp.argmin(end_values)
     fired = {name: stopped & (first == i) for i, name in enumerate(terminating)}
     observed_times = {}
     for i, name in enumerate(observed):
-        t_obs = locate_observed(
-            watched, terms, top, sol.solver_state, len(terminating) + i, finder
-        )
+        if locate:
+            t_obs = locate_observed(
+                watched, terms, top, sol.solver_state, len(terminating) + i, finder
+            )
+        else:
+            state = sol.solver_state
+            t_obs = jnp.where(state.found[i], state.step_t0[i], jnp.nan)
         observed_times[name] = jnp.where(t_obs <= t_end, t_obs, jnp.nan)
     return Segment(
         ys=jax.vmap(unravel)(sol.ys[1]) if ts is not None else None,
