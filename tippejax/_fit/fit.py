@@ -238,8 +238,9 @@ def fit(
       given.
     - `ts`: the observation times in seconds (strictly increasing, finite), shape `(N,)`.
     - `theta_obs`: the measured tilt in radians, shape `(N,)`, or `(batch, N)` to fit several
-      recordings at once (vmapped: one compilation; the batch steps together). **NaN marks a
-      missing sample**, which is left out of the loss.
+      recordings at once (one vmapped program evaluates the batch; each recording has its own
+      optimiser state and stopping test). **NaN marks a missing sample**, which is left out
+      of the loss.
     - `free`: a sequence of names of the parameters to fit: top fields `m, R, eps, A, C, g,
       mu` and launch quantities `theta0, spin, theta_dot, phi_dot, vx, vy`. The spin keeps
       the sign of its guess (theta alone cannot tell its direction). Nothing else is fitted:
@@ -248,8 +249,10 @@ def fit(
     - `phi_obs`: optional precession angle (rad; differences are wrapped), weighted by
       $\sin\theta^{obs}$, NaN masked.
     - `model`: level of model to fit with, `"full"`, `"so3"` or `"routhian"`.
-    - `method`: `"levenberg_marquardt"` (default; `optimistix.LevenbergMarquardt`),
-      `"gauss_newton"` or `"adam"` (`optax.adam` at `learning_rate`).
+    - `method`: `"levenberg_marquardt"` (default) or `"gauss_newton"` (the steps of
+      `optimistix.LevenbergMarquardt` and `optimistix.GaussNewton`, taken on the host around
+      one compiled evaluation, `tippejax/_fit/optimise.py`), or `"adam"` (`optax.adam` at
+      `learning_rate`).
     - `strategy`: `"global"` (default: growing windows from the guess, then, if their fit's
       residuals are not noise, a global search for starts, the spin from the early nutation,
       the other parameters from the slow observables, the phase on growing windows and the

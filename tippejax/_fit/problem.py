@@ -31,7 +31,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from .._simulate import simulate
+from .._simulate import simulate_tilt
 from .params import TOP_FIELDS, Base, assemble, physical
 
 NUM_LEVELS = 12
@@ -84,8 +84,19 @@ class Data(eqx.Module):
     steps: Float[Array, ""]  # this optimisation's step budget (at most `Config.max_steps`)
 
 
-def simulated(values, data: Data, cfg: Config):
-    """The trial's simulation at the data's times (theta nan if a value is not finite)."""
+class TiltRun(eqx.Module):
+    """What the residuals read of a trial's simulation (`simulate_tilt`)."""
+
+    ts: Float[Array, " N"]
+    theta: Float[Array, " N"]
+    phi: Float[Array, " N"]
+    t_contact_loss: Float[Array, ""]
+
+
+def simulated(values, data: Data, cfg: Config) -> TiltRun:
+    """The trial's simulation at the data's times (theta nan if a value is not finite): the
+    run `simulate(..., on_contact_loss="continue")` makes, through `simulate_tilt`, which
+    computes only the fields the residuals read."""
     # A trial with a non-finite value (an optimiser step that overflowed) runs the guess
     # instead, and all its samples are marked failed: simulate must not see a NaN state.
     finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(v)) for v in values.values()]))
@@ -93,12 +104,13 @@ def simulated(values, data: Data, cfg: Config):
     safe = {k: jnp.where(finite, v, guess[k]) for k, v in values.items()}
     top, y0 = assemble(safe, data.base)
     saves = jnp.minimum(data.ts, data.t_end)
-    sol = simulate(
-        top, y0, data.t_end, t0=data.t0, saveat=saves, model=cfg.model, rtol=data.rtol,
-        atol=data.atol, solver=cfg.solver, max_steps=cfg.sim_max_steps, throw=False,
-        adjoint=diffrax.ForwardMode(), on_contact_loss="continue",
+    out = simulate_tilt(
+        top, y0, saves, t0=data.t0, t1=data.t_end, model=cfg.model, rtol=data.rtol,
+        atol=data.atol, solver=cfg.solver, max_steps=cfg.sim_max_steps,
+        adjoint=diffrax.ForwardMode(),
     )
-    return eqx.tree_at(lambda s: s.theta, sol, jnp.where(finite, sol.theta, jnp.nan))
+    return TiltRun(ts=out["ts"], theta=jnp.where(finite, out["theta"], jnp.nan),
+                   phi=out["phi"], t_contact_loss=out["t_contact_loss"])
 
 
 def first_crossings(smooth, grid, levels):
@@ -213,23 +225,6 @@ def value_jacobian_solution(u, data, cfg):
 
     jac, (value, sol) = jax.jacfwd(both, has_aux=True)(u)
     return value, jac, sol
-
-
-def residual_fn(cfg: Config):
-    """The residual function for optimistix: a custom JVP so that `jax.linearize` keeps the
-    Jacobian as a matrix (one solve per step) instead of re-running the ODE per product."""
-
-    @jax.custom_jvp
-    def fn(u, data):
-        return residuals(u, data, cfg)
-
-    @fn.defjvp
-    def _jvp(primals, tangents):
-        u, data = primals
-        value, jac = value_and_jacobian(u, data, cfg)
-        return value, jac @ tangents[0]
-
-    return fn
 
 
 # ---------------------------------------------------------------------------------------------

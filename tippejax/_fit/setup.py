@@ -1,9 +1,11 @@
 """The numpy side of a fit: one record (or a batch) and its settings, and the compiled runs.
 
 `Setup` builds the `Data` of each optimisation (which samples, which slow observables, which
-tolerance) and runs the compiled functions: an optimisation (`optimise`), the losses of many
-starting points at once (`losses`) and the statistics at the end (`finish`). Each compiles
-once per configuration (`Config`) and shape, whatever the stage.
+tolerance) and runs the compiled functions: the residuals, their Jacobian and the fitted curve
+at a point (`evaluate`: the optimisers' steps, `optimise`, and the statistics at the end,
+`finish`, both run on it), the losses of many starting points at once (`losses`), and the
+statistics from an evaluation (a small program without a solve). Each compiles once per
+configuration (`Config`) and shape, whatever the stage.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._cache import cacheable, cached_call
-from .optimise import optimise
+from .optimise import least_squares, optimise
 from .params import physical
 from .problem import (
     NUM_LEVELS,
@@ -33,6 +35,17 @@ STAGE_TOL = 1e-4  # optimiser tolerance of the intermediate stages (the last one
 SEARCH_RTOL = 1e-6  # simulation tolerance of the global search (it ranks, it does not fit)
 STAGE_RTOL = 1e-7  # simulation tolerance of intermediate stages, unless `rtol` is looser
 CHUNK = 64  # points per batch of simulations in searches and scans (one compilation)
+
+
+def _committed(tree):
+    """`tree` with its arrays committed to their device: the compiled programs are called
+    with them many times (each optimiser step), and `cached_call` would otherwise commit
+    every input of every call."""
+    return jax.tree_util.tree_map(
+        lambda x: jax.device_put(x, next(iter(x.devices())))
+        if isinstance(x, jax.Array) and not x.committed else x,
+        tree,
+    )
 
 
 def bucket(n: int) -> int:
@@ -56,11 +69,11 @@ class Setup:
         self.phi = phi  # (bsize, N) or None
         self.rises = rises  # (bsize,) bool
         self.bsize = mask.shape[0]
-        self.template = template
         self.cfg = cfg
         self.batched = batched
         self.tol = tol
         self.rtol = rtol
+        self.template = _committed(template)
         self.fitted = np.ones_like(mask)  # the samples a fit may use (trim shortens it)
         self.padded = template.ts.shape[-1]  # the data arrays' length (a bucket, >= n)
 
@@ -109,14 +122,45 @@ class Setup:
         )
         # (indexed in numpy: a jax index is a small program to compile in each new process)
         fields = {k: np.asarray(v) if self.batched else np.asarray(v)[0] for k, v in fields.items()}
-        fields = {k: jnp.asarray(v, dtype) for k, v in fields.items()}
+        fields = _committed({k: jnp.asarray(v, dtype) for k, v in fields.items()})
         names = tuple(fields)
         return eqx.tree_at(lambda d: tuple(getattr(d, k) for k in names), self.template,
                            tuple(fields[k] for k in names))
 
-    def optimise(self, u, data: Data):
+    def evaluate(self, u, data: Data):
+        """The residuals, their Jacobian (in `u`) and the simulated curves at `u`: one
+        forward-mode solve per recording, in the one compiled program that every
+        optimisation step and `finish` run."""
         with cacheable():  # the fit's programs go to the persistent cache too (`_cache.py`)
-            return cached_call(_run_optimise, u, data, cfg=self.cfg, batched=self.batched)
+            return cached_call(_run_evaluate, jnp.asarray(u, self.template.ts.dtype), data,
+                               cfg=self.cfg, batched=self.batched)
+
+    def optimise(self, u, data: Data):
+        """One optimisation from `u` on the loss `data` describes: `(u, history, steps, code)`
+        (see `optimise.py`)."""
+        cfg = self.cfg
+        if cfg.method == "adam":
+            with cacheable():
+                return cached_call(_run_optimise, u, data, cfg=cfg, batched=self.batched)
+        dtype = self.template.ts.dtype
+
+        def evaluate(v):
+            value, jac, _ = self.evaluate(v if self.batched else v[0], data)
+            value, jac = np.asarray(value), np.asarray(jac)
+            return (value, jac) if self.batched else (value[None], jac[None])
+
+        u0 = np.asarray(u, dtype).reshape(-1, len(cfg.free))
+        tol = np.asarray(data.tol).reshape(-1)
+        steps = np.asarray(data.steps).reshape(-1)
+        end, history, count, codes = least_squares(
+            evaluate, u0, tol=tol, steps=steps, max_steps=cfg.max_steps,
+            damped=cfg.method == "levenberg_marquardt",
+        )
+        if not self.batched:
+            end, history, count, codes = end[0], history[0], count[0], codes[0]
+        # (the codes as an item of FIT_RESULTS: one made and its value replaced)
+        code = eqx.tree_at(lambda c: c._value, FIT_RESULTS.successful, jnp.asarray(codes))
+        return jnp.asarray(end, dtype), jnp.asarray(history, dtype), jnp.asarray(count), code
 
     def optimise_many(self, u, data: Data):
         """`optimise` from each of the starting points `u` (shape `(K, *batch, p)`) in turn.
@@ -159,8 +203,13 @@ class Setup:
         return (self.ts[-1] - self.ts[0]) / period
 
     def finish(self, u, code, data: Data):
+        """The fit's statistics at `u` (`finish`), from `evaluate` at `u` clipped to the trust
+        region."""
+        inside = np.clip(np.asarray(u), -U_LIMIT, U_LIMIT)
+        value, jac, run = self.evaluate(inside, data)
         with cacheable():
-            return cached_call(_run_finish, u, code, data, cfg=self.cfg, batched=self.batched)
+            return cached_call(_run_finish, u, code, data, value, jac, run, cfg=self.cfg,
+                               batched=self.batched)
 
 
 @eqx.filter_jit
@@ -168,6 +217,13 @@ def _run_optimise(u0, data, cfg, batched):
     if batched:
         return jax.vmap(lambda u, d: optimise(u, d, cfg))(u0, data)
     return optimise(u0, data, cfg)
+
+
+@eqx.filter_jit
+def _run_evaluate(u, data, cfg, batched):
+    if batched:
+        return jax.vmap(lambda v, d: value_jacobian_solution(v, d, cfg))(u, data)
+    return value_jacobian_solution(u, data, cfg)
 
 
 @eqx.filter_jit
@@ -183,11 +239,12 @@ def _run_losses(u, data, cfg, batched):
     return jax.vmap(lambda v: one_start(v, data))(u)
 
 
-def finish(u, code, data: Data, cfg: Config):
-    """Covariance and the fitted curve at the final coordinates (one record)."""
+def finish(u, code, data: Data, value, jac_u, sol, cfg: Config):
+    """Covariance and the fitted curve at the final coordinates (one record), from the
+    residuals `value`, their Jacobian `jac_u` and the simulation `sol` at `u` clipped to the
+    trust region (`Setup.evaluate`)."""
     at_edge = jnp.any(jnp.abs(u) >= U_LIMIT * (1 - 1e-6))
     u = jnp.clip(u, -U_LIMIT, U_LIMIT)
-    value, jac_u, sol = value_jacobian_solution(u, data, cfg)
     values = physical(u, data.base, cfg.free)
     dp_du = jax.jacfwd(lambda v: jnp.stack([physical(v, data.base, cfg.free)[n] for n in cfg.free]))(u)
     n_used = jnp.sum(data.weights > 0) + (jnp.sum(data.phi_weights > 0) if cfg.has_phi else 0)
@@ -228,7 +285,7 @@ def finish(u, code, data: Data, cfg: Config):
 
 
 @eqx.filter_jit
-def _run_finish(u, code, data, cfg, batched):
+def _run_finish(u, code, data, value, jac, sol, cfg, batched):
     if batched:
-        return jax.vmap(lambda v, c, d: finish(v, c, d, cfg))(u, code, data)
-    return finish(u, code, data, cfg)
+        return jax.vmap(lambda *a: finish(*a, cfg))(u, code, data, value, jac, sol)
+    return finish(u, code, data, value, jac, sol, cfg)
