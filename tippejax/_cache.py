@@ -157,16 +157,39 @@ def _versions() -> str:
 _VERSIONS: str | None = None
 
 
-def _key(name: str, in_tree, leaves, static: dict) -> str | None:
-    global _VERSIONS
+_STATIC_TEXT: dict = {}  # id(option) -> (option, its repr): a loop calls with the same options
+
+
+def _static_text(static: dict) -> str | None:
+    """The options' repr, or None if it would not be stable; remembered by the options'
+    identity (an equinox Module's repr costs milliseconds, and a fit calls its programs
+    hundreds of times with the same options)."""
+    ident = tuple((k, id(v)) for k, v in sorted(static.items()))
+    hit = _STATIC_TEXT.get(ident)
+    if hit is not None:
+        return hit[1]
     if any(hasattr(x, "shape") for x in jax.tree_util.tree_leaves(static)):
-        return None  # an array among the options: its repr may be abridged
-    text = repr(sorted(static.items()))
-    if " at 0x" in text:  # a function or object printed by address: not stable across runs
+        text = None  # an array among the options: its repr may be abridged
+    else:
+        text = repr(sorted(static.items()))
+        if " at 0x" in text:  # a function or object printed by address: not stable across runs
+            text = None
+    if len(_STATIC_TEXT) > 10_000:
+        _STATIC_TEXT.clear()
+    _STATIC_TEXT[ident] = (dict(static), text)  # (the options kept alive: ids stay unique)
+    return text
+
+
+def _key(name: str, in_tree, leaves, static: dict, fixed: dict) -> str | None:
+    global _VERSIONS
+    text = _static_text(static)
+    fixed_text = repr(sorted(fixed.items()))
+    if text is None or " at 0x" in fixed_text:
         return None
+    text = text + fixed_text
     if _VERSIONS is None:
         _VERSIONS = _versions()
-    avals = ";".join(str(jax.typeof(x)) for x in leaves)
+    avals = ";".join(f"{x.dtype}{x.shape}{'w' if x.weak_type else ''}" for x in leaves)
     flags = f"x64={jax.config.jax_enable_x64};platform={jax.default_backend()}"
     blob = "\n".join([name, text, str(in_tree), avals, flags, _VERSIONS])
     return name + "-" + hashlib.sha256(blob.encode()).hexdigest()[:40]
@@ -199,7 +222,7 @@ def cached_call(fn, *args, **static):
         return fn(*args, **static)
     fixed = {i: x for i, x in enumerate(leaves) if i not in set(dynamic)}
     name = getattr(fn, "__name__", None) or getattr(getattr(fn, "__wrapped__", None), "__name__", "fn")
-    key = _key(name.strip("_"), in_tree, inputs, dict(static, _fixed_leaves=fixed))
+    key = _key(name.strip("_"), in_tree, inputs, static, fixed)
     if key is None:
         return fn(*args, **static)
 
