@@ -42,13 +42,20 @@ OBSERVED = ("theta", "phi", "psi", "theta_dot", "phi_dot", "psi_dot", "spin", "p
 def _observe(top, states: State, friction_model: str, valid, names=OBSERVED):
     """The `Solution` fields `names` of states at the save times (nan where not `valid`)."""
     theta, phi, psi = euler_angles(states)
+    rates = []  # the Euler rates, computed (traced) once if any is asked for
+
+    def rate(i):
+        if not rates:
+            rates.extend(euler_rates(states))
+        return rates[i]
+
     makers = dict(
         theta=lambda: theta,
         phi=lambda: jnp.unwrap(jnp.where(valid, phi, 0.0)),
         psi=lambda: jnp.unwrap(jnp.where(valid, psi, 0.0)),
-        theta_dot=lambda: euler_rates(states)[0],
-        phi_dot=lambda: euler_rates(states)[1],
-        psi_dot=lambda: euler_rates(states)[2],
+        theta_dot=lambda: rate(0),
+        phi_dot=lambda: rate(1),
+        psi_dot=lambda: rate(2),
         spin=lambda: spin(states),
         position=lambda: states.position,
         velocity=lambda: states.velocity,
@@ -386,8 +393,9 @@ def simulate_tilt(top: TippeTop, y0: State, ts, *, t0, t1, model: str, rtol, ato
     other `Solution` fields, the outcome, nor the inversion event), and events are not located
     inside their step (`run_segment`'s `locate=False`: the contact loss is dated to the start of
     the step it fell in, less than a step early, so at most the samples inside that step are
-    counted as after it), which makes the fit's programs smaller to trace and compile. No argument checks (the fit makes its own) and no
-    save-grid bucketing (its grids are bucketed already). Returns a dict with `ts`, `theta`,
+    counted as after it), which makes the fit's programs smaller to trace and compile. No
+    argument checks (the fit makes its own) and no save-grid bucketing (its grids are bucketed
+    already). Returns a dict with `ts`, `theta`,
     `phi`, `t_contact_loss` and `result`."""
     dtype = jnp.result_type(top.m)
     if dtype != jnp.float64:
