@@ -71,7 +71,10 @@ def phase_profile(u, setup, spin: int) -> Profile:
     direction = valley_directions(u_np, setup, setup.batched, spin, HESSIAN_STEP)
     cycles = np.asarray(setup.nutation_cycles(u_np[:, spin]), float).reshape(-1)
     reach = np.minimum(PROFILE_CYCLES, PROFILE_MAX_REL * cycles)  # (bsize,)
-    unit = np.arange(-PROFILE_CYCLES, PROFILE_CYCLES + 1e-9, PROFILE_STEP) / PROFILE_CYCLES
+    # points PROFILE_STEP cycles apart (or closer) over the widest reach of the batch: a
+    # shorter reach takes fewer simulations, each record keeping its own reach
+    half = max(int(np.ceil(np.max(reach) / PROFILE_STEP - 1e-9)), 1)
+    unit = np.arange(-half, half + 1) / half
     offsets = unit[None, :] * reach[:, None]  # (bsize, M) cycles
     points = u_np[:, None, :] + (offsets / cycles[:, None])[..., None] * direction[:, None, :]
     stacked = np.moveaxis(points, 1, 0)  # (M, bsize, p)

@@ -34,7 +34,7 @@ ENVELOPE_WEIGHT = NUM_LEVELS / 0.05**2
 STAGE_TOL = 1e-4  # optimiser tolerance of the intermediate stages (the last one uses `tol`)
 SEARCH_RTOL = 1e-6  # simulation tolerance of the global search (it ranks, it does not fit)
 STAGE_RTOL = 1e-7  # simulation tolerance of intermediate stages, unless `rtol` is looser
-CHUNK = 64  # points per batch of simulations in searches and scans (one compilation)
+CHUNK = 32  # points per batch of simulations in searches and scans (one compilation)
 
 
 def _committed(tree):
@@ -76,6 +76,8 @@ class Setup:
         self.template = _committed(template)
         self.fitted = np.ones_like(mask)  # the samples a fit may use (trim shortens it)
         self.padded = template.ts.shape[-1]  # the data arrays' length (a bucket, >= n)
+        self._data = {}  # Data by the arguments of `data` (one object for equal arguments)
+        self._evaluations = {}  # the last few evaluations by (Data, u)
 
     def pad(self, x: np.ndarray) -> np.ndarray:
         """`x` of shape (bsize, n) padded with zeros to the bucket length."""
@@ -90,6 +92,17 @@ class Setup:
         else at `STAGE_RTOL` (or the fit's, if looser). The free parameters named in `pin`
         are held where they are. `steps` caps the optimiser's steps (default: the fit's
         `max_steps`)."""
+        key = tuple(
+            None if a is None else (np.asarray(a).dtype.str, np.shape(a), np.asarray(a).tobytes())
+            for a in (window_end, theta, slow, tol, rtol, final, tuple(pin), steps, self.fitted)
+        )
+        if key not in self._data:
+            self._data[key] = self._make_data(window_end=window_end, theta=theta, slow=slow,
+                                              tol=tol, rtol=rtol, final=final, pin=pin,
+                                              steps=steps)
+        return self._data[key]
+
+    def _make_data(self, *, window_end, theta, slow, tol, rtol, final, pin, steps) -> Data:
         ts, bsize = self.ts, self.bsize
         use = self.mask & self.fitted
         t_end = np.full(bsize, ts[-1])
@@ -131,9 +144,17 @@ class Setup:
         """The residuals, their Jacobian (in `u`) and the simulated curves at `u`: one
         forward-mode solve per recording, in the one compiled program that every
         optimisation step and `finish` run."""
+        u = np.asarray(u, self.template.ts.dtype)
+        key = (id(data), u.shape, u.tobytes())
+        if key in self._evaluations:  # (the optimiser's last accepted point, then `finish`)
+            return self._evaluations[key][1]
         with cacheable():  # the fit's programs go to the persistent cache too (`_cache.py`)
-            return cached_call(_run_evaluate, jnp.asarray(u, self.template.ts.dtype), data,
-                               cfg=self.cfg, batched=self.batched)
+            out = cached_call(_run_evaluate, jnp.asarray(u), data, cfg=self.cfg,
+                              batched=self.batched)
+        if len(self._evaluations) >= 8:
+            del self._evaluations[next(iter(self._evaluations))]
+        self._evaluations[key] = (data, out)  # (holding `data` keeps its id unique)
+        return out
 
     def optimise(self, u, data: Data):
         """One optimisation from `u` on the loss `data` describes: `(u, history, steps, code)`

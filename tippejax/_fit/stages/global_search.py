@@ -31,7 +31,7 @@ def low_discrepancy(n: int, dim: int) -> np.ndarray:
 class GlobalSearch(AbstractSearch):
     """Rank `candidates` points of the box `|u| <= box` (and the guess) by the slow loss."""
 
-    candidates: int = 127  # with the guess: two batches of `setup.CHUNK` (64)
+    candidates: int = 127  # with the guess: four batches of `setup.CHUNK` (32)
     keep: int = 3
     box: float = 0.7
 
