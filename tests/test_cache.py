@@ -122,3 +122,44 @@ def test_cached_call_stores_only_what_another_process_could_reuse(tmp_path, monk
 
     assert jnp.allclose(cache.cached_call(apply, x, op=lambda v: v + 1.0), x + 1.0)
     assert len(os.listdir(tmp_path)) == 2  # a lambda's repr holds its address: not stored
+
+
+def test_compile_ahead_compiles_on_the_side_and_the_call_uses_it(tmp_path, monkeypatch):
+    """`compile_ahead` stores the traced program and compiles it on a side thread without
+    running it; the later call with arguments of the same shapes runs that compiled program
+    and gives the plain call's numbers. Other shapes, and a call whose compiled program
+    refuses its arguments, still work."""
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    import tippejax._cache as cache
+
+    monkeypatch.setattr(cache, "EXPORT_DIR", str(tmp_path))
+    monkeypatch.setattr(cache, "_LOADED", {})
+    runs = []
+
+    @eqx.filter_jit
+    def poly(x, *, power):
+        return jnp.cumsum(x**power)
+
+    x = jnp.linspace(0.0, 1.0, 7)
+    assert cache.compile_ahead(poly, jnp.zeros(7), power=3)
+    assert not cache.compile_ahead(poly, jnp.zeros(7), power=3)  # started already
+    assert len(os.listdir(tmp_path)) == 1  # traced and stored at once
+    (entry,) = cache._LOADED.values()
+    ahead = entry[0]
+    assert isinstance(ahead, cache._Ahead)
+    compiled = ahead.future.result()
+    monkeypatch.setattr(ahead, "future", type("F", (), {"result": lambda self: (
+        runs.append(1) or compiled)})())
+    out = cache.cached_call(poly, x, power=3)
+    assert runs == [1]  # the side thread's program ran
+    assert jnp.array_equal(out, jnp.cumsum(x**3))
+    # another length is another program, traced as usual
+    assert jnp.allclose(cache.cached_call(poly, jnp.ones(5), power=3), jnp.arange(1.0, 6.0))
+
+    def refuses(*inputs):
+        raise TypeError("not these arguments")
+
+    monkeypatch.setattr(ahead, "future", type("F", (), {"result": lambda self: refuses})())
+    assert jnp.array_equal(cache.cached_call(poly, x, power=3), jnp.cumsum(x**3))

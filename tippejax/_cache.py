@@ -39,6 +39,7 @@ are never read again; the directory may be deleted at any time.
 
 from __future__ import annotations
 
+import concurrent.futures
 import contextlib
 import copyreg
 import hashlib
@@ -48,6 +49,7 @@ import pathlib
 import pickle
 import re
 import tempfile
+import threading
 
 import jax
 import jax.numpy as jnp
@@ -115,6 +117,7 @@ EXPORT_DIR = None if CACHE_DIR is None else CACHE_DIR.rstrip(os.sep) + "-exports
 """Where `cached_call` keeps traced programs (None: off, with the persistent cache)."""
 
 _LOADED: dict[str, tuple] = {}  # key -> (jitted call of the exported program, output tree)
+_LOCKS: dict[str, threading.Lock] = {}  # key -> held while the program is loaded or traced
 _PACKAGES = ("jax", "jaxlib", "equinox", "diffrax", "optimistix", "lineax", "optax")
 
 
@@ -203,12 +206,9 @@ def _single_device(leaves) -> bool:
     return True
 
 
-def cached_call(fn, *args, **static):
-    """`fn(*args, **static)` for a jitted `fn`, through the on-disk store of traced programs
-    (see the module docstring). `args` are pytrees; their arrays (jax or numpy) are the
-    program's inputs and their other leaves (Python numbers, strings) are fixed in it, as
-    `eqx.filter_jit` does. `static` are the options `fn` takes as static (hashable, with a
-    stable repr). Returns what `fn` returns."""
+def _entry(fn, args, static):
+    """The store's key of the call `fn(*args, **static)`, its array inputs and a function
+    that puts inputs back into `args`; None where the store does not apply."""
     leaves, in_tree = jax.tree_util.tree_flatten(args)
     leaves = [jnp.asarray(x) if isinstance(x, (np.ndarray, np.generic)) else x for x in leaves]
     dynamic = [i for i, x in enumerate(leaves) if isinstance(x, jax.Array)]
@@ -219,12 +219,12 @@ def cached_call(fn, *args, **static):
         or any(isinstance(x, jax.core.Tracer) for x in leaves)
         or not _single_device(inputs)
     ):
-        return fn(*args, **static)
+        return None
     fixed = {i: x for i, x in enumerate(leaves) if i not in set(dynamic)}
     name = getattr(fn, "__name__", None) or getattr(getattr(fn, "__wrapped__", None), "__name__", "fn")
     key = _key(name.strip("_"), in_tree, inputs, static, fixed)
     if key is None:
-        return fn(*args, **static)
+        return None
 
     def rebuild(flat_inputs):
         full = list(leaves)
@@ -232,21 +232,80 @@ def cached_call(fn, *args, **static):
             full[i] = x
         return jax.tree_util.tree_unflatten(in_tree, full)
 
-    if key not in _LOADED:
-        _LOADED[key] = _load(key) or _export(key, fn, rebuild, inputs, static)
-    call, out_tree = _LOADED[key]
+    # Committed and uncommitted arrays are different signatures to `jit`, and an exported
+    # program is compiled again for each: every input is committed to its device.
+    inputs = [
+        x if getattr(x, "committed", True) else jax.device_put(x, next(iter(x.devices())))
+        for x in inputs
+    ]
+    return key, inputs, rebuild
+
+
+def _loaded(key, fn, rebuild, inputs, static):
+    with _LOCKS.setdefault(key, threading.Lock()):
+        if key not in _LOADED:
+            _LOADED[key] = _load(key) or _export(key, fn, rebuild, inputs, static)
+        return _LOADED[key]
+
+
+def cached_call(fn, *args, **static):
+    """`fn(*args, **static)` for a jitted `fn`, through the on-disk store of traced programs
+    (see the module docstring). `args` are pytrees; their arrays (jax or numpy) are the
+    program's inputs and their other leaves (Python numbers, strings) are fixed in it, as
+    `eqx.filter_jit` does. `static` are the options `fn` takes as static (hashable, with a
+    stable repr). Returns what `fn` returns."""
+    entry = _entry(fn, args, static)
+    if entry is None:
+        return fn(*args, **static)
+    key, inputs, rebuild = entry
+    call, out_tree = _loaded(key, fn, rebuild, inputs, static)
     if call is not None:
-        # Committed and uncommitted arrays are different signatures to `jit`, and an
-        # exported program is compiled again for each: commit every input to its device.
-        inputs = [
-            x if getattr(x, "committed", True) else jax.device_put(x, next(iter(x.devices())))
-            for x in inputs
-        ]
         try:
             return jax.tree_util.tree_unflatten(out_tree, call(*inputs))
         except Exception:  # the stored program does not take these arguments: trace instead
             _LOADED[key] = (None, None)
     return fn(*args, **static)
+
+
+class _Ahead:
+    """A program being compiled on the side (`compile_ahead`): a call waits for it, and falls
+    back to the jitted program if the compiled one does not take the arguments."""
+
+    def __init__(self, future, call):
+        self.future = future
+        self.call = call
+
+    def __call__(self, *inputs):
+        try:
+            compiled = self.future.result()
+            return compiled(*inputs)
+        except Exception:  # (then `call` compiles, or loads what the side thread stored)
+            return self.call(*inputs)
+
+
+_EXECUTOR = None
+
+
+def compile_ahead(fn, *args, **static) -> bool:
+    """Trace `fn(*args, **static)` as `cached_call` would, and compile it on a side thread
+    while the caller goes on (XLA's compiler releases the GIL: on two cores a program that a
+    call will need later compiles while the caller traces or compiles another). A later
+    `cached_call` with arguments of the same shapes waits for it. Nothing is run. Returns
+    whether a compilation was started (not where the store does not apply, or the program
+    is loaded already)."""
+    global _EXECUTOR
+    entry = _entry(fn, args, static)
+    if entry is None:
+        return False
+    key, inputs, rebuild = entry
+    call, out_tree = _loaded(key, fn, rebuild, inputs, static)
+    if call is None or isinstance(call, _Ahead):
+        return False
+    lowered = call.lower(*inputs)
+    if _EXECUTOR is None:
+        _EXECUTOR = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="tippejax-compile")
+    _LOADED[key] = (_Ahead(_EXECUTOR.submit(lowered.compile), call), out_tree)
+    return True
 
 
 def _load(key: str):

@@ -321,6 +321,8 @@ def fit(
                    rtol=rtol, atol=atol, solver=solver, sim_max_steps=sim_max_steps,
                    learning_rate=learning_rate, batched=batch is not None)
     attempts = STRATEGIES[strategy]
+    if "spin" in free or strategy == "search":  # the phase check or the search will need it
+        setup.compile_losses_ahead()
     out = _fit_starts(setup, attempts, obs2, sigma)
     if "spin" in free:
         out = _check_phase(setup, out, obs2, sigma)
