@@ -638,3 +638,47 @@ def test_host_least_squares_takes_optimistixs_steps(solver):
         max_steps=200, damped=solver == "levenberg_marquardt",
     )
     assert count[0] == 3 and codes[0] == FIT_RESULTS.max_steps_reached._value
+
+
+def test_setup_reuses_an_evaluation_only_for_the_same_loss_and_point():
+    """`Setup.data` returns one `Data` per arguments and a new one when the samples a fit may
+    use change (trim); `evaluate` hands back a stored evaluation only for the same `Data` and
+    the same point (the optimiser's end point, then `finish`), equal to a fresh one."""
+    top = tj.default_top()
+    ts = np.linspace(0.0, 1.0, 41)
+    obs = np.asarray(tj.simulate(top, tj.initial_state(top, 0.2, 90.0), 1.0, saveat=ts).theta)
+    captured = {}
+    real = fit_setup.Setup.optimise
+
+    def grab(self, u0, data):
+        captured["setup"] = self
+        raise _Stop
+
+    fit_setup.Setup.optimise = grab
+    try:
+        with pytest.raises(_Stop):
+            tj.fit(top, tj.initial_state(top, 0.2, 90.0), ts, obs, free=("mu", "eps"),
+                   strategy="plain")
+    finally:
+        fit_setup.Setup.optimise = real
+    setup = captured["setup"]
+    final = setup.data(tol=setup.tol, final=True)
+    assert setup.data(tol=setup.tol, final=True) is final
+    loose = setup.data()
+    assert loose is not final and float(loose.rtol) > float(final.rtol)
+    u, v = np.zeros(2), np.array([0.05, -0.05])
+    first = setup.evaluate(u, final)
+    assert setup.evaluate(u.copy(), final) is first  # same point, same loss: stored
+    other_point = setup.evaluate(v, final)
+    assert not np.allclose(np.asarray(other_point[0]), np.asarray(first[0]))
+    setup._evaluations.clear()
+    fresh = setup.evaluate(u, final)
+    assert fresh is not first
+    np.testing.assert_array_equal(np.asarray(fresh[0]), np.asarray(first[0]))
+    np.testing.assert_array_equal(np.asarray(fresh[1]), np.asarray(first[1]))
+    # trim shortens the samples a fit may use: another Data, with fewer weights
+    setup.fitted = ts[None, :] <= 0.5
+    half = setup.data(tol=setup.tol, final=True)
+    assert half is not final
+    assert np.sum(np.asarray(half.weights) > 0) < np.sum(np.asarray(final.weights) > 0)
+    assert setup.evaluate(u, half) is not first

@@ -52,7 +52,6 @@ import tempfile
 import threading
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 _OFF = ("0", "false", "no", "off")
@@ -206,11 +205,19 @@ def _single_device(leaves) -> bool:
     return True
 
 
+def to_device(x, dtype=None) -> jax.Array:
+    """A host value as a device array, in the canonical dtype, without a program:
+    `jnp.asarray` of a numpy array compiles a small copy program (`stage`) per shape and
+    dtype, 10-20 ms each in a new process (warm cache or not), and a fit makes dozens."""
+    x = np.asarray(x, dtype)
+    return jax.device_put(x.astype(jax.dtypes.canonicalize_dtype(x.dtype), copy=False))
+
+
 def _entry(fn, args, static):
     """The store's key of the call `fn(*args, **static)`, its array inputs and a function
     that puts inputs back into `args`; None where the store does not apply."""
     leaves, in_tree = jax.tree_util.tree_flatten(args)
-    leaves = [jnp.asarray(x) if isinstance(x, (np.ndarray, np.generic)) else x for x in leaves]
+    leaves = [to_device(x) if isinstance(x, (np.ndarray, np.generic)) else x for x in leaves]
     dynamic = [i for i, x in enumerate(leaves) if isinstance(x, jax.Array)]
     inputs = [leaves[i] for i in dynamic]
     if (

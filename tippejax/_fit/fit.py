@@ -51,11 +51,13 @@ from collections.abc import Sequence
 from typing import Literal
 
 import diffrax
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike
 
+from .._cache import to_device
 from .._simulate import MODELS
 from .._state import State
 from .._top import TippeTop, _checks
@@ -344,12 +346,12 @@ def _setup(top_guess, y0_guess, ts_np, obs2, mask2, w2, phi2, fields, launch, t0
 
     def per_rec(x):  # a field of the guess: scalar or (batch,)
         x = np.asarray(x, dtype=float)
-        return jnp.asarray(np.broadcast_to(x, (bsize,)), dtype)
+        return to_device(np.broadcast_to(x, (bsize,)), dtype)
 
     state = jax.tree_util.tree_map(
-        lambda x: jnp.asarray(np.broadcast_to(np.asarray(x), (bsize,) + np.shape(x)[-1:]), dtype),
+        lambda x: to_device(np.broadcast_to(np.asarray(x), (bsize,) + np.shape(x)[-1:]), dtype),
         y0_guess,
-    ) if batched else jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype)[None], y0_guess)
+    ) if batched else jax.tree_util.tree_map(lambda x: to_device(np.asarray(x, dtype)[None]), y0_guess)
     base = Base(
         top={f: per_rec(v) for f, v in fields.items()},
         launch={k: per_rec(v) for k, v in launch.items()},
@@ -368,31 +370,31 @@ def _setup(top_guess, y0_guess, ts_np, obs2, mask2, w2, phi2, fields, launch, t0
     zeros = np.zeros((bsize, size))
     template = Data(
         base=base,
-        ts=jnp.asarray(np.broadcast_to(ts_pad, (bsize, size)), dtype),
+        ts=to_device(np.broadcast_to(ts_pad, (bsize, size)), dtype),
         t0=per_rec(t0),
         t_end=per_rec(ts_np[-1]),
-        theta_obs=jnp.asarray(pad(np.where(mask2, obs2, 0.0)), dtype),
-        weights=jnp.asarray(zeros, dtype),
-        mask=jnp.asarray(pad(mask2.astype(float)), dtype),
-        phi_obs=jnp.asarray(pad(np.nan_to_num(phi2)) if phi2 is not None else zeros, dtype),
-        phi_weights=jnp.asarray(zeros, dtype),
-        smoother_bin=jnp.asarray(np.broadcast_to(bins, (bsize,) + bins.shape)),
-        smoother_kernel=jnp.asarray(np.broadcast_to(kernel, (bsize,) + kernel.shape), dtype),
-        grid=jnp.asarray(np.broadcast_to(grid, (bsize,) + grid.shape), dtype),
-        smooth_obs=jnp.asarray(smooth_obs, dtype),
+        theta_obs=to_device(pad(np.where(mask2, obs2, 0.0)), dtype),
+        weights=to_device(zeros, dtype),
+        mask=to_device(pad(mask2.astype(float)), dtype),
+        phi_obs=to_device(pad(np.nan_to_num(phi2)) if phi2 is not None else zeros, dtype),
+        phi_weights=to_device(zeros, dtype),
+        smoother_bin=to_device(np.broadcast_to(bins, (bsize,) + bins.shape)),
+        smoother_kernel=to_device(np.broadcast_to(kernel, (bsize,) + kernel.shape), dtype),
+        grid=to_device(np.broadcast_to(grid, (bsize,) + grid.shape), dtype),
+        smooth_obs=to_device(smooth_obs, dtype),
         envelope_weight=per_rec(0.0),
-        levels=jnp.asarray(np.stack([lad[0] for lad in ladders]), dtype),
-        t_levels=jnp.asarray(np.stack([lad[1] for lad in ladders]), dtype),
+        levels=to_device(np.stack([lad[0] for lad in ladders]), dtype),
+        t_levels=to_device(np.stack([lad[1] for lad in ladders]), dtype),
         level_weight=per_rec(0.0),
         rtol=per_rec(rtol),
         atol=per_rec(atol),
         tol=per_rec(tol),
-        pinned=jnp.zeros((bsize, len(free)), dtype),
+        pinned=to_device(np.zeros((bsize, len(free))), dtype),
         steps=per_rec(float(max_steps)),
     )
     if not batched:
         # (indexed in numpy: a jax index is a small program to compile in each new process)
-        template = jax.tree_util.tree_map(lambda x: jnp.asarray(np.asarray(x)[0], x.dtype), template)
+        template = jax.tree_util.tree_map(lambda x: to_device(np.asarray(x)[0], x.dtype), template)
     cfg = Config(
         free=free, model=model, method=method, max_steps=int(max_steps),
         sim_max_steps=int(sim_max_steps), has_phi=phi2 is not None, solver=solver,
@@ -430,7 +432,7 @@ def _candidate(setup, refined, obs2, sigma):
     u, histories, counts, code = refined
     out = setup.finish(u, code, setup.data(tol=setup.tol, final=True))
     residuals, verdicts = _judge(out, setup, obs2, sigma)
-    steps = np.asarray(sum(jnp.asarray(c) for c in counts)).reshape(-1)
+    steps = np.asarray(sum(np.asarray(c) for c in counts)).reshape(-1)
     cand = dict(out=out, residuals=residuals, verdicts=verdicts, u=u,
                 history=_pack(histories, counts, setup.bsize, setup.cfg.max_steps),
                 loss=np.asarray(out["loss"]).reshape(-1))
@@ -440,7 +442,7 @@ def _candidate(setup, refined, obs2, sigma):
 def _start(setup):
     """The guess's coordinates (all 0: each coordinate is relative to the guess)."""
     p = len(setup.cfg.free)
-    return jnp.zeros((setup.bsize, p) if setup.batched else (p,), jnp.result_type(float))
+    return to_device(np.zeros((setup.bsize, p) if setup.batched else (p,)), jnp.result_type(float))
 
 
 def _fit_starts(setup, attempts, obs2, sigma):
@@ -452,17 +454,19 @@ def _fit_starts(setup, attempts, obs2, sigma):
     tried = 0
     for search, stages in attempts:
         if search == IF_NOISE:
-            guess = setup.finish(u0, FIT_RESULTS.successful, setup.data(tol=setup.tol))
+            # (the loss of the first polishing stage: its first evaluation is this one)
+            guess = setup.finish(u0, FIT_RESULTS.successful, setup.data())
             if not all(v["passes"] for v in _judge(guess, setup, obs2, sigma)[1]):
                 continue
-            starts = u0[None]
+            starts = np.asarray(u0)[None]
         else:
-            starts = u0[None] if search is None else search.starts(u0, setup)
+            starts = np.asarray(u0)[None] if search is None else np.asarray(search.starts(u0, setup))
         chains = stages if isinstance(stages[0], tuple) else (stages,)
         for s in range(starts.shape[0]):
             for chain in chains:  # alternative chains from the same start, in turn
                 tried += 1
-                cand, steps = _candidate(setup, _refine(starts[s], setup, chain), obs2, sigma)
+                cand, steps = _candidate(setup, _refine(to_device(starts[s]), setup, chain), obs2,
+                                         sigma)
                 total_steps = total_steps + steps
                 cand["starts"] = np.full(setup.bsize, tried)
                 best = cand if best is None else _better(best, cand, setup.bsize)
@@ -491,7 +495,7 @@ def _check_phase(setup, best, obs2, sigma):
     if lower.any():
         u_old = np.asarray(best["u"]).reshape(bsize, -1)
         start = np.where(lower[:, None], points, u_old)
-        start = jnp.asarray(start if setup.batched else start[0], best["u"].dtype)
+        start = to_device(start if setup.batched else start[0], best["u"].dtype)
         refined = _refine(start, setup, (Final(final=False), Final()))
         cand, steps = _candidate(setup, refined, obs2, sigma)
         cand["num_steps"] = best["num_steps"] + np.where(lower, steps, 0)
@@ -517,15 +521,21 @@ def _check_phase(setup, best, obs2, sigma):
     dtype = out["covariance"].dtype
     std = np.sqrt(np.maximum(np.diagonal(cov, axis1=-2, axis2=-1), 0.0))
 
-    def mark(f, c):  # (FIT_RESULTS.where takes a scalar predicate: vmapped for a batch)
-        return FIT_RESULTS.where(f & (c == FIT_RESULTS.successful), FIT_RESULTS.phase_ambiguous, c)
-
-    code = (jax.vmap(mark) if setup.batched else mark)(jnp.asarray(one(flat)), out["result"])
+    code = _flag(out["result"], one(flat), FIT_RESULTS.phase_ambiguous)
     best = dict(best)
-    best["out"] = dict(out, covariance=jnp.asarray(cov, dtype), std_errors=jnp.asarray(std, dtype),
-                       correlation=jnp.asarray(cov / (std[..., :, None] * std[..., None, :]), dtype),
+    best["out"] = dict(out, covariance=to_device(cov, dtype), std_errors=to_device(std, dtype),
+                       correlation=to_device(cov / (std[..., :, None] * std[..., None, :]), dtype),
                        result=code)
     return best
+
+
+def _flag(code, where, new):
+    """`code` (a `FIT_RESULTS` item, one per record) set to `new` where `where` holds and the
+    code is `successful`; in numpy (no small programs to compile in a new process)."""
+    value = np.asarray(code._value)
+    hit = np.asarray(where, bool) & (value == np.asarray(FIT_RESULTS.successful._value))
+    flagged = np.where(hit, np.asarray(new._value), value).astype(value.dtype)
+    return eqx.tree_at(lambda c: c._value, code, to_device(flagged))
 
 
 def _trim(setup, out, obs2, sigma):
@@ -596,7 +606,7 @@ def _trim(setup, out, obs2, sigma):
         cnt += cnt2
     histories += hist
     counts += cnt
-    steps = np.asarray(sum(jnp.asarray(c) for c in counts)).reshape(-1)
+    steps = np.asarray(sum(np.asarray(c) for c in counts)).reshape(-1)
     new = dict(
         out=cand, residuals=residuals, verdicts=verdicts, u=u,
         history=_pack(histories, counts, bsize, setup.cfg.max_steps),
@@ -653,8 +663,9 @@ def _better(a, b, bsize):
 
 def _pack(histories, counts, bsize, max_steps):
     """Each optimisation's losses one after the other, nan-padded to a fixed length."""
-    hist = np.asarray(jnp.concatenate(histories, axis=-1)).reshape(bsize, len(histories), max_steps)
-    cnt = np.asarray(jnp.stack([jnp.asarray(c) for c in counts], -1)).reshape(bsize, -1)
+    hist = np.concatenate([np.asarray(h) for h in histories], axis=-1).reshape(
+        bsize, len(histories), max_steps)
+    cnt = np.stack([np.asarray(c) for c in counts], -1).reshape(bsize, -1)
     packed = np.full((bsize, len(histories) * max_steps), np.nan)
     for b in range(bsize):
         row = np.concatenate([hist[b, s, : cnt[b, s]] for s in range(len(histories))])
@@ -670,13 +681,8 @@ def _result(best, setup, obs2, ends, batch, free, model, method, strategy) -> Fi
     passes = np.array([v["passes"] for v in verdicts])
     code = out["result"]
 
-    def flag(fails, c):  # a converged fit whose residuals are not noise is a local minimum
-        return FIT_RESULTS.where(fails & (c == FIT_RESULTS.successful), FIT_RESULTS.local_minimum, c)
-
-    if batch is not None:
-        code = jax.vmap(flag)(jnp.asarray(~passes), code)
-    else:
-        code = flag(jnp.asarray(~passes[0]), code)
+    # a converged fit whose residuals are not noise is a local minimum
+    code = _flag(code, ~passes if batch is not None else ~passes[0], FIT_RESULTS.local_minimum)
     mask = setup.mask
     whole = np.where(mask, residuals, np.nan)
     rms = np.sqrt(np.nanmean(whole**2, axis=-1))
@@ -700,26 +706,27 @@ def _result(best, setup, obs2, ends, batch, free, model, method, strategy) -> Fi
         arrays = {k: v[0] for k, v in arrays.items()}
     out = dict(out)
     for k in ("theta_fit", "phi_fit"):
-        out[k] = out[k][..., :n]
-    phi_res = jnp.full_like(out["phi_fit"], jnp.nan)
+        out[k] = to_device(np.asarray(out[k])[..., :n])
+    phi_res = to_device(np.full(np.shape(out["phi_fit"]), np.nan), out["phi_fit"].dtype)
     if setup.phi is not None:
         dphi = np.asarray(out["phi_fit"]).reshape(obs2.shape) - setup.phi
         wrapped = np.arctan2(np.sin(dphi), np.cos(dphi))
-        phi_res = jnp.asarray(wrapped if batch is not None else wrapped[0], dtype)
+        phi_res = to_device(wrapped if batch is not None else wrapped[0], dtype)
     return FitResult(
         top=out["top"], y0=out["y0"], values=out["values"], std_errors=out["std_errors"],
         covariance=out["covariance"], correlation=out["correlation"],
-        loss_history=jnp.asarray(arrays["loss_history"], dtype),
-        ts=jnp.asarray(arrays["ts"], dtype), theta_obs=jnp.asarray(arrays["theta_obs"], dtype),
-        theta_fit=out["theta_fit"], residuals=jnp.asarray(arrays["residuals"], dtype),
-        rms=jnp.asarray(per["rms"], dtype), rms_fitted=jnp.asarray(per["rms_fitted"], dtype),
-        noise=jnp.asarray(per["noise"], dtype), runs_z=jnp.asarray(per["runs_z"], dtype),
-        ljung_box=jnp.asarray(per["ljung_box"], dtype),
-        describes_until=jnp.asarray(per["describes_until"], dtype),
-        fitted_until=jnp.asarray(per["fitted_until"], dtype),
+        loss_history=to_device(arrays["loss_history"], dtype),
+        ts=to_device(arrays["ts"], dtype), theta_obs=to_device(arrays["theta_obs"], dtype),
+        theta_fit=out["theta_fit"], residuals=to_device(arrays["residuals"], dtype),
+        rms=to_device(per["rms"], dtype), rms_fitted=to_device(per["rms_fitted"], dtype),
+        noise=to_device(per["noise"], dtype), runs_z=to_device(per["runs_z"], dtype),
+        ljung_box=to_device(per["ljung_box"], dtype),
+        describes_until=to_device(per["describes_until"], dtype),
+        fitted_until=to_device(per["fitted_until"], dtype),
         phi_fit=out["phi_fit"], phi_residuals=phi_res,
-        converged=code == FIT_RESULTS.successful, result=code,
-        num_steps=jnp.asarray(per["num_steps"]), starts=jnp.asarray(per["starts"]),
+        converged=to_device(np.asarray(code._value) == np.asarray(FIT_RESULTS.successful._value)),
+        result=code,
+        num_steps=to_device(per["num_steps"]), starts=to_device(per["starts"]),
         free=free, model=model, method=method, strategy=strategy,
     )
 

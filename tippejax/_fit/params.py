@@ -50,8 +50,10 @@ class Base(eqx.Module):
     state: State
 
 
+@eqx.filter_jit
 def launch_of(y0: State) -> dict[str, Array]:
-    """The launch quantities of a state (Euler angles and rates, spin, position, velocity)."""
+    """The launch quantities of a state (Euler angles and rates, spin, position, velocity).
+    (One program: op by op, a fit's guess cost a dozen small compilations per new process.)"""
     theta, phi, psi = euler_angles(y0)
     theta_dot, phi_dot, _ = euler_rates(y0)
     return dict(

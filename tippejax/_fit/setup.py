@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._cache import cacheable, cached_call, compile_ahead
+from .._cache import cacheable, cached_call, compile_ahead, to_device
 from .optimise import least_squares, optimise
 from .params import physical
 from .problem import (
@@ -135,7 +135,7 @@ class Setup:
         )
         # (indexed in numpy: a jax index is a small program to compile in each new process)
         fields = {k: np.asarray(v) if self.batched else np.asarray(v)[0] for k, v in fields.items()}
-        fields = _committed({k: jnp.asarray(v, dtype) for k, v in fields.items()})
+        fields = _committed({k: to_device(v, dtype) for k, v in fields.items()})
         names = tuple(fields)
         return eqx.tree_at(lambda d: tuple(getattr(d, k) for k in names), self.template,
                            tuple(fields[k] for k in names))
@@ -149,7 +149,7 @@ class Setup:
         if key in self._evaluations:  # (the optimiser's last accepted point, then `finish`)
             return self._evaluations[key][1]
         with cacheable():  # the fit's programs go to the persistent cache too (`_cache.py`)
-            out = cached_call(_run_evaluate, jnp.asarray(u), data, cfg=self.cfg,
+            out = cached_call(_run_evaluate, to_device(u), data, cfg=self.cfg,
                               batched=self.batched)
         if len(self._evaluations) >= 8:
             del self._evaluations[next(iter(self._evaluations))]
@@ -180,8 +180,8 @@ class Setup:
         if not self.batched:
             end, history, count, codes = end[0], history[0], count[0], codes[0]
         # (the codes as an item of FIT_RESULTS: one made and its value replaced)
-        code = eqx.tree_at(lambda c: c._value, FIT_RESULTS.successful, jnp.asarray(codes))
-        return jnp.asarray(end, dtype), jnp.asarray(history, dtype), jnp.asarray(count), code
+        code = eqx.tree_at(lambda c: c._value, FIT_RESULTS.successful, to_device(codes))
+        return to_device(end, dtype), to_device(history, dtype), to_device(count), code
 
     def optimise_many(self, u, data: Data):
         """`optimise` from each of the starting points `u` (shape `(K, *batch, p)`) in turn.
@@ -210,7 +210,7 @@ class Setup:
             part = np.concatenate([part, np.repeat(part[-1:], CHUNK - part.shape[0], 0)])
             with cacheable():
                 out.append(np.asarray(cached_call(
-                    _run_losses, jnp.asarray(part, self.template.ts.dtype), data,
+                    _run_losses, to_device(part, self.template.ts.dtype), data,
                     cfg=self.cfg, batched=self.batched)))
         losses = np.concatenate(out)[:k]
         return np.where(np.isfinite(losses), losses, np.inf)
@@ -221,7 +221,7 @@ class Setup:
         after it (a cold first fit ~4 s shorter)."""
         shape = (CHUNK,) + ((self.bsize,) if self.batched else ()) + (len(self.cfg.free),)
         with cacheable():
-            compile_ahead(_run_losses, jnp.zeros(shape, self.template.ts.dtype), self.data(),
+            compile_ahead(_run_losses, to_device(np.zeros(shape), self.template.ts.dtype), self.data(),
                           cfg=self.cfg, batched=self.batched)
 
     def nutation_cycles(self, spin_u):
