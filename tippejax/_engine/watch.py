@@ -2,7 +2,7 @@ r"""Events that no step can hide: a solver wrapper that watches conditions on th
 
 diffrax sees an event from the signs of its condition at the ends of each step. A condition that
 falls through zero and rises again inside one step (the brief first dip of $R_n$ below zero
-before a top leaves the table, ERRATA.md 6; a nutation that carries $\theta$ across $\pi/2$ and
+before a top leaves the table, `docs/notes.md`, Contact loss; a nutation that carries $\theta$ across $\pi/2$ and
 back) is then missed, and high-order solvers at loose tolerances take steps long enough for that.
 
 `WatchedSolver` wraps any diffrax solver. After each step it evaluates the watched conditions

@@ -62,7 +62,7 @@ def rigid_body_dynamics(top: TippeTop, axis, omega, velocity):
 
     $$R_n = \frac{g + \ddot h_0}{1/m - \ddot h_1}.$$
 
-    The denominator $1/m - \ddot h_1$ is the one of eq. reactie; it can vanish (ERRATA.md, 5),
+    The denominator $1/m - \ddot h_1$ is the one of eq. reactie; it can vanish (`docs/notes.md`, The R_n singularity),
     where the model with friction proportional to $R_n$ has no solution.
 
     **Returns:** `(normal_force, omega_dot, slip_velocity, denominator)`.

@@ -8,10 +8,10 @@ name: adding a level is a new file in `tippejax/_models/` and one line in `LEVEL
 Event conditions (`Conditions`) are scalars that are positive while the level describes the
 motion and fall through zero at the event:
 
-- `contact`: the numerator of $R_n$ times its denominator, $R_n D$ (ERRATA.md, 6): zero when
+- `contact`: the numerator of $R_n$ times its denominator, $R_n D$ (`docs/notes.md`, Contact loss): zero when
   the top leaves the table;
 - `singular`: the denominator $D$ of $R_n$ (eq. reactie), zero at the Painleve-type singularity
-  of friction proportional to $R_n$ (ERRATA.md, 5);
+  of friction proportional to $R_n$ (`docs/notes.md`, The R_n singularity);
 - `upright`: the vertical component of the symmetry axis, $a_Z = \cos\theta$; it falls through
   zero when $\theta$ crosses $\pi/2$ upwards (the inversion);
 - `chart`: positive inside the level's chart (the Routhian chart ends near the poles; the

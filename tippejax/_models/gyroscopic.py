@@ -2,7 +2,7 @@ r"""The gyroscopic level: a slow flow for $\theta$ alone, with the nutation aver
 
 The model is the paper's SO(3) approximation (Sec. 2.2: translation dropped in the friction law,
 the same as the `so3` and `routhian` levels), reduced once more. Symbols as in the paper and
-ERRATA.md: $x = \cos\theta$, $h = R - \epsilon x$, $\Omega = \dot\varphi$ (precession rate),
+`docs/notes.md` (Conventions): $x = \cos\theta$, $h = R - \epsilon x$, $\Omega = \dot\varphi$ (precession rate),
 $n = \dot\psi + \dot\varphi\cos\theta$ (spin), $J$ the Jellet (eq. jello),
 $D = R^2A\sin^2\theta + C(Rx-\epsilon)^2$.
 
@@ -39,7 +39,7 @@ $\Omega_\pm$), and the one on this root grows or decays at the rate of this flow
 top, $n_0 = 60$ rad/s: $0.760 + 71.3i$ against $0.764$ here), while the other root's mode (the
 classical slow precession, $\Omega \approx -mg\epsilon(R-\epsilon)/J$) decays about five times
 faster ($-4.77 - 4.64i$): that mode is the "nutation" a launch with $\omega = n a$ sheds in the
-first half second (ERRATA.md, useful facts). Along the small root the slip is large ($p \approx
+first half second (`docs/notes.md`, Launches and the slow manifold). Along the small root the slip is large ($p \approx
 Rn$) and the motion leaves it. Where relative equilibria lie on the small root (tops with
 $A/C < (1 + \epsilon/R)/2$, near $\theta = \pi$), this level does not follow them (see below).
 
@@ -110,7 +110,7 @@ real part of the nutation pair of the paper's characteristic polynomial. $\sigma
 for slow spins but turns positive during the rise at fast ones (standard top: for
 $n_0 \gtrsim 140$ rad/s; $\sigma \approx +9$/s at $\theta = 1.2$ for $n_0 = 200$): the slow
 manifold then repels and the nutation, first damped, grows again -- the route to the contact
-loss of ERRATA.md, 6. The level carries $\ln a$ ($\dot{\ln a} = \sigma$, from the launch's own
+loss of `docs/notes.md`, Contact loss. The level carries $\ln a$ ($\dot{\ln a} = \sigma$, from the launch's own
 nutation, see below) so that it can say when the dropped nutation has become large.
 
 **The level's coordinate.** The level integrates $u = \ln\tan(\theta/2)$ (the Mercator
@@ -145,7 +145,7 @@ with `RESULTS.no_gyroscopic_balance` (the $\sigma > 0$ condition then reads: the
 larger than `NUTATION_MAX` and growing).
 
 **Projection of a launch** (`from_state`). A launch with $\omega = n a$ is not on the slow
-manifold (ERRATA.md): the slow flow must start from the launch's slow-mode content, not its
+manifold (`docs/notes.md`, Launches and the slow manifold): the slow flow must start from the launch's slow-mode content, not its
 $\theta$. Near a pole both modes are linear: in complex notation $\xi = a_X + i a_Y$,
 $w = \omega_X + i\omega_Y$, each mode has $w = r\xi$ with $r = \dot\psi + i\dot\theta/\sin\theta$ of
 its root. The *linear projection* (`project_launch`) takes the slow component
