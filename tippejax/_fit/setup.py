@@ -76,7 +76,7 @@ class Setup:
         self.template = _committed(template)
         self.fitted = np.ones_like(mask)  # the samples a fit may use (trim shortens it)
         self.padded = template.ts.shape[-1]  # the data arrays' length (a bucket, >= n)
-        self._data = {}  # Data by the arguments of `data` (one object for equal arguments)
+        self._data = {}  # the last few Data by the arguments of `data` (equal arguments: one object)
         self._evaluations = {}  # the last few evaluations by (Data, u)
 
     def pad(self, x: np.ndarray) -> np.ndarray:
@@ -97,6 +97,8 @@ class Setup:
             for a in (window_end, theta, slow, tol, rtol, final, tuple(pin), steps, self.fitted)
         )
         if key not in self._data:
+            if len(self._data) >= 8:  # (a Data holds the whole batch's arrays: keep a few)
+                del self._data[next(iter(self._data))]
             self._data[key] = self._make_data(window_end=window_end, theta=theta, slow=slow,
                                               tol=tol, rtol=rtol, final=final, pin=pin,
                                               steps=steps)
