@@ -240,6 +240,9 @@ class Setup:
         region."""
         inside = np.clip(np.asarray(u), -U_LIMIT, U_LIMIT)
         value, jac, run = self.evaluate(inside, data)
+        if self.batched and np.ndim(code._value) == 0:  # one code for every record
+            code = eqx.tree_at(lambda c: c._value, code,
+                               to_device(np.full(self.bsize, np.asarray(code._value))))
         with cacheable():
             return cached_call(_run_finish, u, code, data, value, jac, run, cfg=self.cfg,
                                batched=self.batched)
