@@ -350,6 +350,10 @@ def draw_records(n: int, seed: int, *, max_crb_rel: float | None = MAX_CRB_REL, 
             continue
         if tj is None:
             tj = _tj() or False
+            if not vr.HAVE_NUMBA:
+                print("fit_records: numba is not installed, so the reference integrator runs "
+                      "as plain Python, about 100x slower (a record can take many minutes); "
+                      "`pip install -e \".[bench]\"` installs it", file=sys.stderr)
         t0 = time.perf_counter()
         rec = _draw_one(seed, index, tj or None, max_crb_rel)
         rec["seconds"] = time.perf_counter() - t0
