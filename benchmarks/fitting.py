@@ -341,9 +341,8 @@ def speed():
 def coverage(records, copies: int, seed: int):
     """The coverage of the standard errors over repeated noise: each record's clean signal
     (the independent integrator's) with `copies` fresh noise draws at the record's sigma and
-    gaps, each fitted from the truth with the default strategy (one call per draw: in one
-    batched call, a draw that fails the guess's residual check sends the whole batch through
-    the search, which took over 20 minutes on 12 draws of record 0). For a record
+    gaps, fitted from the truth with the default strategy in one batched call (each draw
+    gets the fit it would get alone: `test_a_batch_fits_each_record_as_it_would_be_fitted_alone`). For a record
     whose error bars are right, z = (estimate - truth) / SE is N(0, 1) across the draws, so the
     share of |z| < 2 is 95.4% with a spread of sqrt(0.954 x 0.046 / n) over n fits; the 60
     records of the main benchmark give one z per record and parameter, too few to tell 93%
@@ -361,15 +360,15 @@ def coverage(records, copies: int, seed: int):
         truth = np.array([rec["truth"][k] for k in free])
         crb = np.array([rec["crb"][k] for k in free])
         t = time.perf_counter()
-        fits = [tj.fit(top, y0, rec["ts"], o, free=free) for o in obs]
+        fits = tj.fit(top, y0, rec["ts"], obs, free=free)
         wall = time.perf_counter() - t
-        values = np.array([np.asarray(f.values, float) for f in fits])
-        se = np.array([np.asarray(f.std_errors, float) for f in fits])
+        values = np.asarray(fits.values, float)
+        se = np.asarray(fits.std_errors, float)
         z = (values - truth) / se
         row = dict(index=rec["index"], group=rec["group"], upright=bool(rec["upright"]),
                    rate=float(rec["rate_hz"]), length=float(rec["length_s"]),
                    sigma=float(rec["sigma"]), free=free, z=z.tolist(),
-                   converged=[bool(f.converged) for f in fits],
+                   converged=np.asarray(fits.converged).tolist(),
                    se_over_crb=np.median(se / crb, axis=0).tolist(),
                    scatter_over_crb=(np.std(values, axis=0, ddof=1) / crb).tolist(),
                    wall=wall)
@@ -424,7 +423,8 @@ def main():
     parser.add_argument("--compare", type=int, default=8,
                         help="records also fitted with the other strategies and scipy")
     parser.add_argument("--report", action="store_true", help="summarise fitting_rows.json only")
-    parser.add_argument("--resume", action="store_true", help="skip fits already in the rows")
+    parser.add_argument("--resume", action="store_true",
+                        help="skip fits (or with --coverage, records) already in the rows")
     parser.add_argument("--first", type=int, default=0,
                         help="start at this record (a second process can take the far end)")
     parser.add_argument("--rows", type=pathlib.Path, default=ROWS,
@@ -441,8 +441,15 @@ def main():
         records = draw_records(args.coverage, args.seed)
         t = time.perf_counter()
         rows = []
+        if args.resume and COVERAGE_ROWS.exists():  # (rows of the same copies and records)
+            rows = [r for r in json.loads(COVERAGE_ROWS.read_text())
+                    if r["index"] < args.coverage and len(r["z"]) == args.copies]
+        done_before = {r["index"] for r in rows}
         for rec in records:  # the rows and the section are written after each record
+            if rec["index"] in done_before:
+                continue
             rows += coverage([rec], args.copies, args.seed)
+            rows.sort(key=lambda r: r["index"])
             COVERAGE_ROWS.write_text(json.dumps(rows, indent=0))
             done = "" if len(rows) == len(records) else f" (partial: {len(rows)} done)"
             write_section(
@@ -455,7 +462,7 @@ def main():
                 f"{args.copies} fresh noise draws at its own sigma (and its gap), each fitted "
                 "by `tj.fit` from the truth with the default strategy. Columns with one "
                 "number per free parameter, in the order of `free`. "
-                f"{time.perf_counter() - t:.0f} s in all.\n\n"
+                f"{sum(r['wall'] for r in rows):.0f} s of fits in all.\n\n"
                 + coverage_summary(rows, args.copies) + "\n")
         print(coverage_summary(rows, args.copies))
         return

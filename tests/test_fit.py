@@ -267,6 +267,30 @@ def test_standard_errors_cover_the_scatter_of_repeated_noise():
     assert np.all(scatter / reported < 2.0) and np.all(scatter / reported > 0.5)
 
 
+def test_a_batch_fits_each_record_as_it_would_be_fitted_alone():
+    """A batch of two records with one guess: the guess describes the first (it is only
+    polished) and not the second (mu 30% and eps 20% off: it needs the windows). Each record's
+    fit in the batch is the one it gets alone, the same steps from the same start; the first
+    is not dragged through the second's attempts (it once was: 122 steps instead of 6)."""
+    spin = 4.0 * float(tj.thresholds(TOP_III).n1)
+    other = TOP_III.replace(mu=TOP_III.mu * 1.3, eps=TOP_III.eps * 0.8)
+    obs = np.stack([_record(TOP_III, TS_SLOW, 0.1, spin, seed=3)[0],
+                    _record(other, TS_SLOW, 0.1, spin, seed=5)[0]])
+    guess, y0 = _guess(TOP_III, spin, (1.0, 1.0, 1.0), 0.1)
+    batch = tj.fit(guess, y0, TS_SLOW, obs, free=FREE)
+    truths = [np.array([float(t.mu), float(t.eps), spin]) for t in (TOP_III, other)]
+    for k in range(2):
+        alone = tj.fit(guess, y0, TS_SLOW, obs[k], free=FREE)
+        _check_success(alone, truths[k])
+        assert int(np.asarray(batch.num_steps)[k]) == int(alone.num_steps)
+        assert int(np.asarray(batch.starts)[k]) == int(alone.starts)
+        np.testing.assert_allclose(np.asarray(batch.values)[k], np.asarray(alone.values),
+                                   rtol=1e-6)
+        np.testing.assert_allclose(np.asarray(batch.std_errors)[k],
+                                   np.asarray(alone.std_errors), rtol=1e-4)
+    assert np.all(np.asarray(batch.converged))
+
+
 # --------------------------------------------------------------------------------------------
 # The residual function: Jacobian and covariance against finite differences, constraints.
 

@@ -447,36 +447,82 @@ def _start(setup):
 
 def _fit_starts(setup, attempts, obs2, sigma):
     """Refine the starts of each attempt in turn until every record has a fit whose residuals
-    pass; keep the lowest loss per record."""
-    u0 = _start(setup)
+    pass; keep the lowest loss per record.
+
+    In a batch, each attempt runs on the records that have no passing fit yet (and the
+    polish on those whose guess passes), as a batch of its own: vmapped, every record would
+    pay for the slowest record's search."""
     best = None
     total_steps = np.zeros(setup.bsize, int)
-    tried = 0
+    tried = np.zeros(setup.bsize, int)  # starts tried per record
     for search, stages in attempts:
+        todo = np.ones(setup.bsize, bool) if best is None else ~_passing(best)
         if search == IF_NOISE:
             # (the loss of the first polishing stage: its first evaluation is this one)
-            guess = setup.finish(u0, FIT_RESULTS.successful, setup.data())
-            if not all(v["passes"] for v in _judge(guess, setup, obs2, sigma)[1]):
-                continue
-            starts = np.asarray(u0)[None]
-        else:
-            starts = np.asarray(u0)[None] if search is None else np.asarray(search.starts(u0, setup))
+            guess = setup.finish(_start(setup), FIT_RESULTS.successful, setup.data())
+            todo &= np.array([v["passes"] for v in _judge(guess, setup, obs2, sigma)[1]])
+        if not todo.any():
+            continue
+        idx = np.flatnonzero(todo)
+        sub = setup if idx.size == setup.bsize else setup.subset(idx)
+        u0 = _start(sub)
+        starts = (np.asarray(u0)[None] if search is None or search == IF_NOISE
+                  else np.asarray(search.starts(u0, sub)))
         chains = stages if isinstance(stages[0], tuple) else (stages,)
         for s in range(starts.shape[0]):
             for chain in chains:  # alternative chains from the same start, in turn
-                tried += 1
-                cand, steps = _candidate(setup, _refine(to_device(starts[s]), setup, chain), obs2,
-                                         sigma)
-                total_steps = total_steps + steps
-                cand["starts"] = np.full(setup.bsize, tried)
+                tried[idx] += 1
+                cand, steps = _candidate(sub, _refine(to_device(starts[s]), sub, chain),
+                                         obs2[idx], sigma)
+                total_steps[idx] += steps
+                if sub is not setup:
+                    cand = _widen(cand, idx, setup.bsize, sub.batched)
+                cand["starts"] = tried.copy()
                 best = cand if best is None else _better(best, cand, setup.bsize)
-                if all(v["passes"] for v in best["verdicts"]):  # the lowest minimum is noise
+                if _passing(best).all():  # the lowest minimum is noise
                     best["num_steps"] = total_steps
                     best["describes"] = np.array([v["describes_until"] for v in best["verdicts"]])
                     return best
+                if sub is not setup and _passing(best)[idx].all():
+                    break  # (this attempt's records pass; the others wait for the next)
+            else:
+                continue
+            break
     best["num_steps"] = total_steps
     best["describes"] = np.array([v["describes_until"] for v in best["verdicts"]])
     return best
+
+
+def _passing(cand) -> np.ndarray:
+    """Per record, whether the candidate's residuals pass the diagnostics."""
+    return np.array([v["passes"] for v in cand["verdicts"]])
+
+
+def _widen(cand, idx, bsize, batched):
+    """A candidate of the records `idx` of a batch (`_candidate`'s dict of a `subset`) as one of
+    the whole batch: the other records hold placeholders (loss inf, failing verdicts) that
+    `_better` never picks over a fit and any later fit replaces."""
+    pos = np.zeros(bsize, int)
+    pos[idx] = np.arange(idx.size)
+    inside = np.zeros(bsize, bool)
+    inside[idx] = True
+
+    def rows(x):
+        x = np.asarray(x)
+        return (x if batched else x[None])[pos]
+
+    def device_rows(x):
+        return to_device(rows(x), x.dtype)
+
+    failing = dict(cand["verdicts"][0], passes=False)
+    return dict(
+        out=jax.tree_util.tree_map(device_rows, cand["out"]),
+        residuals=np.asarray(cand["residuals"])[pos],
+        verdicts=[cand["verdicts"][pos[b]] if inside[b] else failing for b in range(bsize)],
+        u=device_rows(cand["u"]),
+        history=np.asarray(cand["history"])[pos],
+        loss=np.where(inside, np.asarray(cand["loss"])[pos], np.inf),
+    )
 
 
 def _check_phase(setup, best, obs2, sigma):
@@ -652,7 +698,8 @@ def _merge(a, b, keep_a, bsize):
 def _better(a, b, bsize):
     """Per record, the fit with the lower loss (the least-squares estimate is the lowest
     minimum found; the diagnostics only say whether to trust it)."""
-    pick = np.array([b["loss"][i] < a["loss"][i] for i in range(bsize)])
+    # (a loss of inf in `a` is a placeholder of `_widen` or a failed fit: any fit replaces it)
+    pick = np.array([b["loss"][i] < a["loss"][i] or a["loss"][i] == np.inf for i in range(bsize)])
     if not pick.any():
         a["starts"] = b["starts"]
         return a

@@ -79,6 +79,24 @@ class Setup:
         self._data = {}  # the last few Data by the arguments of `data` (equal arguments: one object)
         self._evaluations = {}  # the last few evaluations by (Data, u)
 
+    def subset(self, idx) -> "Setup":
+        """The records `idx` of a batch (indices into it) as a setup of their own: one record
+        as an unbatched setup (the programs of single fits), several as a smaller batch. A
+        batch's records that a stage need not run again are left out of it: vmapped, every
+        record pays for the slowest one's search."""
+        idx = np.asarray(idx, int)
+        one = idx.size == 1
+        pick = (lambda x: np.asarray(x)[idx[0]][None]) if one else (lambda x: np.asarray(x)[idx])
+        template = jax.tree_util.tree_map(
+            lambda x: to_device(np.asarray(x)[idx[0]] if one else np.asarray(x)[idx], x.dtype),
+            self.template)
+        sub = Setup(ts=self.ts, mask=pick(self.mask), weights=pick(self.w),
+                    phi=None if self.phi is None else pick(self.phi), rises=pick(self.rises),
+                    template=template, cfg=self.cfg, batched=not one, tol=self.tol,
+                    rtol=self.rtol)
+        sub.fitted = pick(self.fitted)
+        return sub
+
     def pad(self, x: np.ndarray) -> np.ndarray:
         """`x` of shape (bsize, n) padded with zeros to the bucket length."""
         return np.concatenate([x, np.zeros(x.shape[:-1] + (self.padded - self.n,), x.dtype)], -1)
