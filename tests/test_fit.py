@@ -14,6 +14,7 @@ import pytest
 import vector_reference as ref
 
 import tippejax as tj
+from tippejax._devices import batch_sharding
 from tippejax._fit import diagnostics, params, problem, setup as fit_setup
 from tippejax._fit.optimise import least_squares
 from tippejax._fit.stages import Final, GlobalSearch, PhaseScan, ValleyScan
@@ -267,11 +268,20 @@ def test_standard_errors_cover_the_scatter_of_repeated_noise():
     assert np.all(scatter / reported < 2.0) and np.all(scatter / reported > 0.5)
 
 
-def test_a_batch_fits_each_record_as_it_would_be_fitted_alone():
+def test_a_batch_fits_each_record_as_it_would_be_fitted_alone(monkeypatch):
     """A batch of two records with one guess: the guess describes the first (it is only
     polished) and not the second (mu 30% and eps 20% off: it needs the windows). Each record's
     fit in the batch is the one it gets alone, the same steps from the same start; the first
-    is not dragged through the second's attempts (it once was: 122 steps instead of 6)."""
+    is not dragged through the second's attempts (it once was: 122 steps instead of 6). With
+    two or more devices the batch is split over two of them."""
+    shardings = []
+    place = fit_setup.Setup.place
+
+    def spy(self, tree):
+        shardings.append(self.sharding)
+        return place(self, tree)
+
+    monkeypatch.setattr(fit_setup.Setup, "place", spy)
     spin = 4.0 * float(tj.thresholds(TOP_III).n1)
     other = TOP_III.replace(mu=TOP_III.mu * 1.3, eps=TOP_III.eps * 0.8)
     obs = np.stack([_record(TOP_III, TS_SLOW, 0.1, spin, seed=3)[0],
@@ -289,6 +299,19 @@ def test_a_batch_fits_each_record_as_it_would_be_fitted_alone():
         np.testing.assert_allclose(np.asarray(batch.std_errors)[k],
                                    np.asarray(alone.std_errors), rtol=1e-4)
     assert np.all(np.asarray(batch.converged))
+    if len(jax.devices()) >= 2:
+        assert any(s is not None and len(s.device_set) == 2 for s in shardings)
+
+
+def test_batch_sharding_takes_the_most_devices_that_divide_the_batch():
+    n = len(jax.devices())
+    assert batch_sharding(1) is None
+    if n < 2:
+        pytest.skip("one device: nothing to split over")
+    assert len(batch_sharding(n).device_set) == n
+    assert len(batch_sharding(3 * n).device_set) == n
+    prime = next(p for p in range(n + 1, 10 * n) if all(p % k for k in range(2, p)))
+    assert batch_sharding(prime) is None  # no divisor between 2 and n: one device
 
 
 # --------------------------------------------------------------------------------------------

@@ -2,8 +2,10 @@
 
 XLA runs a batch (`jax.vmap` of a solve) on one CPU device, and its while loop on one core: a
 batch of 1000 tops on an 8-core machine would use one core. With `N` host devices,
-`simulate_batch`, `outcome_map` and `fit`'s batches shard their launches over
-`jax.devices()` (`jax.sharding`), one core each. JAX makes `N` host devices only when the
+`simulate_batch` and `outcome_map` shard their launches over `jax.devices()`
+(`jax.sharding`, padding the batch to a multiple of the device count), one core each, and a
+batched `fit` shards its records over the most devices that divide their number
+(`batch_sharding`). JAX makes `N` host devices only when the
 flag `--xla_force_host_platform_device_count=N` is in `XLA_FLAGS` before its CPU backend
 starts; importing tippejax puts it there, with `N = os.cpu_count()`, unless
 
@@ -68,3 +70,18 @@ def use_every_core(environ: MutableMapping[str, str] = os.environ) -> int | None
 
 
 use_every_core()
+
+
+def batch_sharding(size: int):
+    """A `NamedSharding` that splits an axis of length `size` over the most of `jax.devices()`
+    that divide it, or None where that is one device (a batched fit's records: padding them
+    would cost a fit of a copy per pad)."""
+    import jax
+    import numpy as np
+    from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+    devices = jax.devices()
+    count = max(k for k in range(1, min(len(devices), size) + 1) if size % k == 0)
+    if count == 1:
+        return None
+    return NamedSharding(Mesh(np.array(devices[:count]), ("batch",)), PartitionSpec("batch"))

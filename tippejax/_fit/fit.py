@@ -240,9 +240,11 @@ def fit(
       given.
     - `ts`: the observation times in seconds (strictly increasing, finite), shape `(N,)`.
     - `theta_obs`: the measured tilt in radians, shape `(N,)`, or `(batch, N)` to fit several
-      recordings at once (one vmapped program evaluates the batch; each recording has its own
-      optimiser state and stopping test). **NaN marks a missing sample**, which is left out
-      of the loss.
+      recordings at once (one vmapped program evaluates the batch, split over the most JAX
+      devices that divide it; each recording has its own optimiser state and stopping test,
+      and gets the fit it would get alone: a stage that some recordings need, the search
+      from a guess that does not describe them, runs on those alone). **NaN marks a missing
+      sample**, which is left out of the loss.
     - `free`: a sequence of names of the parameters to fit: top fields `m, R, eps, A, C, g,
       mu` and launch quantities `theta0, spin, theta_dot, phi_dot, vx, vy`. The spin keeps
       the sign of its guess (theta alone cannot tell its direction). Nothing else is fitted:

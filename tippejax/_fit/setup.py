@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._cache import cacheable, cached_call, compile_ahead, to_device
+from .._devices import batch_sharding
 from .optimise import least_squares, optimise
 from .params import physical
 from .problem import (
@@ -73,7 +74,9 @@ class Setup:
         self.batched = batched
         self.tol = tol
         self.rtol = rtol
-        self.template = _committed(template)
+        # a batch's records split over the devices (`jax.sharding`), one core each
+        self.sharding = batch_sharding(self.bsize) if batched else None
+        self.template = self.place(template)
         self.fitted = np.ones_like(mask)  # the samples a fit may use (trim shortens it)
         self.padded = template.ts.shape[-1]  # the data arrays' length (a bucket, >= n)
         self._data = {}  # the last few Data by the arguments of `data` (equal arguments: one object)
@@ -96,6 +99,14 @@ class Setup:
                     rtol=self.rtol)
         sub.fitted = pick(self.fitted)
         return sub
+
+    def place(self, tree):
+        """`tree`'s arrays committed to a device, or in a sharded batch split over the devices
+        along their first (the record) axis."""
+        if self.sharding is None:
+            return _committed(tree)
+        return jax.tree_util.tree_map(
+            lambda x: jax.device_put(x, self.sharding) if isinstance(x, jax.Array) else x, tree)
 
     def pad(self, x: np.ndarray) -> np.ndarray:
         """`x` of shape (bsize, n) padded with zeros to the bucket length."""
@@ -155,7 +166,7 @@ class Setup:
         )
         # (indexed in numpy: a jax index is a small program to compile in each new process)
         fields = {k: np.asarray(v) if self.batched else np.asarray(v)[0] for k, v in fields.items()}
-        fields = _committed({k: to_device(v, dtype) for k, v in fields.items()})
+        fields = self.place({k: to_device(v, dtype) for k, v in fields.items()})
         names = tuple(fields)
         return eqx.tree_at(lambda d: tuple(getattr(d, k) for k in names), self.template,
                            tuple(fields[k] for k in names))
