@@ -535,9 +535,6 @@ def _check_phase(setup, best, obs2, sigma):
     bsize = setup.bsize
     spin = setup.cfg.free.index("spin")
 
-    def passing(b):
-        return np.array([v["passes"] for v in b["verdicts"]])
-
     prof = profile.phase_profile(best["u"], setup, spin)
     lower, points = profile.lower_points(prof)
     if lower.any():
@@ -560,7 +557,7 @@ def _check_phase(setup, best, obs2, sigma):
     spin_values = np.asarray(out["values"]).reshape(bsize, -1)[:, spin]
     se_rel = np.asarray(out["std_errors"]).reshape(bsize, -1)[:, spin] / np.abs(spin_values)
     flat, reach = profile.ambiguity(prof, se_rel)
-    flat &= passing(best)  # (a fit that fails its diagnostics is flagged already)
+    flat &= _passing(best)  # (a fit that fails its diagnostics is flagged already)
     if not flat.any():
         return best
     one = (lambda x: x) if setup.batched else (lambda x: x[0])  # noqa: E731

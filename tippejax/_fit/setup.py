@@ -89,10 +89,11 @@ class Setup:
         record pays for the slowest one's search."""
         idx = np.asarray(idx, int)
         one = idx.size == 1
-        pick = (lambda x: np.asarray(x)[idx[0]][None]) if one else (lambda x: np.asarray(x)[idx])
+        def pick(x):  # the records' rows, shape (len(idx), ...)
+            return np.asarray(x)[idx]
+
         template = jax.tree_util.tree_map(
-            lambda x: to_device(np.asarray(x)[idx[0]] if one else np.asarray(x)[idx], x.dtype),
-            self.template)
+            lambda x: to_device(pick(x)[0] if one else pick(x), x.dtype), self.template)
         sub = Setup(ts=self.ts, mask=pick(self.mask), weights=pick(self.w),
                     phi=None if self.phi is None else pick(self.phi), rises=pick(self.rises),
                     template=template, cfg=self.cfg, batched=not one, tol=self.tol,
