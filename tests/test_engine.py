@@ -255,11 +255,26 @@ def test_ravel_state_round_trip_and_leaves():
     y = RigidState(axis=jnp.arange(3.0), omega=jnp.arange(3.0, 6.0),
                    frame=jnp.arange(6.0, 9.0), angle=jnp.asarray(9.0))
     flat, unravel = ravel_state(y)
-    assert [x.shape for x in flat] == [(9,), (1,)]  # the 3-vectors together, the scalar apart
+    # whole leaves, in order, at most PACK_WIDTH (6) to a vector: axis + omega, frame + angle
+    assert [x.shape for x in flat] == [(6,), (4,)]
     assert np.array_equal(np.concatenate(flat), np.arange(10.0))
     back = unravel(flat)
     for leaf in ("axis", "omega", "frame", "angle"):
         assert np.array_equal(getattr(back, leaf), getattr(y, leaf))
+
+    from tippejax._models.full import FullLevelState
+
+    names = ("position", "velocity", "axis", "omega", "frame", "angle")
+    sizes = (2, 2, 3, 3, 3, 1)
+    starts = np.cumsum((0,) + sizes)
+    z = FullLevelState(**{k: jnp.arange(float(a), float(a + n)).reshape((n,) if n > 1 else ())
+                          for k, a, n in zip(names, starts, sizes)})
+    flat, unravel = ravel_state(z)
+    assert [x.shape for x in flat] == [(4,), (6,), (4,)]  # position + velocity | axis + omega | ...
+    assert np.array_equal(np.concatenate(flat), np.arange(14.0))
+    back = unravel(flat)
+    for leaf in names:
+        assert np.array_equal(getattr(back, leaf), getattr(z, leaf))
 
 
 def test_body_vector_of_a_fast_top_against_a_plain_solve(top, inverting):

@@ -7,6 +7,7 @@ downward crossing of each observed condition (see `watch.py`).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 
 import diffrax
@@ -44,36 +45,47 @@ class Watch(eqx.Module):
         return as_event_dtype(jnp.stack([conditions.get(name) for name in self.names]))
 
 
+PACK_WIDTH = 6
+"""Most components in one flat vector of a level state (see `ravel_state`)."""
+
+
 def ravel_state(y: PyTree):
-    """A level state as a tuple of flat vectors, one per leaf shape (the level's 3-vectors
-    concatenated, its 2-vectors, its scalars stacked); with the inverse.
+    """A level state as a tuple of flat vectors, with the inverse: the leaves, in order, packed
+    whole into vectors of at most `PACK_WIDTH` components (SO(3): axis and omega, then frame and
+    spin angle, 6 + 4; full: 4 + 6 + 4).
 
     diffrax's Runge-Kutta stages combine the state leaf by leaf; with two or three leaves
     instead of the level's five or six, each step runs several times fewer (tiny) operations,
     which on a CPU is what a step of a 10-dimensional system costs. The leaves are not all
     concatenated into one vector because XLA:CPU runs the stage combinations of a batch of
-    some widths much slower than of others: for a batch of 200 SO(3) tops
-    (`benchmarks/peers.py`'s scene), a single 10-wide state costs 2.2x a 6-wide one per step,
-    a 9-wide leaf plus a scalar leaf 1.1x.
+    some widths much slower than of others. Measured for a batch of 1000 SO(3) tops
+    (`benchmarks/peers.py`'s scene) in a plain diffrax loop, wall time per top against the
+    plain script's 6-component state: 6 + 4 1.29x, one 10-vector 1.46x, 6 + 3 + 1 1.65x,
+    9 + 1 (this function's layout before) 2.0x.
     """
     leaves, treedef = jax.tree_util.tree_flatten(y)
     dtype = jnp.result_type(*leaves)
     shapes = [jnp.shape(x) for x in leaves]
-    groups = {}
-    for i, shape in enumerate(shapes):
-        groups.setdefault(shape, []).append(i)
-    groups = tuple(groups.values())
+    sizes = [math.prod(shape) for shape in shapes]
+    groups, width = [], PACK_WIDTH
+    for i, size in enumerate(sizes):
+        if not groups or width + size > PACK_WIDTH:
+            groups.append([])
+            width = 0
+        groups[-1].append(i)
+        width += size
     flat = tuple(
-        jnp.stack([jnp.asarray(leaves[i], dtype) for i in group]).reshape(-1)
+        jnp.concatenate([jnp.ravel(jnp.asarray(leaves[i], dtype)) for i in group])
         for group in groups
     )
 
     def unravel(flat):
         out = [None] * len(leaves)
         for group, vector in zip(groups, flat):
-            pieces = vector.reshape((len(group),) + shapes[group[0]])
-            for j, i in enumerate(group):
-                out[i] = pieces[j]
+            start = 0
+            for i in group:
+                out[i] = vector[start:start + sizes[i]].reshape(shapes[i])
+                start += sizes[i]
         return jax.tree_util.tree_unflatten(treedef, out)
 
     return flat, unravel
