@@ -38,14 +38,14 @@ def inversion_time(
     adjoint: diffrax.AbstractAdjoint | None = None,
     throw: bool = True,
     tolerance: float | None = None,
-    event_samples: int = 8,
+    event_samples: int = 16,
 ) -> Float[Array, ""]:
     r"""The first upward crossing $t^*$ of $\theta = \pi/2$ after `t0` (nan if none by `t1`).
 
     $t^*$ is the first root of $a_Z(t) = \cos\theta(t) = 0$ where $\theta$ increases, located
     by a root find on the dense output of the solver step that holds it, so it does not depend
-    on any save grid (a nutation that crosses $\pi/2$ and back inside one step is still seen,
-    down to `1/event_samples` of a step). A top launched beyond $\pi/2$ has no crossing unless
+    on any save grid (a nutation that crosses $\pi/2$ and back inside one step is still seen:
+    `simulate`'s `event_samples`). A top launched beyond $\pi/2$ has no crossing unless
     it falls back and rises again.
 
     **Derivatives.** $t^*$ is differentiable with respect to every field of `top`
@@ -105,7 +105,8 @@ def inversion_time(
       not support forward mode).
     - `throw`: raise where the solve failed before a crossing (see above).
     - `tolerance`: for `model="auto"`, the largest acceptable error in $\theta(t)$ (rad).
-    - `event_samples`: points per step at which the dense output is checked for crossings.
+    - `event_samples`: points per step at which the conditions are checked for a crossing
+      and back (see `simulate`).
 
     **Returns:** $t^*$ (s), a scalar of the top's dtype; nan if no crossing by `t1`.
     """

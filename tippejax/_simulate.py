@@ -256,7 +256,7 @@ def simulate(
     tolerance: float | None = None,
     summary: bool = False,
     adjoint: diffrax.AbstractAdjoint | None = None,
-    event_samples: int = 8,
+    event_samples: int = 16,
 ) -> Solution:
     r"""Integrate the motion of `top` from `y0` at `t0` to `t1` with the chosen level of model.
 
@@ -300,8 +300,10 @@ def simulate(
     - `on_contact_loss`: `"stop"` ends the run at $R_n = 0$ (a failure); `"continue"` goes on,
       flags `result = contact_lost` and does not raise for it.
     - `tolerance`: for `model="auto"`, the largest acceptable error in $\theta(t)$ (rad).
-    - `event_samples`: each step's dense output is checked at this many points for a condition
-      that crosses zero and back inside the step (such steps are rejected and shortened).
+    - `event_samples`: along each step every event condition is followed by a quintic (its
+      values and rates at the start, middle and end of the step), checked at this many points
+      for a condition that crosses zero and back inside the step (such steps are rejected and
+      shortened; `tippejax/_engine/watch.py`).
 
     **Returns:** a `Solution`.
     """
@@ -385,7 +387,7 @@ def simulate(
 
 
 def simulate_tilt(top: TippeTop, y0: State, ts, *, t0, t1, model: str, rtol, atol,
-                  solver=None, max_steps: int, adjoint, event_samples: int = 8) -> dict:
+                  solver=None, max_steps: int, adjoint, event_samples: int = 16) -> dict:
     """The tilt and precession angle at the save times `ts`, and the contact-loss time, of the
     run `simulate(..., saveat=ts, on_contact_loss="continue", throw=False)` would make.
 

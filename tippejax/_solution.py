@@ -35,7 +35,8 @@ class RESULTS(eqxi.Enumeration):
     )
     contact_loss_missed = (
         "R_n was negative at a save time before any contact loss the solver located: a dip of "
-        "R_n below 0 shorter than 1/event_samples of a step went unseen, so the first loss of "
+        "R_n below 0 too brief for the event watch (event_samples points a step) went unseen, "
+        "so the first loss of "
         "contact is somewhere before that save time. Raise event_samples or tighten rtol; "
         "values from there on are nan."
     )
