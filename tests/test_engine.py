@@ -34,16 +34,21 @@ def inverting(top):
 def test_inversion_time_does_not_depend_on_the_save_grid(top, inverting):
     y0, fine = inverting
     coarse = tj.simulate(top, y0, 20.0, saveat=COARSE)
-    summary = tj.simulate(top, y0, 20.0, summary=True)
+    # summary mode integrates no body vector unless asked: body=True is the same solve
+    summary = tj.simulate(top, y0, 20.0, summary=True, body=True)
+    lean = tj.simulate(top, y0, 20.0, summary=True)
     t_fine = float(fine.t_invert)
     print(f"t_invert: fine grid {t_fine:.10f}, 7-point grid {float(coarse.t_invert):.10f}, "
-          f"summary {float(summary.t_invert):.10f}")
+          f"summary {float(summary.t_invert):.10f}, summary without body "
+          f"{float(lean.t_invert):.10f}")
     assert 5.6 < t_fine < 5.8
     # the same solve (the save grid does not change the steps): equal to root-finder precision
     assert abs(float(coarse.t_invert) - t_fine) < 1e-9
     assert abs(float(summary.t_invert) - t_fine) < 1e-9
     # theta really is pi/2 there: a tight run, saved at its own event time
     t_tight = float(tj.simulate(top, y0, 20.0, summary=True, rtol=1e-12, atol=1e-14).t_invert)
+    # without the body vector the solve takes other steps; its error is the solver's, as with it
+    assert abs(float(lean.t_invert) - t_tight) < 3 * max(abs(t_fine - t_tight), 1e-8)
     tight = tj.simulate(top, y0, 20.0, saveat=[0.0, t_tight], rtol=1e-12, atol=1e-14)
     print(f"theta(t_invert) - pi/2 = {float(tight.theta[-1]) - np.pi / 2:.1e} (rtol 1e-12)")
     assert abs(float(tight.theta[-1]) - np.pi / 2) < 1e-9
@@ -69,13 +74,41 @@ def test_inversion_time_agrees_across_solvers_and_tolerances(top, inverting):
 
 def test_summary_mode_is_the_end_of_the_trajectory(top, inverting):
     y0, fine = inverting
-    summary = tj.simulate(top, y0, 20.0, summary=True)
+    summary = tj.simulate(top, y0, 20.0, summary=True, body=True)
     assert summary.ts.shape == (1,) and summary.theta.shape == (1,)
     assert float(summary.ts[0]) == pytest.approx(20.0)
     for name in ("theta", "theta_dot", "spin", "jellet", "energy", "normal_force"):
         a, b = float(getattr(summary, name)[0]), float(getattr(fine, name)[-1])
         assert a == pytest.approx(b, rel=1e-9, abs=1e-12), name
+    # psi: one saved value, the fine grid's is unwrapped
+    turn = float(summary.psi[0]) - float(fine.psi[-1])
+    assert abs(np.angle(np.exp(1j * turn))) < 1e-7
     assert int(summary.num_steps) == int(fine.num_steps)
+
+
+@pytest.mark.parametrize("model", ["so3", "full"])
+def test_a_run_without_the_body_vector(top, inverting, model):
+    """`body=False` (summary mode's default) drops the 4 body components: psi and the body
+    vector are nan, nothing else depends on them, and the motion agrees with the run that
+    carries them to the solver's own error (a tight run is the reference)."""
+    y0, _ = inverting
+    ts = np.linspace(0.0, 8.0, 9)
+    opts = dict(model=model, saveat=ts)
+    lean = tj.simulate(top, y0, 8.0, body=False, **opts)
+    full = tj.simulate(top, y0, 8.0, **opts)
+    tight = tj.simulate(top, y0, 8.0, rtol=1e-12, atol=1e-14, **opts)
+    assert np.all(np.isnan(np.asarray(lean.psi))) and np.all(np.isnan(np.asarray(lean.states.body)))
+    assert np.all(np.isfinite(np.asarray(full.psi)))
+    assert np.all(np.isnan(np.asarray(tj.simulate(top, y0, 8.0, model=model, summary=True).psi)))
+    for name in ("theta", "phi", "theta_dot", "phi_dot", "psi_dot", "spin", "normal_force"):
+        err_lean = np.max(np.abs(np.asarray(getattr(lean, name)) - np.asarray(getattr(tight, name))))
+        err_full = np.max(np.abs(np.asarray(getattr(full, name)) - np.asarray(getattr(tight, name))))
+        scale = 1.0 + np.max(np.abs(np.asarray(getattr(tight, name))))
+        print(f"{model} {name}: error without body {err_lean:.1e}, with {err_full:.1e}")
+        assert err_lean < 3 * max(err_full, 1e-9 * scale), name
+    assert abs(float(lean.t_invert) - float(tight.t_invert)) < 1e-6
+    # 6 (so3) or 10 (full) components instead of 10 or 14: about the same steps
+    assert 0.8 < int(lean.num_steps) / int(full.num_steps) < 1.2
 
 
 def test_dopri8_at_loose_tolerance_finds_the_brief_contact_loss(top):

@@ -7,6 +7,7 @@ checks the arguments, picks the level and the solver, and computes the observed 
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Literal
 
 import diffrax
@@ -257,6 +258,7 @@ def simulate(
     summary: bool = False,
     adjoint: diffrax.AbstractAdjoint | None = None,
     event_samples: int = 16,
+    body: bool | None = None,
 ) -> Solution:
     r"""Integrate the motion of `top` from `y0` at `t0` to `t1` with the chosen level of model.
 
@@ -304,6 +306,12 @@ def simulate(
       values and rates at the start, middle and end of the step), checked at this many points
       for a condition that crosses zero and back inside the step (such steps are rejected and
       shortened; `tippejax/_engine/watch.py`).
+    - `body`: whether to integrate the body vector `sol.states.body`, and with it the spin
+      angle `sol.psi`. The full and SO(3) levels carry it as 4 more state components (10 for
+      the SO(3) level against 6, 14 against 10 for the full level), which costs about a fifth
+      of a batch's time (`benchmarks/RESULTS.md`, peers.py). Default: with a saved trajectory,
+      not in summary mode (there `sol.psi` and `sol.states.body` are nan unless `body=True`).
+      Everything else, `psi_dot` included, does not depend on it.
 
     **Returns:** a `Solution`.
     """
@@ -321,6 +329,8 @@ def simulate(
     _check_tolerances(rtol, atol)
     if summary and saveat is not None:
         raise ValueError("Pass either saveat or summary=True, not both.")
+    if body is not None and not isinstance(body, (bool, np.bool_)):
+        raise ValueError(f"body must be True, False or None (the default), got {body!r}.")
     dtype = jnp.result_type(top.m)
     if model == "auto":
         from ._auto import choose_model
@@ -357,11 +367,12 @@ def simulate(
         solver = default_solver(top, slow_flow=LEVELS[model].slow_flow)
     if adjoint is None:
         adjoint = diffrax.RecursiveCheckpointAdjoint()
+    level = dataclasses.replace(LEVELS[model], body=not summary if body is None else bool(body))
     with cacheable():
         out = cached_call(
             _run, top, y0, ts, jnp.asarray(t0, dtype), jnp.asarray(t1, dtype),
             jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype),
-            level=LEVELS[model], solver=solver, guard_stiff=guard_stiff,
+            level=level, solver=solver, guard_stiff=guard_stiff,
             stop_on_contact=on_contact_loss == "stop", max_steps=int(max_steps),
             adjoint=adjoint, progress=progress, samples=int(event_samples),
         )
@@ -397,7 +408,7 @@ def simulate_tilt(top: TippeTop, y0: State, ts, *, t0, t1, model: str, rtol, ato
     the step it fell in, less than a step early, so at most the samples inside that step are
     counted as after it), which makes the fit's programs smaller to trace and compile. No
     argument checks (the fit makes its own) and no save-grid bucketing (its grids are bucketed
-    already). Returns a dict with `ts`, `theta`,
+    already), and no body vector (`simulate`'s `body=False`). Returns a dict with `ts`, `theta`,
     `phi`, `t_contact_loss` and `result`."""
     dtype = jnp.result_type(top.m)
     if dtype != jnp.float64:
@@ -407,7 +418,8 @@ def simulate_tilt(top: TippeTop, y0: State, ts, *, t0, t1, model: str, rtol, ato
         solver = default_solver(top, slow_flow=LEVELS[model].slow_flow)
     out = _run(
         top, y0, jnp.asarray(ts, dtype), jnp.asarray(t0, dtype), jnp.asarray(t1, dtype),
-        jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype), level=LEVELS[model], solver=solver,
+        jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype),
+        level=dataclasses.replace(LEVELS[model], body=False), solver=solver,
         guard_stiff=guard_stiff, stop_on_contact=False, max_steps=int(max_steps),
         adjoint=adjoint, progress=False, samples=int(event_samples), names=("theta", "phi"),
         inversion=False, locate=False,

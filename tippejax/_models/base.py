@@ -61,6 +61,8 @@ class AbstractLevel(eqx.Module):
     - `chart_end_result`: for a level with a chart and no fallback, the name of the `RESULTS`
       member the run reports when the chart ends (the run stops there; a state outside the
       chart at `t0` is not integrated).
+
+    **Static option:** `body` (default True), see below.
     """
 
     name: ClassVar[str]
@@ -68,6 +70,12 @@ class AbstractLevel(eqx.Module):
     has_chart: ClassVar[bool] = False
     chart_end_result: ClassVar[str | None] = None
     slow_flow: ClassVar[bool] = False
+    body: bool = eqx.field(static=True, default=True, kw_only=True)
+    r"""Whether the level carries the body vector (`State.body`, and with it $\psi$). The full
+    and SO(3) levels carry it as 4 more state components (`full.spin_frame_rates`); without it
+    their state is the axis and angular velocity alone (and the translation), and `to_state`
+    gives a body vector of nans. The Routhian and gyroscopic levels report $\psi$ from angles
+    they carry anyway, and pass the option on to their fallback."""
 
     @abc.abstractmethod
     def from_state(self, top: TippeTop, state: State) -> PyTree:

@@ -73,24 +73,30 @@ def spin_frame_rates(axis, omega, frame):
     $\omega_\perp\times(a\times c) = a\times(\omega_\perp\times c) + \dot a\times c$, and
     $c\cdot a$ stays 0 (checked against $\dot b = \omega\times b$ in `tests/test_engine.py`).
     """
+    if frame is None:  # a level without the body vector
+        return None, None
     n = jnp.dot(omega, axis)
     return jnp.cross(omega - n * axis, frame), n
 
 
 def body_of(axis, frame, angle):
-    r"""$b = \cos\sigma\, c + \sin\sigma\, a\times c$ (see `spin_frame_rates`)."""
+    r"""$b = \cos\sigma\, c + \sin\sigma\, a\times c$ (see `spin_frame_rates`); nan for a level
+    without the body vector (`frame` None)."""
+    if frame is None:
+        return jnp.full_like(axis, jnp.nan)
     return jnp.cos(angle) * frame + jnp.sin(angle) * jnp.cross(axis, frame)
 
 
 class FullLevelState(eqx.Module):
-    """State of the full level: the common state with the body vector as (frame, angle)."""
+    """State of the full level: the common state with the body vector as (frame, angle), both
+    None for a level without it (`body=False`)."""
 
     position: Float[Array, "2"]
     velocity: Float[Array, "2"]
     axis: Float[Array, "3"]
     omega: Float[Array, "3"]
-    frame: Float[Array, "3"]
-    angle: Float[Array, ""]
+    frame: Float[Array, "3"] | None = None
+    angle: Float[Array, ""] | None = None
 
 
 class FullLevel(AbstractLevel):
@@ -101,6 +107,9 @@ class FullLevel(AbstractLevel):
     friction_model = "full"
 
     def from_state(self, top, state):
+        if not self.body:
+            return FullLevelState(position=state.position, velocity=state.velocity,
+                                  axis=state.axis, omega=state.omega)
         return FullLevelState(
             position=state.position, velocity=state.velocity, axis=state.axis,
             omega=state.omega, frame=state.body, angle=jnp.zeros((), state.axis.dtype),

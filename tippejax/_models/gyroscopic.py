@@ -707,7 +707,7 @@ class GyroscopicLevel(AbstractLevel):
         return self.conditions(top, _linear_state(top, state)).chart > 0
 
     def fallback(self):
-        return FullLevel() if self.hand_over else None
+        return FullLevel(body=self.body) if self.hand_over else None
 
     def error_norm(self, scaled_error):
         return jnp.abs(scaled_error.log_tan_half_theta)

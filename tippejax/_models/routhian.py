@@ -197,7 +197,7 @@ class RouthianLevel(AbstractLevel):
     def fallback(self):
         from .so3 import SO3Level
 
-        return SO3Level()
+        return SO3Level(body=self.body)
 
     def error_norm(self, scaled_error):
         r = scaled_error.reduced

@@ -49,22 +49,26 @@ def so3_vector_field(t, y: State, top: TippeTop) -> State:
 
 class RigidState(eqx.Module):
     r"""State of the SO(3) level: axis, angular velocity, and the body vector as a frame vector
-    and a spin angle, $b = \cos\sigma\, c + \sin\sigma\, a\times c$ (no translation)."""
+    and a spin angle, $b = \cos\sigma\, c + \sin\sigma\, a\times c$ (no translation); `frame`
+    and `angle` are None for a level without the body vector (`body=False`)."""
 
     axis: Float[Array, "3"]
     omega: Float[Array, "3"]
-    frame: Float[Array, "3"]
-    angle: Float[Array, ""]
+    frame: Float[Array, "3"] | None = None
+    angle: Float[Array, ""] | None = None
 
 
 class SO3Level(AbstractLevel):
     """The SO(3) model: rotation only (10 ODEs: axis, omega, and the body vector as a frame
-    vector and a spin angle); position and velocity are reported as zero."""
+    vector and a spin angle; 6 with `body=False`); position and velocity are reported as
+    zero."""
 
     name = "so3"
     friction_model = "so3"
 
     def from_state(self, top, state):
+        if not self.body:
+            return RigidState(axis=state.axis, omega=state.omega)
         return RigidState(
             axis=state.axis, omega=state.omega, frame=state.body,
             angle=jnp.zeros((), state.axis.dtype),
