@@ -281,6 +281,40 @@ def test_spin_frame_carries_the_body_vector_exactly(top, name):
         assert abs(float(jnp.dot(dy.frame, y.axis) + jnp.dot(y.frame, dy.axis))) < 1e-12
 
 
+@pytest.mark.parametrize(
+    "solver", [diffrax.Dopri8(), diffrax.Dopri5(), diffrax.Tsit5(),
+               diffrax.Kvaerno5(root_finder=diffrax.VeryChord(rtol=1e-10, atol=1e-12))],
+    ids=lambda s: type(s).__name__,
+)
+def test_the_watch_reads_the_dense_output_in_normalised_time(top, solver):
+    """The event watch evaluates a step's dense output and its time derivative at the middle on
+    [0, 1] (constant weights) and divides by h: the same as the interpolation on the step's own
+    times and its derivative in t (diffrax's interpolations are polynomials in (t - t0)/h with
+    coefficients k_i = h f_i)."""
+    from tippejax._engine.segment import FlatField, ravel_state
+    from tippejax._engine.watch import _midpoint
+    from tippejax._models.levels import LEVELS
+
+    level = LEVELS["so3"]
+    y0 = level.from_state(top, tj.initial_state(top, 0.3, 120.0, theta_dot=1.0))
+    flat, unravel = ravel_state(y0)
+    term = diffrax.ODETerm(FlatField(level, unravel))
+    t0, t1 = jnp.asarray(1.25), jnp.asarray(1.25 + 0.004)
+    state = solver.init(term, t0, t1, flat, top)
+    _, _, dense, _, _ = solver.step(term, t0, t1, flat, top, state, False)
+    y_mid, y_dot = _midpoint(solver, dense, t1 - t0)
+    interp = solver.interpolation_cls(t0=t0, t1=t1, **dense)
+    middle = t0 + 0.5 * (t1 - t0)
+    ref, ref_dot = jax.jvp(interp.evaluate, (middle,), (jnp.ones_like(middle),))
+    for a, b in zip(jax.tree_util.tree_leaves((y_mid, y_dot)),
+                    jax.tree_util.tree_leaves((ref, ref_dot))):
+        assert np.allclose(np.asarray(a), np.asarray(b), rtol=1e-9, atol=1e-9 * np.max(np.abs(b)))
+    # and it is the motion: the derivative is the vector field there, to the interpolant's order
+    field = term.vf(middle, y_mid, top)
+    for a, b in zip(jax.tree_util.tree_leaves(y_dot), jax.tree_util.tree_leaves(field)):
+        assert np.allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-4 * np.max(np.abs(b)))
+
+
 def test_ravel_state_round_trip_and_leaves():
     from tippejax._engine.segment import ravel_state
     from tippejax._models.so3 import RigidState

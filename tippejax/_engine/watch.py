@@ -238,20 +238,27 @@ class WatchedSolver(diffrax.AbstractWrappedSolver):
         y1, y_error, dense_info, inner, result = self.solver.step(
             terms, t0, t1, y0, args, solver_state.inner, made_jump
         )
-        interpolation = self.solver.interpolation_cls(t0=t0, t1=t1, **dense_info)
         h = t1 - t0
-        middle = t0 + 0.5 * h
-        y_mid, y_mid_dot = jax.jvp(interpolation.evaluate, (middle,), (jnp.ones_like(middle),))
-        mid, mid_rate = self._watch_with_rate(y_mid, y_mid_dot, args)
-        end, end_rate = self._watch_with_rate(
-            y1, self._end_rate(terms, t1, y1, args, inner), args
+        y_mid, y_mid_dot = _midpoint(self.solver, dense_info, h)
+        # Both points through the conditions (and their jvp) at once: as two separate calls XLA
+        # fused them with the dense output into one loop that recomputed much of it (2.3x a
+        # plain solve for one top, against 1.1x).
+        points = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), y_mid, y1)
+        tangents = jax.tree_util.tree_map(
+            lambda a, b: jnp.stack([a, b.astype(a.dtype)]),
+            y_mid_dot, self._end_rate(terms, t1, y1, args, inner),
         )
+        values, rates = jax.vmap(lambda y, y_dot: self._watch_with_rate(y, y_dot, args))(
+            points, tangents
+        )
+        mid, end = values[0], values[1]
         h = h.astype(end.dtype)
-        data = jnp.stack([
-            solver_state.previous, h * solver_state.previous_rate, mid, h * mid_rate,
-            end, h * end_rate,
-        ])
-        interior = jnp.asarray(_quintic_samples(self.samples), end.dtype) @ data
+        data = (solver_state.previous, h * solver_state.previous_rate, mid, h * rates[0], end,
+                h * rates[1])
+        # The quintic at the check points: a sum of scaled rows, which XLA fuses (as a matrix
+        # product it ran as a small batched dot per member of a batch).
+        weights = _quintic_samples(self.samples).astype(np.dtype(end.dtype))
+        interior = sum(weights[:, j, None] * data[j][None, :] for j in range(6))
         values = jnp.concatenate([solver_state.previous[None], interior, end[None]])
         positive = values > 0
         changes = jnp.sum(positive[1:] != positive[:-1], axis=0)
@@ -277,7 +284,7 @@ class WatchedSolver(diffrax.AbstractWrappedSolver):
         state = _WatchState(
             inner=inner,
             previous=end,
-            previous_rate=end_rate,
+            previous_rate=rates[1],
             last_t0=t0,
             last_t1=t1,
             last_y0=jax.tree_util.tree_map(
@@ -332,6 +339,20 @@ def locate_terminating(
         fn, root_finder, y0=t1, options=dict(lower=t0, upper=t1), throw=False
     )
     return root.value, interpolation.evaluate(root.value)
+
+
+def _midpoint(solver, dense_info, h):
+    """The dense output and its time derivative at the middle of a step of length `h`.
+
+    diffrax's local interpolations are polynomials in the normalised time $s = (t - t_0)/h$
+    whose coefficients are the stages $k_i = h f_i$: evaluated on $[0, 1]$ at the constant
+    $s = 1/2$ their weights are constants that XLA folds, and $dy/dt = (dy/ds)/h$ (checked
+    against the interpolation on the step's own times for Dopri8, Dopri5, Tsit5 and Kvaerno5
+    in `tests/test_engine.py`)."""
+    unit = solver.interpolation_cls(t0=0.0, t1=1.0, **dense_info)
+    half = jnp.asarray(0.5, jnp.result_type(h))
+    y_mid, y_s = jax.jvp(unit.evaluate, (half,), (jnp.ones_like(half),))
+    return y_mid, jax.tree_util.tree_map(lambda d: d / h.astype(d.dtype), y_s)
 
 
 def _retake(solver: WatchedSolver, terms, t0, t1, y0, args):
