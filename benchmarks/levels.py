@@ -554,7 +554,8 @@ def _slow_alone(top, y0, t1, *, fibre):
 
     f = lambda x: jnp.asarray(x, jnp.float64)  # noqa: E731
     out = _run(top, y0, None, f(0.0), f(t1), f(1e-8), f(1e-10),
-               level=GyroscopicLevel(hand_over=False, fibre_projection=fibre),
+               level=GyroscopicLevel(hand_over=False,
+                                     projection="fibre" if fibre else "linear"),
                solver=diffrax.Dopri5(), guard_stiff=False, stop_on_contact=True,
                max_steps=200_000, adjoint=diffrax.RecursiveCheckpointAdjoint(), progress=False,
                samples=8)
