@@ -177,8 +177,11 @@ averaging over the nutation, in closed form. The derivation:
    nutation it drops" with the two roots exchanged. Averaged over its phase with the other
    root's state frozen (first order in $1/n$: the state moves by $O(\dot\vartheta_-/\nu_-)$
    in a period), its amplitude $a$ (in $\theta$) grows at the rate $\sigma_-(\vartheta)$, the
-   $\sigma$ of that section on the other root. (The frozen SO(3) linearisation about the other
-   root's state has this real part: `tests/test_projection.py`.)
+   $\sigma$ of that section on the other root. (The SO(3) vector field linearised at the
+   other root's state changes its real part with $\vartheta$ as $\sigma_-$ does, growing as
+   $n^2$; the difference does not grow with the spin, e.g. 0.04/s at $\vartheta = 0.1$ for
+   group III, and against the SO(3) transient $\sigma_-$ does the better:
+   `tests/test_projection.py`.)
 2. *At the pole the roots exchange their roles exactly*: $\sigma_-(0) = \dot u_+(0)$, the slow
    flow's rate; $\dot u_-(0) = \sigma_+(0)$; $\mathrm{sgn}(J)\,\nu_-(0) + \Omega_-(0) =
    \Omega_+(0)$ (sympy, `tests/test_projection.py`, with $J$ and $g$ written through the two
@@ -233,16 +236,23 @@ It is first order in $1/n$ and neglects: the motion of the other root's state wi
 nutation period beyond the adiabatic term of $\sigma_-$; the difference between (G3) on the
 other root and that mode's true decay (0.04% at the pole); terms nonlinear in the small slow
 component; and the $O(\vartheta_0/n^2)$ shift of the nutation's centre in the upper limit of
-$I$ (the launch's tilt is used; the shifted centre does slightly worse against SO(3)). It
+$I$ (the launch's tilt is used; the centre, $|\xi - \xi_s|$, moves $\ln\theta_s$ by 0.001 to
+0.005 against the SO(3) transient, better at 100 rad/s and worse at 300: the size of the
+first-order residual). It
 needs the other root's mode to decay all the way from the launch's tilt to the pole (else
 the linear projection is used). Standard top, $\omega = n a$, $\theta_0 = 0.1$, $t_{\rm invert}$
 of the slow flow against SO(3): $-0.25\%$, $-0.09\%$, $-0.02\%$, $+0.00\%$ at
-$n_0 = 100, 150, 225, 300$ rad/s, most of it the slow flow's own error: launched from the
-slow state the SO(3) transient really leaves (followed for 1.5 s, projected there, run back),
-the slow flow is off by $-0.24\%$ at 100 rad/s and $-0.00\%$ at 300, and the averaged
-projection's own part is within $0.012\%$ (the fibre projection's $0.02$-$0.05\%$); see
-`benchmarks/LEVELS.md`, also for $\theta_0 = 0.05, 0.2$ and two other groups. Its cost is
-that of the linear projection and a few evaluations of (G3) and $\sigma$.
+$n_0 = 100, 150, 225, 300$ rad/s ($|{\rm error}| \sim n_0^{-3.8}$ over 100-300 rad/s). Most of
+it is the slow flow's own error: launched from the slow state the SO(3) transient really
+leaves (followed for 1 s and 1.5 s, projected there, the slow flow run back, extrapolated to
+zero settle time) the slow flow is off by $-0.29\%$, $-0.12\%$, $-0.04\%$, $-0.01\%$
+($n_0^{-3.0}$). The averaged projection's own part is $+0.047\%$ at 100 rad/s and falls as
+about $n_0^{-1.3}$ to $+0.012\%$ at 300 (the first-order residual; $\theta_0 = 0.2$: $+0.10\%$
+to $+0.02\%$); the fibre projection's is $+0.012\%$ to $-0.034\%$, growing at high spins. So
+at 100-150 rad/s the fibre projection's own error is the smaller, and the averaged
+projection's total is the smaller there only because its own error has the sign opposite to
+the slow flow's; see `benchmarks/LEVELS.md` (also $\theta_0 = 0.05, 0.2$ and groups III, IIa).
+Its cost is that of the linear projection and a few evaluations of (G3) and $\sigma$.
 
 *Fibre projection* (`settle_launch`, `projection="fibre"`; Fenichel's fast fibres of the slow
 manifold, numerically): the launch is followed in the SO(3) model for the time `settle_time`
@@ -262,9 +272,9 @@ as zero, as by the SO(3) and Routhian levels).
 manifold at $\theta = 0.02$: $|\Delta t_{\rm invert}| = 0.064, 0.013, 0.0019$ s at
 $n_0 = 50, 100, 200$ rad/s (about $n_0^{-2.5}$). Launched with $\omega = n a$ at
 $\theta_0 = 0.1$ (averaged projection): $-0.25\%, -0.09\%, -0.02\%, +0.00\%$ at
-$n_0 = 100, 150, 225, 300$ (the full model differs from SO(3) by
-$+0.3\%$ and $+1.0\%$ at 100 and 150 rad/s, and loses contact before inverting at 225 and 300).
-About 55 slow steps for a 20 s run, against about 2000 steps for the
+$n_0 = 100, 150, 225, 300$, mostly the slow flow's own error (above; the full model differs
+from SO(3) by $+0.3\%$ and $+1.0\%$ at 100 and 150 rad/s, and loses contact before inverting
+at 225 and 300). About 55 slow steps for a 20 s run, against about 1400-2000 steps for the
 full model at $n_0 = 100$ (`benchmarks/LEVELS.md`; the ratio moves with the machine's load).
 
 **Not for:** the nutation, the translation, or the moment of a contact loss (where the manifold
