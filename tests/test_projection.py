@@ -296,30 +296,36 @@ def _wrap(angle):
 
 
 @pytest.mark.parametrize(
-    "name, theta0, spin",
-    [("standard", 0.1, 225.0), ("standard", 0.1, 300.0), ("standard", 0.2, 300.0),
-     ("standard", 0.1, -200.0), ("III", 0.1, 300.0), ("III", 0.2, 150.0), ("IIa", 0.2, 300.0)],
+    "name, theta0, spin, kick, tolerance",
+    [("standard", 0.1, 225.0, {}, 0.006), ("standard", 0.1, 300.0, {}, 0.006),
+     ("standard", 0.2, 300.0, {}, 0.006), ("standard", 0.1, -200.0, {}, 0.006),
+     ("III", 0.1, 300.0, {}, 0.006), ("III", 0.2, 150.0, {}, 0.006),
+     ("IIa", 0.2, 300.0, {}, 0.006), ("standard", 0.1, 200.0, {"phi_dot": -20.0}, 0.01),
+     ("standard", 0.15, 250.0, {"theta_dot": -2.0, "phi_dot": 10.0}, 0.01)],
 )
-def test_averaged_projection_is_the_slow_state_the_transient_leaves(name, theta0, spin):
+def test_averaged_projection_is_the_slow_state_the_transient_leaves(name, theta0, spin, kick,
+                                                                    tolerance):
     """omega = n a launches: the averaged projection's tilt against the slow state the SO(3)
-    transient leaves, within 0.003 in ln(theta_s) where the linear projection is off by 0.07 to
-    1.7; its phase and the body's angle about the vertical (phi + psi) within 5% of the linear
-    projection's error."""
+    transient leaves, within 0.006 in ln(theta_s) (0.1% of t_invert) where the linear projection
+    is off by 0.07 to 1.7, and at least 10 times closer; its phase and the body's angle about
+    the vertical (phi + psi) within 10% of the linear projection's error. Two launches with
+    theta_dot, phi_dot as well (a larger slow component, and a nutation that decays from a
+    shifted centre: 0.02-0.03 off if I were taken from the launch's tilt): within 0.01."""
     top = {"standard": STANDARD, "III": GROUP_III, "IIa": GROUP_IIA}[name]
-    y0 = tj.initial_state(top, theta0, spin, phi=0.7, psi=0.3)
+    y0 = tj.initial_state(top, theta0, spin, phi=0.7, psi=0.3, **kick)
     ref = transient_reference(top, y0)
     results = {}
     for label, y in (("averaged", average_launch(top, y0)), ("linear", _linear_state(top, y0))):
         got = np.array([float(jnp.log(jnp.sin(y.theta))), float(y.phi), float(y.phi + y.psi)])
         results[label] = np.concatenate([got[:1] - ref[:1], _wrap(got[1:] - ref[1:])])
     (error, phase, body), (error_linear, phase_linear, body_linear) = results.values()
-    print(f"{name}, theta0 = {theta0}, n0 = {spin}: ln(theta_s) averaged {error:+.5f}, linear "
-          f"{error_linear:+.4f}; phi {phase:+.4f}, linear {phase_linear:+.4f}; phi + psi "
+    print(f"{name}, theta0 = {theta0}, n0 = {spin} {kick}: ln(theta_s) averaged {error:+.5f}, "
+          f"linear {error_linear:+.4f}; phi {phase:+.4f}, linear {phase_linear:+.4f}; phi + psi "
           f"{body:+.4f}, linear {body_linear:+.4f}")
-    assert abs(error) < 0.003
-    assert abs(error_linear) > 10 * abs(error) and abs(error_linear) > 0.03
-    assert abs(phase) < 0.05 * abs(phase_linear)
-    assert abs(body) < 0.05 * abs(body_linear)
+    assert abs(error) < tolerance
+    assert abs(error_linear) > 10 * abs(error) and abs(error_linear) > 0.05
+    assert abs(phase) < 0.1 * abs(phase_linear)
+    assert abs(body) < 0.1 * abs(body_linear)
 
 
 def _t_invert(top, y0, projection):

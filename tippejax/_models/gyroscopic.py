@@ -197,15 +197,21 @@ averaging over the nutation, in closed form. The derivation:
    \dot u_+(0)$, and is $\ln\sin\theta$ on the slow manifold ($\vartheta = 0$): it labels the
    fibre through the launch, to first order. Hence
 
-   $$\ln\sin\theta_s = \ln a_0 + I(\vartheta_0). \tag{P}$$
+   $$\ln\sin\theta_s = \ln a_0 + I(\vartheta_c), \tag{P}$$
 
-4. *The launch's slow content* $a_0$: the other root's state at the launch's tilt
-   $\vartheta_0$ (same $J$), linearised conservatively in the reduced chart ("The nutation it
-   drops": the momentum $q = M_{\bar\varphi}\delta p$ shifts the nutation's centre by
-   $Kq/(M_{\bar\varphi}M_\theta\nu^2)$),
-   $a_0^2 = (\delta\theta - K\delta p/(M_\theta\nu_-^2))^2 + (\delta\dot\theta/\nu_-)^2$, with
-   $\delta$ the launch minus that state and $p$ the slip. The phase ($\varphi_s$) is that of
-   the split with the other root's mode frozen at the launch's tilt,
+   with $a_0$ the launch's slow content and $\vartheta_c$ the tilt (from the pole) of the
+   centre of its nutation, from which the nutation decays.
+4. *The launch's slow content* $a_0$ and $\vartheta_c$: the other root's state at the
+   launch's tilt $\vartheta_0$ (same $J$), linearised conservatively in the reduced chart ("The
+   nutation it drops": the momentum $q = M_{\bar\varphi}\delta p$ shifts the nutation's centre
+   by $Kq/(M_{\bar\varphi}M_\theta\nu^2)$),
+   $a_0^2 = (\delta\theta - K\delta p/(M_\theta\nu_-^2))^2 + (\delta\dot\theta/\nu_-)^2$ and
+   $\vartheta_c = \vartheta_0 \pm K\delta p/(M_\theta\nu_-^2)$, with $\delta$ the launch minus
+   that state and $p$ the slip. For $\omega = n a$ the shift is $O(\vartheta_0/n^2)$; with
+   $\dot\theta$, $\dot\varphi$ at launch it is first order (standard top, $\theta_0 = 0.15$,
+   250 rad/s, $\dot\theta_0 = -2$, $\dot\varphi_0 = 10$ rad/s: $\ln\theta_s$ 0.006 off the
+   SO(3) transient's, 0.032 with $I$ taken from $\vartheta_0$). The phase ($\varphi_s$) is that
+   of the split with the other root's mode frozen at the launch's tilt,
    $\xi_s = (w - r_-(\vartheta_0)\xi)/(r_+ - r_-(\vartheta_0))$, turned by
    $\Phi = \int(\mathrm{sgn}(J)(\nu_- - \nu_-(0)) + \Omega_- - \Omega_-(0))\,dt$ over the
    decay, and the body's angle about the vertical ($\varphi \pm \psi$) by $\Psi$
@@ -213,7 +219,10 @@ averaging over the nutation, in closed form. The derivation:
    component is not small against the nutation the split is used: $\ln\sin\theta_s$ is the
    mean of (P) and $\ln|\xi_s|$ with the weights $|\xi - \xi_s|^2$ and $|\xi_s|^2$. The split
    is exact on either root (a state on the slow manifold projects onto itself); for
-   $\omega = n a$ the weight of (P) is within $10^{-3}$ of 1.
+   $\omega = n a$ the weight of (P) is within $10^{-3}$ of 1. A launch that mixes comparable
+   amounts of both modes is the least well served (on the slow manifold at $\theta = 0.05$,
+   150 rad/s, with 8 rad/s added to $\omega_X$: 0.012 in $\ln\theta_s$, as the linear
+   projection; the fibre projection 0.0001).
 5. *Leading order* (sympy): $\sigma_-(\vartheta) = \sigma_-(0) + \gamma_2\vartheta^2 +
    O(\vartheta^4)$ with $\gamma_2 \to -\mu m\epsilon R(R - \epsilon)\Omega_+^2/(2C)$ and
    $|\dot\vartheta_-| \to \mu mgR(R - \epsilon)\vartheta/C$ as $J \to \infty$, so
@@ -234,24 +243,23 @@ averaging over the nutation, in closed form. The derivation:
 
 It is first order in $1/n$ and neglects: the motion of the other root's state within a
 nutation period beyond the adiabatic term of $\sigma_-$; the difference between (G3) on the
-other root and that mode's true decay (0.04% at the pole); terms nonlinear in the small slow
-component; and the $O(\vartheta_0/n^2)$ shift of the nutation's centre in the upper limit of
-$I$ (the launch's tilt is used; the centre, $|\xi - \xi_s|$, moves $\ln\theta_s$ by 0.001 to
-0.005 against the SO(3) transient, better at 100 rad/s and worse at 300: the size of the
-first-order residual). It
-needs the other root's mode to decay all the way from the launch's tilt to the pole (else
-the linear projection is used). Standard top, $\omega = n a$, $\theta_0 = 0.1$, $t_{\rm invert}$
-of the slow flow against SO(3): $-0.25\%$, $-0.09\%$, $-0.02\%$, $+0.00\%$ at
-$n_0 = 100, 150, 225, 300$ rad/s ($|{\rm error}| \sim n_0^{-3.8}$ over 100-300 rad/s). Most of
+other root and that mode's true decay (0.04% at the pole); and terms nonlinear in the slow
+component (its ratio to the nutation is $O(1/n)$ for $\omega = n a$). Against the slow state
+the SO(3) transient leaves, $\ln\theta_s$ is off by at most 0.0045 for $\omega = n a$
+launches of three groups at $\theta_0 \leq 0.2$, 150-300 rad/s (`tests/test_projection.py`;
+the linear projection: 0.07 to 1.7). It needs the other root's mode to decay all the way
+from the launch's tilt to the pole (else the linear projection is used). Standard top, $\omega = n a$, $\theta_0 = 0.1$, $t_{\rm invert}$
+of the slow flow against SO(3): $-0.27\%$, $-0.11\%$, $-0.04\%$, $-0.02\%$ at
+$n_0 = 100, 150, 225, 300$ rad/s ($|{\rm error}| \sim n_0^{-2.6}$ over 100-300 rad/s). Most of
 it is the slow flow's own error: launched from the slow state the SO(3) transient really
 leaves (followed for 1 s and 1.5 s, projected there, the slow flow run back, extrapolated to
 zero settle time) the slow flow is off by $-0.29\%$, $-0.12\%$, $-0.04\%$, $-0.01\%$
-($n_0^{-3.0}$). The averaged projection's own part is $+0.047\%$ at 100 rad/s and falls as
-about $n_0^{-1.3}$ to $+0.012\%$ at 300 (the first-order residual; $\theta_0 = 0.2$: $+0.10\%$
-to $+0.02\%$); the fibre projection's is $+0.012\%$ to $-0.034\%$, growing at high spins. So
-at 100-150 rad/s the fibre projection's own error is the smaller, and the averaged
-projection's total is the smaller there only because its own error has the sign opposite to
-the slow flow's; see `benchmarks/LEVELS.md` (also $\theta_0 = 0.05, 0.2$ and groups III, IIa).
+($n_0^{-3.0}$). The averaged projection's own part is $+0.025\%$ at 100 rad/s, $+0.009\%$ at
+150 and within $\pm 0.006\%$ from 175 to 300 (about $n_0^{-1.9}$); the fibre projection's is
+$+0.012\%$ at 100 rad/s and grows to $-0.034\%$ at 300. For groups III and IIa and at
+$\theta_0 = 0.05$ the averaged projection's own error is the smaller at almost every spin;
+at $\theta_0 = 0.2$ above 100 rad/s the fibre projection's is ($-0.001\%$ to $-0.029\%$
+against $-0.024\%$ to $-0.049\%$). See `benchmarks/LEVELS.md`.
 Its cost is that of the linear projection and a few evaluations of (G3) and $\sigma$.
 
 *Fibre projection* (`settle_launch`, `projection="fibre"`; Fenichel's fast fibres of the slow
@@ -271,7 +279,7 @@ as zero, as by the SO(3) and Routhian levels).
 **Accuracy** (standard top, against the SO(3) model, rtol $10^{-8}$). Launched on the slow
 manifold at $\theta = 0.02$: $|\Delta t_{\rm invert}| = 0.064, 0.013, 0.0019$ s at
 $n_0 = 50, 100, 200$ rad/s (about $n_0^{-2.5}$). Launched with $\omega = n a$ at
-$\theta_0 = 0.1$ (averaged projection): $-0.25\%, -0.09\%, -0.02\%, +0.00\%$ at
+$\theta_0 = 0.1$ (averaged projection): $-0.27\%, -0.11\%, -0.04\%, -0.02\%$ at
 $n_0 = 100, 150, 225, 300$, mostly the slow flow's own error (above; the full model differs
 from SO(3) by $+0.3\%$ and $+1.0\%$ at 100 and 150 rad/s, and loses contact before inverting
 at 225 and 300). About 55 slow steps for a 20 s run, against about 1400-2000 steps for the
@@ -845,10 +853,11 @@ def launch_transient(top: TippeTop, shed, J, *, north=True) -> LaunchTransient:
     )
 
 
-def _kept_amplitude(top: TippeTop, state: State, J, theta_b) -> Array:
-    r"""$a_0$: the amplitude (in $\theta$) of the nutation of a state about the other root's
-    state at tilt `theta_b` with the same $J$ (reduced chart, conservative linearisation):
-    $a_0^2 = (\delta\theta - K\delta p/(M_\theta\nu^2))^2 + (\delta\dot\theta/\nu)^2$."""
+def _kept_amplitude(top: TippeTop, state: State, J, theta_b):
+    r"""$(a_0, \theta_c)$: the amplitude (in $\theta$) of the nutation of a state about the other
+    root's state at tilt `theta_b` with the same $J$, and the $\theta$ of its centre (reduced
+    chart, conservative linearisation): $\theta_c = \theta_b + K\delta p/(M_\theta\nu^2)$,
+    $a_0^2 = (\theta - \theta_c)^2 + (\delta\dot\theta/\nu)^2$."""
     theta, _, _ = euler_angles(state)
     theta_dot, phi_dot, psi_dot = euler_rates(state)
     x, s = jnp.cos(theta_b), jnp.sin(theta_b)
@@ -858,9 +867,9 @@ def _kept_amplitude(top: TippeTop, state: State, J, theta_b) -> Array:
     inertia = top.A + top.m * top.eps**2 * s * s  # M_theta
     slip = top.R * psi_dot + top.eps * phi_dot  # p of the state
     coupling = s * _momentum_coupling(top, x, s, J, base.slip)  # K
-    centre = theta - theta_b - coupling * (slip - base.slip) / (inertia * nu2)
+    centre = theta_b + coupling * (slip - base.slip) / (inertia * nu2)
     velocity = (theta_dot - base.theta_dot) / jnp.sqrt(nu2)
-    return _safe_sqrt(centre**2 + velocity**2)
+    return _safe_sqrt((theta - centre) ** 2 + velocity**2), centre
 
 
 def _averaged(top: TippeTop, state: State):
@@ -881,9 +890,12 @@ def _averaged(top: TippeTop, state: State):
     # root's state (reduced chart) and what the nutation's decay feeds into it; where the slow
     # component dominates, the split (exact on the slow manifold)
     weight = jnp.where(shed2 > 0, shed2 / jnp.where(shed2 > 0, shed2 + kept2, 1.0), 0.0)
-    transient = launch_transient(top, tilt, J, north=north)
+    amplitude, centre = _kept_amplitude(top, state, J, theta_b)
+    # the nutation decays from its centre (from the pole) to the pole
+    shed = jnp.clip(jnp.where(north, centre, jnp.pi - centre), 0.0, 2 * NUTATION_LAUNCH_MAX)
+    transient = launch_transient(top, shed, J, north=north)
     log_split = 0.5 * _safe_log(kept2, -2 * POLE)
-    log_reduced = _safe_log(_kept_amplitude(top, state, J, theta_b), -2 * POLE)
+    log_reduced = _safe_log(amplitude, -2 * POLE)
     log_gain = jnp.where(kept2 > 0, weight * (log_reduced + transient.gain - log_split), 0.0)
     side = jnp.where(north, 1.0, -1.0).astype(c_re.dtype)
     averaged = _slow_state(state, north, c_re, c_im, log_gain, weight * transient.turn,
@@ -895,11 +907,13 @@ def _averaged(top: TippeTop, state: State):
 
 def average_launch(top: TippeTop, state: State) -> GyroscopicLevelState:
     r"""The averaged projection of a launch onto the slow manifold (see "Projection of a
-    launch" in the module docstring): the slow component with both modes frozen at the
-    launch's tilt, $\xi_s = (w - r_-\xi)/(r_+ - r_-)$, scaled by $e^{I}$ and turned by $\Phi$
-    (`launch_transient`) for what the decay of the launch's nutation feeds into it. No
-    solve: about as cheap as the linear projection. Falls back to the linear projection where
-    the other root's mode does not decay from the launch's tilt to the pole.
+    launch" in the module docstring): $\ln\sin\theta_s = \ln a_0 + I(\vartheta_c)$, with
+    $a_0$ the launch's slow content and $\vartheta_c$ its nutation's centre, both read about
+    the other root's state at the launch's tilt, and $I$ what the nutation feeds into the slow
+    component while it decays (`launch_transient`); where the slow component is not small
+    against the nutation, the split $\xi_s = (w - r_-\xi)/(r_+ - r_-)$ (exact on the slow
+    manifold). No solve: a few evaluations of (G3) and $\sigma$. Falls back to the linear
+    projection where the other root's mode does not decay from the launch's tilt to the pole.
     """
     u, phi, psi, log_amplitude, J = _averaged(top, state)
     return GyroscopicLevelState(
