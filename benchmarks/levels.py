@@ -14,7 +14,7 @@ Writes benchmarks/LEVELS.md; the worst error and median cost per regime go into 
 `tippejax/_auto.py`'s `MEASURED`, merged with the per-group scenes of `levels_groups.py`.
 
     python benchmarks/levels.py             # everything (rewrites LEVELS.md)
-    python benchmarks/levels.py --spun      # the spun-launch section only
+    python benchmarks/levels.py --spun      # the spun-launch section only (levels_spun.py)
     python benchmarks/levels.py --groups    # the section on every group only (and MEASURED)
 """
 
@@ -539,117 +539,6 @@ def gyro_sections(spin_rows, mu_rows, speed):
     return lines
 
 
-# --- spun launches (omega = n a): the fibre projection of the gyroscopic level ----------------
-
-SPUN_SPINS = (100.0, 150.0, 225.0, 300.0)
-SPUN_MARK = "## Spun launches (omega = n a): the launch projection"
-
-
-def _slow_alone(top, y0, t1, *, fibre):
-    """t_invert of the slow flow alone (no hand-over), Dopri5 at rtol 1e-8, summary mode."""
-    import diffrax
-
-    from tippejax._models.gyroscopic import GyroscopicLevel
-    from tippejax._simulate import _run
-
-    f = lambda x: jnp.asarray(x, jnp.float64)  # noqa: E731
-    out = _run(top, y0, None, f(0.0), f(t1), f(1e-8), f(1e-10),
-               level=GyroscopicLevel(hand_over=False, fibre_projection=fibre),
-               solver=diffrax.Dopri5(), guard_stiff=False, stop_on_contact=True,
-               max_steps=200_000, adjoint=diffrax.RecursiveCheckpointAdjoint(), progress=False,
-               samples=8)
-    return float(out["t_invert"])
-
-
-def spun_launches():
-    """t_invert of omega = n a launches of the standard top (theta0 = 0.1): the slow flow with
-    the fibre projection and with the linear one against SO(3) (rtol 1e-10), the full model's
-    own difference, and what `model="gyroscopic"` (chaining to the full model) reports."""
-    top = tj.default_top()
-    rows = []
-    for n0 in SPUN_SPINS:
-        y0 = tj.initial_state(top, GYRO_THETA0, n0)
-        so3 = tj.simulate(top, y0, 20.0, model="so3", summary=True, throw=False,
-                          rtol=1e-10, atol=1e-12)
-        full = tj.simulate(top, y0, 20.0, model="full", summary=True, throw=False,
-                           on_contact_loss="continue")
-        chained = tj.simulate(top, y0, 20.0, model="gyroscopic", summary=True, throw=False,
-                              on_contact_loss="continue")
-        ref = float(so3.t_invert)
-        row = dict(n0=n0, so3=ref, fibre=_slow_alone(top, y0, 20.0, fibre=True),
-                   linear=_slow_alone(top, y0, 20.0, fibre=False), full=float(full.t_invert),
-                   full_loss=float(full.t_contact_loss), chained_model=chained.model,
-                   chained_switch=float(chained.t_chart_switch),
-                   chained_loss=float(chained.t_contact_loss),
-                   chained_invert=float(chained.t_invert))
-        rows.append(row)
-        print("spun", row, flush=True)
-    return rows
-
-
-def spun_section(rows):
-    def pct(x, ref):
-        return "n/a" if not np.isfinite(x) else f"{100 * (x - ref) / ref:+.3f}%"
-
-    rate = {k: power_law([r["n0"] for r in rows], [(r[k] - r["so3"]) / r["so3"] for r in rows])
-            for k in ("fibre", "linear")}
-    lines = [
-        SPUN_MARK,
-        "",
-        "Made by `python benchmarks/levels.py --spun` (rewrites this section only). Standard top, "
-        f"theta0 = {GYRO_THETA0}, omega = n a (theta_dot = phi_dot = 0). t_invert of the slow flow "
-        "alone (`GyroscopicLevel(hand_over=False)`, Dopri5, rtol 1e-8) against the SO(3) model "
-        "(rtol 1e-10), with the fibre projection (`settle_launch`: the launch followed in SO(3) "
-        "until its nutation has decayed to 0.01 rad, projected there, the slow flow run back to "
-        "t = 0) and with the linear projection (`project_launch`); the full model's own "
-        "difference from SO(3) beside them; and what `model=\"gyroscopic\"` reports (it "
-        "hands over to the full model where the slow manifold repels).",
-        "",
-        "| n0 (rad/s) | SO(3) t_invert (s) | fibre projection | linear projection | full - SO(3) "
-        "| `model=\"gyroscopic\"` |",
-        "|---|---|---|---|---|---|",
-    ]
-    for r in rows:
-        if np.isfinite(r["full"]):
-            full = pct(r["full"], r["so3"])
-        else:
-            full = f"contact lost at {r['full_loss']:.2f} s"
-        if np.isfinite(r["chained_switch"]):
-            chained = f"{r['chained_model']}, hand-over at {r['chained_switch']:.2f} s"
-            if np.isfinite(r["chained_loss"]):
-                chained += f", contact lost at {r['chained_loss']:.2f} s"
-            else:
-                chained += f", t_invert {pct(r['chained_invert'], r['so3'])}"
-        else:
-            chained = f"{r['chained_model']}, t_invert {pct(r['chained_invert'], r['so3'])}"
-        lines.append(f"| {r['n0']:g} | {r['so3']:.4f} | {pct(r['fibre'], r['so3'])} | "
-                     f"{pct(r['linear'], r['so3'])} | {full} | {chained} |")
-    lines += [
-        "",
-        f"Fitted power law of |error| in n0: fibre projection n0^{rate['fibre']:+.2f}, linear "
-        f"projection n0^{rate['linear']:+.2f}.",
-        "",
-    ]
-    return lines
-
-
-def write_spun_section():
-    lines = spun_section(spun_launches())
-    speed = gyro_speed()
-    (g20, s20), (f20, n20) = speed[SPEED_T1]["gyroscopic"], speed[SPEED_T1]["full"]
-    g0, f0 = speed[0.01]["gyroscopic"][0], speed[0.01]["full"][0]
-    lines += [
-        f"Cost with the fibre projection (same run, median of {SPEED_REPEATS} interleaved "
-        f"jitted summary runs, theta0 = {GYRO_THETA0}, n0 = 100, rtol 1e-8): {SPEED_T1:g} s run "
-        f"{1e3 * g20:.2f} ms ({s20} slow steps, the launch transient's not counted) against "
-        f"{1e3 * f20:.2f} ms for the full model ({n20} steps): {f20 / g20:.0f}x; a 0.01 s run "
-        f"(the fixed cost, now mostly the launch transient) {1e3 * g0:.2f} ms against "
-        f"{1e3 * f0:.2f} ms.",
-        "",
-    ]
-    write_section(SPUN_MARK, lines)
-
-
 def write_section(mark, lines):
     """Replace the section of LEVELS.md that starts with `mark` (up to the next "## "), or
     append it; the rest of the file is left as it is."""
@@ -669,6 +558,8 @@ if __name__ == "__main__":
     import sys
 
     if "--spun" in sys.argv[1:]:
+        from levels_spun import write_spun_section
+
         write_spun_section()
     elif "--groups" in sys.argv[1:]:
         from levels_groups import write_groups_section
@@ -676,6 +567,8 @@ if __name__ == "__main__":
         write_groups_section()
     else:
         main()
+        from levels_spun import write_spun_section
+
         write_spun_section()
         from levels_groups import write_groups_section
 

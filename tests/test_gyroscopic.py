@@ -558,8 +558,8 @@ def test_fibre_projection_of_a_spun_launch(top):
     SO(3) model's (the linear projection: 1.6%)."""
     y0 = tj.initial_state(top, 0.1, 225.0)
     o = tj.simulate(top, y0, 10.0, model="so3", summary=True, **REF)
-    fibre = run_level(GyroscopicLevel(hand_over=False), top, y0, 10.0)
-    linear = run_level(GyroscopicLevel(hand_over=False, fibre_projection=False), top, y0, 10.0)
+    fibre = run_level(GyroscopicLevel(hand_over=False, projection="fibre"), top, y0, 10.0)
+    linear = run_level(GyroscopicLevel(hand_over=False, projection="linear"), top, y0, 10.0)
     ref = float(o.t_invert)
     e_fibre = abs(float(fibre["t_invert"]) - ref) / ref
     e_linear = abs(float(linear["t_invert"]) - ref) / ref

@@ -305,7 +305,7 @@ def test_bad_input():
         tj.inversion_time(top, y0, T1)  # t1 is keyword-only
 
 
-@pytest.mark.slow  # compiling the reverse pass through the launch's fibre projection and the
+@pytest.mark.slow  # compiling the reverse pass through the launch's projection and the
 # chain takes minutes on a CPU
 def test_gyroscopic_gradient_is_the_secular_slope():
     """The design quantity: the gyroscopic t* (nutation averaged) has the gradient of its trend

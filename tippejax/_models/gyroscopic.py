@@ -144,40 +144,133 @@ the chart is integrated by the full model from the start):
 with `RESULTS.no_gyroscopic_balance` (the $\sigma > 0$ condition then reads: the nutation is
 larger than `NUTATION_MAX` and growing).
 
-**Projection of a launch** (`from_state`). A launch with $\omega = n a$ is not on the slow
-manifold (`docs/notes.md`, Launches and the slow manifold): the slow flow must start from the launch's slow-mode content, not its
-$\theta$. Near a pole both modes are linear: in complex notation $\xi = a_X + i a_Y$,
-$w = \omega_X + i\omega_Y$, each mode has $w = r\xi$ with $r = \dot\psi + i\dot\theta/\sin\theta$ of
-its root. The *linear projection* (`project_launch`) takes the slow component
-$\xi_s = (w - r_{\rm in}\xi)/(r_{\rm out} - r_{\rm in})$, and $\sin\theta_s = |\xi_s|$; the
-nutation is the rest, $a_0 = |\xi - \xi_s|$ (at least `NUTATION_FLOOR`). $r_{\rm in}$ is the
-other root's at the nearer pole and $r_{\rm out}$ this root's at the launch's $\theta$. It is
-exact on the slow manifold (`to_state` then `from_state` returns $\theta$, and $a_0 = 0$) and,
-near a pole, the exact linear projection.
+**Projection of a launch** (`from_state`; the option `projection`). A launch with
+$\omega = n a$ is not on the slow manifold (`docs/notes.md`, Launches and the slow manifold):
+the slow flow must start from the launch's slow-mode content, not its $\theta$. Near a pole
+both modes are linear: in complex notation $\xi = a_X + i a_Y$, $w = \omega_X + i\omega_Y$,
+every state has $w = r\xi$ with $r = \dot\psi + i\dot\theta/\sin\theta$, and each mode has the
+$r$ of its root: $r_+$ this root's, $r_-$ the other root's.
 
-Its error is not of first order in $1/n$ but of second order in the launch's nutation: for
-$\omega = n a$ the slow component is itself small, $\theta_s \approx \theta_0 |n - r_{\rm in}|/
-|r_{\rm out} - r_{\rm in}| \propto \theta_0/n$, while the nutation that decays in the first
-half second has amplitude $\approx \theta_0$ and horizontal rate $\approx n\theta_0$; what it
-feeds into the slow mode while it decays is $O(\theta_0^3)$, i.e. a relative error that grows
-with $n\theta_0$ (standard top, $t_{\rm invert}$ against SO(3): $-0.006$ s at
-$n\theta_0 = 4$-$6$, $-0.017$ s at 11-15, $-0.094$ s at 22, $-0.27$ s at 30). Replacing
-$r_{\rm in}$ by the SO(3) model's exact linear eigenvector changes nothing measurable, and
-taking it at $\theta_0$ instead of the pole makes it worse: the correction is the
-nonlinear coupling of the decaying mode, not the linear modes.
+*Linear projection* (`project_launch`, `projection="linear"`). The slow component
+$\xi_s = (w - r_-\xi)/(r_+ - r_-)$, with $r_-$ at the nearer pole and $r_+$ at the launch's
+$\theta$, and $\sin\theta_s = |\xi_s|$; the nutation is the rest, $a_0 = |\xi - \xi_s|$ (at least
+`NUTATION_FLOOR`). It is exact on the slow manifold (`to_state` then `from_state` returns
+$\theta$, and $a_0 = 0$) and, near a pole, the exact linear projection. For $\omega = n a$ the
+slow component is small, $\theta_s \approx \theta_0|n - r_-|/|r_+ - r_-| \propto \theta_0/n$
+($|n - r_-|$ is of the order of the friction rate), while the launch's nutation (the other
+root's mode) has the amplitude $\vartheta_0 \approx \theta_0$. Two effects of that finite
+amplitude are not small against $\theta_s$, and the $t_{\rm invert}$ error grows with the
+spin (standard top, $\theta_0 = 0.1$: $+0.13\%$, $-0.31\%$, $-1.6\%$, $-3.4\%$ against SO(3)
+at $n_0 = 100, 150, 225, 300$ rad/s): the other root's spin at fixed $J$ depends on the tilt,
+$n_- \approx J/(C(R\cos\vartheta - \epsilon))$, so its $r_-$ at the pole is off by
+$\approx n\vartheta_0^2 R/(2(R - \epsilon))$ from the launch's own; and what the nutation feeds
+into the slow mode while it decays (below).
 
-The level therefore projects *along the fibres* (`settle_launch`, Fenichel's fast fibres of the
-slow manifold): the launch is followed in the SO(3) model for the time `settle_time` its
-nutation takes to decay to `SETTLE_AMPLITUDE` (at the other root's rate at the pole, at most
-`SETTLE_TIME_MAX`; about 0.4 s for $\theta_0 = 0.1$), where the linear projection is accurate
-(its error is quadratic in the remaining amplitude), and the slow flow is integrated back from
-there to the launch time. The base point is the slow state whose slow-flow trajectory the
-launch's trajectory approaches, so the run starts at $t_0$ and the nutation-averaged $\theta(t)$
-is that of the SO(3) model from the end of the transient on. Standard top, $\theta_0 = 0.1$,
-$t_{\rm invert}$ against SO(3): $-0.28\%$, $-0.11\%$, $-0.05\%$, $-0.04\%$ at
-$n_0 = 100, 150, 225, 300$ rad/s (linear projection: $+0.13\%$, $-0.31\%$, $-1.6\%$, $-3.4\%$);
-see `benchmarks/LEVELS.md`. The cost is one short SO(3) solve and one short slow solve (both at
-rtol `SETTLE_RTOL`) at launch; a launch with $a_0 <$ `SETTLE_AMPLITUDE` skips them.
+*Averaged projection* (`average_launch`, `projection="averaged"`, the default): first-order
+averaging over the nutation, in closed form. The derivation:
+
+1. *Two time scales.* A launch with $\omega \approx n a$ is mostly the other root's mode: $L$
+   along $a$, tilted by $\vartheta$, precessing slowly ($\Omega_- = O(1/n)$) and decaying at a
+   rate of the order of the friction along that root's own slow flow (G3)
+   (`slow_manifold(branch=-1)`: $\dot\vartheta_-$). The slow component is a small nutation
+   about that state (amplitude $O(\vartheta/n)$), of frequency $\nu_- \approx Cn/A$: "The
+   nutation it drops" with the two roots exchanged. Averaged over its phase with the other
+   root's state frozen (first order in $1/n$: the state moves by $O(\dot\vartheta_-/\nu_-)$
+   in a period), its amplitude $a$ (in $\theta$) grows at the rate $\sigma_-(\vartheta)$, the
+   $\sigma$ of that section on the other root. (The SO(3) vector field linearised at the
+   other root's state changes its real part with $\vartheta$ as $\sigma_-$ does, growing as
+   $n^2$; the difference does not grow with the spin, e.g. 0.04/s at $\vartheta = 0.1$ for
+   group III, and against the SO(3) transient $\sigma_-$ does the better:
+   `tests/test_projection.py`.)
+2. *At the pole the roots exchange their roles exactly*: $\sigma_-(0) = \dot u_+(0)$, the slow
+   flow's rate; $\dot u_-(0) = \sigma_+(0)$; $\mathrm{sgn}(J)\,\nu_-(0) + \Omega_-(0) =
+   \Omega_+(0)$ (sympy, `tests/test_projection.py`, with $J$ and $g$ written through the two
+   roots of (G2)). Once the nutation has decayed, the slow component is the slow manifold
+   near the pole and grows at the slow flow's rate.
+3. *The near-identity transformation.* With
+
+   $$I(\vartheta) = \int_0^{\vartheta}\frac{\sigma_-(\vartheta') - \sigma_-(0)}
+     {|\dot\vartheta_-(\vartheta')|}\,d\vartheta',$$
+
+   the coordinate $\ln a + I(\vartheta)$ moves at exactly the slow flow's rate along the
+   averaged motion, $\frac{d}{dt}(\ln a + I) = \sigma_- - (\sigma_- - \sigma_-(0)) =
+   \dot u_+(0)$, and is $\ln\sin\theta$ on the slow manifold ($\vartheta = 0$): it labels the
+   fibre through the launch, to first order. Hence
+
+   $$\ln\sin\theta_s = \ln a_0 + I(\vartheta_c), \tag{P}$$
+
+   with $a_0$ the launch's slow content and $\vartheta_c$ the tilt (from the pole) of the
+   centre of its nutation, from which the nutation decays.
+4. *The launch's slow content* $a_0$ and $\vartheta_c$: the other root's state at the
+   launch's tilt $\vartheta_0$ (same $J$), linearised conservatively in the reduced chart ("The
+   nutation it drops": the momentum $q = M_{\bar\varphi}\delta p$ shifts the nutation's centre
+   by $Kq/(M_{\bar\varphi}M_\theta\nu^2)$),
+   $a_0^2 = (\delta\theta - K\delta p/(M_\theta\nu_-^2))^2 + (\delta\dot\theta/\nu_-)^2$ and
+   $\vartheta_c = \vartheta_0 \pm K\delta p/(M_\theta\nu_-^2)$, with $\delta$ the launch minus
+   that state and $p$ the slip. For $\omega = n a$ the shift is $O(\vartheta_0/n^2)$; with
+   $\dot\theta$, $\dot\varphi$ at launch it is first order (standard top, $\theta_0 = 0.15$,
+   250 rad/s, $\dot\theta_0 = -2$, $\dot\varphi_0 = 10$ rad/s: $\ln\theta_s$ 0.006 off the
+   SO(3) transient's, 0.032 with $I$ taken from $\vartheta_0$). The phase ($\varphi_s$) is that
+   of the split with the other root's mode frozen at the launch's tilt,
+   $\xi_s = (w - r_-(\vartheta_0)\xi)/(r_+ - r_-(\vartheta_0))$, turned by
+   $\Phi = \int(\mathrm{sgn}(J)(\nu_- - \nu_-(0)) + \Omega_- - \Omega_-(0))\,dt$ over the
+   decay, and the body's angle about the vertical ($\varphi \pm \psi$) by $\Psi$
+   (`launch_transient`). The reduced chart is singular at the pole, so where the slow
+   component is not small against the nutation the split is used: $\ln\sin\theta_s$ is the
+   mean of (P) and $\ln|\xi_s|$ with the weights $|\xi - \xi_s|^2$ and $|\xi_s|^2$. The split
+   is exact on either root (a state on the slow manifold projects onto itself); for
+   $\omega = n a$ the weight of (P) is within $10^{-3}$ of 1. A launch that mixes comparable
+   amounts of both modes is the least well served (on the slow manifold at $\theta = 0.05$,
+   150 rad/s, with 8 rad/s added to $\omega_X$: 0.012 in $\ln\theta_s$, as the linear
+   projection; the fibre projection 0.0001).
+5. *Leading order* (sympy): $\sigma_-(\vartheta) = \sigma_-(0) + \gamma_2\vartheta^2 +
+   O(\vartheta^4)$ with $\gamma_2 \to -\mu m\epsilon R(R - \epsilon)\Omega_+^2/(2C)$ and
+   $|\dot\vartheta_-| \to \mu mgR(R - \epsilon)\vartheta/C$ as $J \to \infty$, so
+
+   $$I(\vartheta_0) \approx -\frac{\epsilon\,\Omega_+^2\vartheta_0^2}{4g},\qquad
+     \Omega_+ \approx \frac{Cn}{A},$$
+
+   independent of $\mu$. $\gamma_2$ comes from the dependence of $R'_n$ on the slip (the
+   vertical acceleration $\epsilon\sin^2\theta\,\Omega(\Omega\cos\theta - Cn/A)$ of the
+   centre of mass in eq. reactie): the nutation modulates $R_n$ at its own frequency, and the
+   friction on the decaying mode's large slip ($p \approx Rn$) under that modulated $R_n$ is
+   a torque that damps the slow mode for as long as the decaying mode lasts. The linear
+   projection is $I = 0$ with $r_-$ at the pole. Standard top, $\vartheta_0 = 0.1$:
+   $I = -0.024$, $-0.21$ at $n_0 = 100$, 300 rad/s (leading form $-0.025$, $-0.21$); at
+   $\vartheta_0 = 0.2$, 300 rad/s, $-0.82$ (leading form $-0.85$). The level evaluates the
+   integrals by Gauss-Legendre quadrature of their first-order integrands (`AVERAGING_NODES`);
+   no solve.
+
+It is first order in $1/n$ and neglects: the motion of the other root's state within a
+nutation period beyond the adiabatic term of $\sigma_-$; the difference between (G3) on the
+other root and that mode's true decay (0.04% at the pole); and terms nonlinear in the slow
+component (its ratio to the nutation is $O(1/n)$ for $\omega = n a$). Against the slow state
+the SO(3) transient leaves, $\ln\theta_s$ is off by at most 0.0045 for $\omega = n a$
+launches of three groups at $\theta_0 \leq 0.2$, 150-300 rad/s (`tests/test_projection.py`;
+the linear projection: 0.07 to 1.7). It needs the other root's mode to decay all the way
+from the launch's tilt to the pole (else the linear projection is used). Standard top, $\omega = n a$, $\theta_0 = 0.1$, $t_{\rm invert}$
+of the slow flow against SO(3): $-0.27\%$, $-0.11\%$, $-0.04\%$, $-0.02\%$ at
+$n_0 = 100, 150, 225, 300$ rad/s ($|{\rm error}| \sim n_0^{-2.6}$ over 100-300 rad/s). Most of
+it is the slow flow's own error: launched from the slow state the SO(3) transient really
+leaves (followed for 1 s and 1.5 s, projected there, the slow flow run back, extrapolated to
+zero settle time) the slow flow is off by $-0.29\%$, $-0.12\%$, $-0.04\%$, $-0.01\%$
+($n_0^{-3.0}$). The averaged projection's own part is $+0.025\%$ at 100 rad/s, $+0.009\%$ at
+150 and within $\pm 0.006\%$ from 175 to 300 (about $n_0^{-1.9}$); the fibre projection's is
+$+0.012\%$ at 100 rad/s and grows to $-0.034\%$ at 300. For groups III and IIa and at
+$\theta_0 = 0.05$ the averaged projection's own error is the smaller at almost every spin;
+at $\theta_0 = 0.2$ above 100 rad/s the fibre projection's is ($-0.001\%$ to $-0.029\%$
+against $-0.024\%$ to $-0.049\%$). See `benchmarks/LEVELS.md`.
+Its cost is that of the linear projection and a few evaluations of (G3) and $\sigma$.
+
+*Fibre projection* (`settle_launch`, `projection="fibre"`; Fenichel's fast fibres of the slow
+manifold, numerically): the launch is followed in the SO(3) model for the time `settle_time`
+its nutation takes to decay to `SETTLE_AMPLITUDE` (at the other root's rate at the pole, at
+most `SETTLE_TIME_MAX`; about 0.4 s for $\theta_0 = 0.1$), where the linear projection is
+accurate (its error is quadratic in the remaining amplitude), and the slow flow is integrated
+back from there to the launch time. $t_{\rm invert}$ as above: $-0.28\%$, $-0.11\%$,
+$-0.05\%$, $-0.04\%$. The cost is one short SO(3) solve and one short slow solve (both at rtol
+`SETTLE_RTOL`) per launch, about 250 times the averaged projection's in a batch of 256
+launches; a launch with $a_0 <$ `SETTLE_AMPLITUDE` skips them.
 
 **What is dropped.** The nutation (and with it any contact loss it causes: $R_n = mg$ on the
 slow manifold), and the translation of the centre of mass (position and velocity are reported
@@ -186,10 +279,10 @@ as zero, as by the SO(3) and Routhian levels).
 **Accuracy** (standard top, against the SO(3) model, rtol $10^{-8}$). Launched on the slow
 manifold at $\theta = 0.02$: $|\Delta t_{\rm invert}| = 0.064, 0.013, 0.0019$ s at
 $n_0 = 50, 100, 200$ rad/s (about $n_0^{-2.5}$). Launched with $\omega = n a$ at
-$\theta_0 = 0.1$ (fibre projection): $-0.28\%, -0.11\%, -0.05\%, -0.04\%$ at
-$n_0 = 100, 150, 225, 300$, falling as about $n_0^{-1.8}$ (the full model differs from SO(3) by
-$+0.3\%$ and $+1.0\%$ at 100 and 150 rad/s, and loses contact before inverting at 225 and 300).
-About 55 slow steps for a 20 s run plus the launch transient, against about 2000 steps for the
+$\theta_0 = 0.1$ (averaged projection): $-0.27\%, -0.11\%, -0.04\%, -0.02\%$ at
+$n_0 = 100, 150, 225, 300$, mostly the slow flow's own error (above; the full model differs
+from SO(3) by $+0.3\%$ and $+1.0\%$ at 100 and 150 rad/s, and loses contact before inverting
+at 225 and 300). About 55 slow steps for a 20 s run, against about 1400-2000 steps for the
 full model at $n_0 = 100$ (`benchmarks/LEVELS.md`; the ratio moves with the machine's load).
 
 **Not for:** the nutation, the translation, or the moment of a contact loss (where the manifold
@@ -207,10 +300,11 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from .._invariants import jellet
-from .._state import State, euler_angles, state_from_euler
+from .._state import State, euler_angles, euler_rates, state_from_euler
 from .._top import TippeTop
 from .base import AbstractLevel, Conditions
 from .full import FullLevel
@@ -242,6 +336,12 @@ r"""The longest the launch transient is followed in the SO(3) model (s)."""
 
 SETTLE_RTOL, SETTLE_ATOL = 1e-7, 1e-10
 r"""Tolerances of the two short solves of the fibre projection."""
+
+AVERAGING_NODES = 6
+r"""Gauss-Legendre nodes of the averaged projection's integrals over the decay of a launch's
+nutation ($I$, $\Phi$, $\Psi$ of "Projection of a launch"). The integrands are smooth and
+nearly linear in the tilt: for the standard top 4 nodes agree with 32 to $10^{-6}$ up to a tilt
+of 0.25."""
 
 POLE = 750.0
 r"""$|u| \geq$ `POLE` ($u = \ln\tan(\theta/2)$) is a pole: $e^{-|u|}$ is then exactly zero (in
@@ -451,20 +551,42 @@ def _nutation(top: TippeTop, x, s, J, sm: SlowManifold) -> Nutation:
     return Nutation(frequency_squared=nu2, damping=friction + adiabatic)
 
 
-def nutation_frequency(top: TippeTop, theta, J) -> Array:
+def _momentum_coupling(top: TippeTop, x, s, J, p) -> Array:
+    r"""$K/\sin\theta$, $K = \partial_\theta(M_{\bar\varphi}p + \beta)$ at fixed $p$: the force
+    $(K/M_{\bar\varphi})\,q$ with which the momentum $q$ drives the nutation (see "The
+    nutation it drops"; as in `_nutation`)."""
+    eps, R, A, C = top.eps, top.R, top.A, top.C
+    big_s = eps**2 + R**2
+    lever = R * x - eps
+    d = R**2 * A * s * s + C * lever**2
+    d_x = -2 * R**2 * A * x + 2 * C * R * lever
+    kappa = R * A * eps * s * s + C * lever * (R + eps * x)
+    kappa_x = -2 * R * A * eps * x + C * (R**2 - eps**2 + 2 * R * eps * x)
+    dm_x = A * C * (-2 * x * d - s * s * d_x) / d**2
+    dbeta_x = J / big_s * (kappa_x * d - kappa * d_x) / d**2
+    return -(dm_x * p + dbeta_x)
+
+
+def nutation_frequency(top: TippeTop, theta, J, *, branch: int = 1) -> Array:
     r"""$\nu$ of the nutation about the slow manifold:
-    $\nu^2 = ((Cn - 2A\Omega\cos\theta)^2 + A^2\Omega^2\sin^2\theta)/(A M_\theta)$."""
+    $\nu^2 = ((Cn - 2A\Omega\cos\theta)^2 + A^2\Omega^2\sin^2\theta)/(A M_\theta)$.
+
+    `branch=-1`: about the other root of (G2) ($\nu_-$ of "Projection of a launch")."""
     theta = jnp.asarray(theta, dtype=jnp.result_type(theta, top.m))
     x, s = jnp.cos(theta), jnp.sin(theta)
-    return jnp.sqrt(_nutation(top, x, s, J, _slow_manifold(top, x, s, J)).frequency_squared)
+    sm = _slow_manifold(top, x, s, J, branch)
+    return jnp.sqrt(_nutation(top, x, s, J, sm).frequency_squared)
 
 
-def nutation_damping(top: TippeTop, theta, J) -> Array:
+def nutation_damping(top: TippeTop, theta, J, *, branch: int = 1) -> Array:
     r"""$\sigma$: growth rate of the amplitude of the nutation about the slow manifold (negative:
-    it decays), averaged over a nutation period. See the module docstring."""
+    it decays), averaged over a nutation period. See the module docstring.
+
+    `branch=-1`: about the other root of (G2) ($\sigma_-$ of "Projection of a launch": the
+    growth rate of a launch's slow component while its nutation decays)."""
     theta = jnp.asarray(theta, dtype=jnp.result_type(theta, top.m))
     x, s = jnp.cos(theta), jnp.sin(theta)
-    return _nutation(top, x, s, J, _slow_manifold(top, x, s, J)).damping
+    return _nutation(top, x, s, J, _slow_manifold(top, x, s, J, branch)).damping
 
 
 def _validity(top: TippeTop, x, J, log_amplitude, nutation: Nutation, *,
@@ -503,35 +625,56 @@ def _complex_ratio(top, theta, J, branch):
     return sm.spin - sm.precession * jnp.cos(theta), sm.rate
 
 
-def _projection(top: TippeTop, state: State):
-    """(u, phi_s, psi_s, ln a0, J) of `project_launch`, u = ln tan(theta_s/2)."""
-    J = jellet(top, state)
-    theta, phi, psi = euler_angles(state)
+def _split(top: TippeTop, state: State, J, theta_in):
+    """(Re, Im) of xi_s = (w - r_in xi)/(r_out - r_in), r_in of the other root at `theta_in`,
+    r_out of the level's root at the state's own tilt (complex arithmetic in real components)."""
+    theta, _, _ = euler_angles(state)
     a, w = state.axis, state.omega
-    north = a[2] >= 0
-    pole = jnp.where(north, 0.0, jnp.pi).astype(theta.dtype)
-    in_re, in_im = _complex_ratio(top, pole, J, -1)
+    in_re, in_im = _complex_ratio(top, theta_in, J, -1)
     out_re, out_im = _complex_ratio(top, theta, J, 1)
-    # c = (w - r_in xi) / (r_out - r_in), complex arithmetic in real components
     num_re = w[0] - (in_re * a[0] - in_im * a[1])
     num_im = w[1] - (in_re * a[1] + in_im * a[0])
     den_re, den_im = out_re - in_re, out_im - in_im
     den2 = den_re**2 + den_im**2
+    den2 = jnp.where(den2 > 0, den2, 1.0)
     c_re = (num_re * den_re + num_im * den_im) / den2
     c_im = (num_im * den_re - num_re * den_im) / den2
+    return c_re, c_im
+
+
+def _slow_state(state: State, north, c_re, c_im, log_gain, turn, spin_turn, side):
+    """(u, phi_s, psi_s, ln a0) of the slow component xi_s = c of a state: its modulus scaled by
+    e^{log_gain}, its phase advanced by `turn`, and the body's angle about the vertical
+    (phi + side psi) turned by `spin_turn` (all 0 and side = 1 for the linear projection)."""
+    _, phi, psi = euler_angles(state)
+    a = state.axis
     mod2 = c_re**2 + c_im**2
     positive = mod2 > 0
-    modulus = jnp.clip(jnp.where(positive, jnp.sqrt(jnp.where(positive, mod2, 1.0)), 0.0), 0, 1)
+    modulus = jnp.where(positive, jnp.sqrt(jnp.where(positive, mod2, 1.0)), 0.0)
+    modulus = jnp.clip(modulus * jnp.exp(log_gain), 0, 1)
     # sin(tilt) = |xi_s|; tan(tilt/2) = sin/(1 + cos), no cancellation
     log_tan = _safe_log(modulus / (1 + jnp.sqrt(1 - modulus**2)), -POLE)
     u = jnp.clip(jnp.where(north, log_tan, -log_tan), -POLE, POLE)
-    # xi_s = -i sin(theta_s) e^{i phi_s}: phi_s = atan2(Re xi_s, -Im xi_s); keep phi + psi.
-    phi_s = jnp.where(positive, jnp.arctan2(c_re, -c_im), phi)
+    # xi_s = -i sin(theta_s) e^{i phi_s}: phi_s = atan2(Re xi_s, -Im xi_s)
+    phi_s = jnp.where(positive, jnp.arctan2(c_re, -c_im) + turn, phi)
+    psi_s = psi + side * (phi - phi_s + spin_turn)
     # the nutation: what is left of the horizontal axis, xi - xi_s
     rest2 = (a[0] - c_re) ** 2 + (a[1] - c_im) ** 2
     floor2 = jnp.asarray(NUTATION_FLOOR, rest2.dtype) ** 2
     log_amplitude = 0.5 * jnp.log(jnp.maximum(rest2, floor2))
-    return u, phi_s, psi + phi - phi_s, log_amplitude, J
+    return u, phi_s, psi_s, log_amplitude
+
+
+def _projection(top: TippeTop, state: State):
+    """(u, phi_s, psi_s, ln a0, J) of `project_launch`, u = ln tan(theta_s/2)."""
+    J = jellet(top, state)
+    theta, _, _ = euler_angles(state)
+    north = state.axis[2] >= 0
+    pole = jnp.where(north, 0.0, jnp.pi).astype(theta.dtype)
+    c_re, c_im = _split(top, state, J, pole)
+    zero = jnp.zeros_like(c_re)
+    # the linear projection keeps phi + psi (at both poles)
+    return (*_slow_state(state, north, c_re, c_im, zero, zero, zero, 1.0), J)
 
 
 def project_launch(top: TippeTop, state: State):
@@ -637,18 +780,170 @@ def settle_launch(top: TippeTop, state: State) -> GyroscopicLevelState:
     return jax.tree_util.tree_map(lambda a, b: jnp.where(use, a, b), back, linear)
 
 
+class LaunchTransient(eqx.Module):
+    r"""What the decay of a launch's nutation does to its slow component (see "Projection of a
+    launch" in the module docstring): the integrals over the other root's mode decaying from
+    the tilt $\vartheta_f$ to the pole.
+
+    - `gain`: $I = \int (\sigma_-(\vartheta) - \sigma_-(0))\,dt$, the log of the factor by
+      which the slow component's amplitude ends up changed.
+    - `turn`: $\Phi$, the extra turn of its phase ($\varphi_s$).
+    - `spin_turn`: $\Psi$, the extra turn of the body about the vertical ($\varphi + \psi$).
+    - `valid`: the other root's mode decays along the whole path (else the integrals are 0).
+    """
+
+    gain: Array
+    turn: Array
+    spin_turn: Array
+    valid: Array
+
+
+def launch_transient(top: TippeTop, shed, J, *, north=True) -> LaunchTransient:
+    r"""The integrals $I$, $\Phi$, $\Psi$ over the decay of the other root's mode from a tilt
+    `shed` $= \vartheta_f$ (from the pole: $\theta = \vartheta$ at the north pole,
+    $\pi - \vartheta$ at the south pole) to the pole, at Jellet `J`:
+
+    $$I = \int_0^{\vartheta_f}\frac{\sigma_-(\vartheta) - \sigma_-(0)}{|\dot\vartheta_-|}\,
+    d\vartheta,\quad
+    \Phi = \int_0^{\vartheta_f}\frac{\mathrm{sgn}(J)(\nu_- - \nu_-(0)) + \Omega_- -
+    \Omega_-(0)}{|\dot\vartheta_-|}\,d\vartheta,\quad
+    \Psi = \int_0^{\vartheta_f}\frac{\Omega_-(1 \mp \cos\theta) \pm (n_- - n_-(0))}
+    {|\dot\vartheta_-|}\,d\vartheta,$$
+
+    with $\sigma_-$, $\nu_-$ the nutation about the other root, $\Omega_-$, $n_-$ its precession
+    and spin, $\dot\vartheta_- = \mp$ (G3) its decay (upper signs at the north pole), by
+    Gauss-Legendre quadrature on `AVERAGING_NODES` nodes. See "Projection of a launch".
+    """
+    dtype = jnp.result_type(shed, top.m)
+    shed = jnp.asarray(shed, dtype)
+    nodes, weights = np.polynomial.legendre.leggauss(AVERAGING_NODES)
+    tilt = 0.5 * shed[..., None] * (1 + jnp.asarray(nodes, dtype))
+    weight = 0.5 * shed[..., None] * jnp.asarray(weights, dtype)
+    north = jnp.asarray(north)[..., None]
+    side = jnp.where(north, 1.0, -1.0).astype(dtype)
+    s = jnp.sin(tilt)
+    x = side * jnp.cos(tilt)
+    J = jnp.asarray(J, dtype)[..., None]
+    other = _slow_manifold(top, x, s, J, -1)
+    nutation = _nutation(top, x, s, J, other)
+    at_pole = _slow_manifold(top, side, jnp.zeros_like(side), J, -1)
+    nutation_pole = _nutation(top, side, jnp.zeros_like(side), J, at_pole)
+    decay = -side * other.rate * s  # -d(vartheta)/dt along the other root
+    moving = s > 0
+    decays = decay > 0
+    safe = jnp.where(decays, decay, 1.0)
+
+    def integral(rate):
+        return jnp.sum(weight * jnp.where(decays, rate / safe, 0.0), axis=-1)
+
+    sign = _sign(J)
+    gain = integral(nutation.damping - nutation_pole.damping)
+    turn = integral(sign * (_safe_sqrt(nutation.frequency_squared)
+                            - _safe_sqrt(nutation_pole.frequency_squared))
+                    + other.precession - at_pole.precession)
+    spin_turn = integral(other.precession * (1 - side * x) + side * (other.spin - at_pole.spin))
+    valid = jnp.all((decays | ~moving) & (other.discriminant > 0), axis=-1)
+    valid = valid & jnp.isfinite(gain) & jnp.isfinite(turn) & jnp.isfinite(spin_turn)
+    zero = jnp.zeros_like(gain)
+    return LaunchTransient(
+        gain=jnp.where(valid, gain, zero),
+        turn=jnp.where(valid, turn, zero),
+        spin_turn=jnp.where(valid, spin_turn, zero),
+        valid=valid,
+    )
+
+
+def _kept_amplitude(top: TippeTop, state: State, J, theta_b):
+    r"""$(a_0, \theta_c)$: the amplitude (in $\theta$) of the nutation of a state about the other
+    root's state at tilt `theta_b` with the same $J$, and the $\theta$ of its centre (reduced
+    chart, conservative linearisation): $\theta_c = \theta_b + K\delta p/(M_\theta\nu^2)$,
+    $a_0^2 = (\theta - \theta_c)^2 + (\delta\dot\theta/\nu)^2$."""
+    theta, _, _ = euler_angles(state)
+    theta_dot, phi_dot, psi_dot = euler_rates(state)
+    x, s = jnp.cos(theta_b), jnp.sin(theta_b)
+    base = _slow_manifold(top, x, s, J, -1)
+    nutation = _nutation(top, x, s, J, base)
+    nu2 = jnp.where(nutation.frequency_squared > 0, nutation.frequency_squared, 1.0)
+    inertia = top.A + top.m * top.eps**2 * s * s  # M_theta
+    slip = top.R * psi_dot + top.eps * phi_dot  # p of the state
+    coupling = s * _momentum_coupling(top, x, s, J, base.slip)  # K
+    centre = theta_b + coupling * (slip - base.slip) / (inertia * nu2)
+    velocity = (theta_dot - base.theta_dot) / jnp.sqrt(nu2)
+    return _safe_sqrt((theta - centre) ** 2 + velocity**2), centre
+
+
+def _averaged(top: TippeTop, state: State):
+    """(u, phi_s, psi_s, ln a0, J) of `average_launch`."""
+    J = jellet(top, state)
+    theta, _, _ = euler_angles(state)
+    north = state.axis[2] >= 0
+    # the launch's tilt from the nearer pole, at most NUTATION_LAUNCH_MAX (a launch with more
+    # nutation is refused; one tilted further is taken only near the slow manifold)
+    tilt = jnp.minimum(jnp.where(north, theta, jnp.pi - theta), NUTATION_LAUNCH_MAX)
+    theta_b = jnp.where(north, tilt, jnp.pi - tilt)
+    # the split with the other root's mode frozen at the launch's tilt
+    c_re, c_im = _split(top, state, J, theta_b)
+    a = state.axis
+    kept2 = c_re**2 + c_im**2
+    shed2 = (a[0] - c_re) ** 2 + (a[1] - c_im) ** 2
+    # where the launch's nutation dominates: the slow component's amplitude about the other
+    # root's state (reduced chart) and what the nutation's decay feeds into it; where the slow
+    # component dominates, the split (exact on the slow manifold)
+    weight = jnp.where(shed2 > 0, shed2 / jnp.where(shed2 > 0, shed2 + kept2, 1.0), 0.0)
+    amplitude, centre = _kept_amplitude(top, state, J, theta_b)
+    # the nutation decays from its centre (from the pole) to the pole
+    shed = jnp.clip(jnp.where(north, centre, jnp.pi - centre), 0.0, 2 * NUTATION_LAUNCH_MAX)
+    transient = launch_transient(top, shed, J, north=north)
+    log_split = 0.5 * _safe_log(kept2, -2 * POLE)
+    log_reduced = _safe_log(amplitude, -2 * POLE)
+    log_gain = jnp.where(kept2 > 0, weight * (log_reduced + transient.gain - log_split), 0.0)
+    side = jnp.where(north, 1.0, -1.0).astype(c_re.dtype)
+    averaged = _slow_state(state, north, c_re, c_im, log_gain, weight * transient.turn,
+                           weight * transient.spin_turn, side)
+    linear = _projection(top, state)[:4]
+    use = transient.valid & jnp.isfinite(c_re) & jnp.isfinite(c_im) & jnp.isfinite(log_gain)
+    return (*(jnp.where(use, p, q) for p, q in zip(averaged, linear)), J)
+
+
+def average_launch(top: TippeTop, state: State) -> GyroscopicLevelState:
+    r"""The averaged projection of a launch onto the slow manifold (see "Projection of a
+    launch" in the module docstring): $\ln\sin\theta_s = \ln a_0 + I(\vartheta_c)$, with
+    $a_0$ the launch's slow content and $\vartheta_c$ its nutation's centre, both read about
+    the other root's state at the launch's tilt, and $I$ what the nutation feeds into the slow
+    component while it decays (`launch_transient`); where the slow component is not small
+    against the nutation, the split $\xi_s = (w - r_-\xi)/(r_+ - r_-)$ (exact on the slow
+    manifold). No solve: a few evaluations of (G3) and $\sigma$. Falls back to the linear
+    projection where the other root's mode does not decay from the launch's tilt to the pole.
+    """
+    u, phi, psi, log_amplitude, J = _averaged(top, state)
+    return GyroscopicLevelState(
+        log_tan_half_theta=u, phi=phi, psi=psi, nutation=log_amplitude, jellet=J
+    )
+
+
+PROJECTIONS = ("averaged", "fibre", "linear")
+"""The launch projections of `GyroscopicLevel(projection=...)`: `average_launch`,
+`settle_launch`, `project_launch`."""
+
+
 class GyroscopicLevel(AbstractLevel):
     r"""The slow flow (G3) for $\theta$ with $J$ fixed (see the module docstring).
 
     `to_state` gives the state on the slow manifold: $\theta$, $\dot\theta$ of (G3) (the slow
     drift, no nutation), $\dot\varphi = \Omega$, spin $n$ from (G1), horizontal position and
-    velocity zero. `from_state` projects a state onto it (`settle_launch`, the fibre
-    projection; `project_launch` with `fibre_projection=False`). The step size is controlled on
-    $u = \ln\tan(\theta/2)$ alone. Where (G2) has no real root or the slow manifold repels, the
-    run continues in the full model (`fallback`); with `hand_over=False` it stops there with
+    velocity zero. `from_state` projects a state onto it (`projection`, see "Projection of a
+    launch" in the module docstring). The step size is controlled on $u = \ln\tan(\theta/2)$
+    alone. Where (G2) has no real root or the slow manifold repels, the run continues in the
+    full model (`fallback`); with `hand_over=False` it stops there with
     `RESULTS.no_gyroscopic_balance` instead.
 
-    **Static options:** `fibre_projection` (default True), `hand_over` (default True).
+    **Static options:**
+
+    - `projection`: how a launch is projected onto the slow manifold: `"averaged"` (default;
+      `average_launch`, first-order averaging in closed form, no solve), `"fibre"`
+      (`settle_launch`, a short SO(3) solve and a short slow solve per launch) or `"linear"`
+      (`project_launch`).
+    - `hand_over` (default True).
     """
 
     name = "gyroscopic"
@@ -656,12 +951,19 @@ class GyroscopicLevel(AbstractLevel):
     has_chart = True
     chart_end_result = "no_gyroscopic_balance"
     slow_flow = True
-    fibre_projection: bool = eqx.field(static=True, default=True)
+    projection: str = eqx.field(static=True, default="averaged")
     hand_over: bool = eqx.field(static=True, default=True)
 
+    def __check_init__(self):
+        if self.projection not in PROJECTIONS:
+            raise ValueError(f"GyroscopicLevel: projection must be one of {PROJECTIONS}, got "
+                             f"{self.projection!r}.")
+
     def from_state(self, top, state):
-        if self.fibre_projection:
+        if self.projection == "fibre":
             return settle_launch(top, state)
+        if self.projection == "averaged":
+            return average_launch(top, state)
         return _linear_state(top, state)
 
     def to_state(self, top, y):
