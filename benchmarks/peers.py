@@ -287,7 +287,7 @@ def engine_parts(rtol: float):
                 solver = diffrax.Dopri8()
                 if watched:
                     watch = Watch(level, unravel, ("singular", "contact", "upright"))
-                    solver = WatchedSolver(solver, watch, (2,), samples=16, terminating=(0, 1))
+                    solver = WatchedSolver(solver, watch, (2,), samples=8, terminating=(0, 1))
                 sol = diffrax.diffeqsolve(
                     diffrax.ODETerm(field), solver, 0.0, T1, None, flat, TOP,
                     saveat=diffrax.SaveAt(t1=True), max_steps=100_000,

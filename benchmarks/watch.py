@@ -136,7 +136,7 @@ def main():
         "before this change, a dense-output and a condition evaluation per point); 'cubic', the "
         "Hermite cubic from values and rates at the ends; 'quintic K', the engine's check, the "
         "quintic through values and rates at the start, middle and end, checked at K - 1 "
-        "interior points (default K = 16; K = 2 is the exact midpoint alone).",
+        "interior points (default K = 8; K = 2 is the exact midpoint alone).",
         "",
         table(["step (nutation periods)", "step (ms)", "placements"] + list(methods), rows),
         "",

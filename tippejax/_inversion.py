@@ -38,7 +38,7 @@ def inversion_time(
     adjoint: diffrax.AbstractAdjoint | None = None,
     throw: bool = True,
     tolerance: float | None = None,
-    event_samples: int = 16,
+    event_samples: int = 8,
 ) -> Float[Array, ""]:
     r"""The first upward crossing $t^*$ of $\theta = \pi/2$ after `t0` (nan if none by `t1`).
 

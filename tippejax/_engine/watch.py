@@ -21,14 +21,15 @@ crossing.
 The quintic follows the condition to $O((h\nu)^6)$ of its swing over a step ($\nu$ the
 nutation frequency). It replaced a check of the conditions themselves at `samples - 1` points
 of the dense output (a dense-output evaluation and a condition evaluation each). On the first,
-brief dip of $R_n$ of the standard top at 200 rad/s (2 ms below zero, 1% of the swing of
-$R_n$; `tests/test_engine.py`), with exact data, over every placement of a step that holds the
-whole dip: the quintic checked at 16 points sees it in steps of up to 0.9 nutation period, the
-conditions at 8 dense-output points miss it in 17% of the placements of steps of 0.7 period,
-and a cubic from the ends alone misses most. Per step it costs one dense-output evaluation with
-its derivative and two evaluations of the conditions with theirs; in a batch of 1000 SO(3)
-tops the watch adds 0.14 of a plain solve's time, where the 8-point check added 0.36
-(`benchmarks/RESULTS.md`, peers.py).
+brief dip of $R_n$ of the standard top at 200 rad/s (2 ms below zero, 0.8% of the swing of the
+contact condition), with exact data, over every placement of a step that holds the whole dip
+(`benchmarks/watch.py`): both checks at the default 8 points see it in every placement of
+steps up to half a nutation period (Dopri8 takes a third of one at rtol 1e-6); at 0.7 and 0.9
+period the quintic sees it in 87% and 75% of them, the old check in 80% and 60% (the quintic
+at 16 points: all). Per step the quintic costs one dense-output evaluation with its
+derivative and two evaluations of the conditions with theirs; in a batch of 1000 SO(3) tops the
+watch adds about a fifth of a plain solve's time at 8 points (16 points: about a quarter),
+where the old check added a third (`benchmarks/RESULTS.md`, peers.py).
 
 Then
 
