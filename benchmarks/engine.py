@@ -457,7 +457,7 @@ def watch_cost():
 
         return jax.lax.fori_loop(0, n_eval, body, y)
 
-    timing, _ = timed(rhs_loop, y0, top, repeats=REPEATS)
+    timing, _ = timed(rhs_loop, level.from_state(top, y0), top, repeats=REPEATS)
     rhs_in_loop = timing.cpu / n_eval
     # Size of the compiled programs (one pass through every loop body).
     sizes = {
