@@ -49,7 +49,7 @@ from ._engine.solver_choice import default_solver
 from ._invariants import jellet
 from ._simulate import MODELS, simulate
 from ._solution import RESULTS
-from ._state import initial_state
+from ._state import euler_angles, initial_state
 from ._top import TippeTop
 
 OUTCOMES = ("upright", "inverted", "intermediate", "contact_lost", "failed")
@@ -320,6 +320,50 @@ def _auto_models(top: TippeTop, flat_theta, flat_spin, tolerance) -> tuple[list[
     return models, index
 
 
+@eqx.filter_jit
+def _classify_all(top, J, theta_final, result, settle_tol):
+    """`classify_end` of every launch; `result` holds `RESULTS` codes as integers."""
+    item = type(RESULTS.successful)
+
+    def one(j, theta, code):
+        code = item(code.astype(RESULTS.successful._value.dtype), RESULTS)
+        return classify_end(top, j, theta, code, settle_tol=settle_tol)
+
+    return jax.vmap(one)(J, theta_final, result)
+
+
+def _staged_map(top: TippeTop, flat_theta, flat_spin, t1, *, rtol, atol, solver, max_steps,
+                settle_tol, devices):
+    """`outcome_map(model="auto")` with `tolerance=None`: the stages of `_map_stages`.
+
+    **Returns:** `(fields, routes, index)`: the per-launch fields of an `OutcomeMap`, the
+    distinct routes (levels in the order they ran) and each launch's index into them."""
+    from ._map_stages import staged_outcomes
+
+    dtype = jnp.result_type(top.m)
+    y0 = initial_state(top, jnp.asarray(flat_theta, dtype), jnp.asarray(flat_spin, dtype))
+    if solver is None:
+        solver, slow_solver = default_solver(top), default_solver(top, slow_flow=True)
+    else:
+        slow_solver = solver
+    run = staged_outcomes(top, y0, t1, rtol=rtol, atol=atol, solver=solver,
+                          slow_solver=slow_solver, max_steps=max_steps, devices=devices)
+    J = np.asarray(jax.vmap(lambda y: jellet(top, y))(y0))
+    theta_final = np.asarray(jax.vmap(lambda y: euler_angles(y)[0])(
+        jax.tree_util.tree_map(jnp.asarray, run["state"])))
+    outcome, settled, expected = _classify_all(
+        top, jnp.asarray(J), jnp.asarray(theta_final), jnp.asarray(run["result"]),
+        float(settle_tol))
+    fields = dict(
+        outcome=np.asarray(outcome), settled=np.asarray(settled), theta_final=theta_final,
+        theta_expected=np.asarray(expected), t_invert=run["t_invert"],
+        t_contact_loss=run["t_contact_loss"], t_final=run["t_final"], jellet=J,
+        result=run["result"].astype(np.int8), num_steps=run["num_steps"].astype(np.int32),
+    )
+    routes, index = np.unique(run["route"], return_inverse=True)
+    return fields, [str(r) for r in routes], index
+
+
 def outcome_map(
     top: TippeTop,
     theta0: ArrayLike,
@@ -372,12 +416,28 @@ def outcome_map(
     spin = _axis("spin", spin)
     grid_theta, grid_spin = np.meshgrid(theta0, spin, indexing="ij")
     flat_theta, flat_spin = grid_theta.ravel(), grid_spin.ravel()
+    devices = jax.devices() if devices is None else list(devices)
+    shape = grid_theta.shape
+    dtype = jnp.result_type(top.m)
+    common = dict(
+        top=top, axes=("theta0", "spin"), theta0=jnp.asarray(theta0, dtype),
+        spin=jnp.asarray(spin, dtype), A_over_C=top.A_over_C, eps_over_R=top.eps_over_R,
+        t1=float(t1), rtol=float(rtol), atol=float(atol), settle_tol=float(settle_tol),
+    )
+    if model == "auto" and tolerance is None:
+        out, models, index = _staged_map(
+            top, flat_theta, flat_spin, t1, rtol=rtol, atol=atol, solver=solver,
+            max_steps=max_steps, settle_tol=settle_tol, devices=devices,
+        )
+        return OutcomeMap(
+            model_index=jnp.asarray(index.reshape(shape), jnp.int8), models=tuple(models),
+            **common, **{key: jnp.asarray(v.reshape(shape)) for key, v in out.items()},
+        )
     if model == "auto":
         models, index = _auto_models(top, flat_theta, flat_spin, tolerance)
     else:
         models, index = [model], np.zeros(flat_theta.size, int)
     solver = default_solver(top) if solver is None else solver
-    devices = jax.devices() if devices is None else list(devices)
     out = None
     for k, name in enumerate(models):
         members = np.flatnonzero(index == k)
@@ -390,14 +450,9 @@ def outcome_map(
             out = {key: np.empty((flat_theta.size,) + v.shape[1:], v.dtype) for key, v in part.items()}
         for key, v in part.items():
             out[key][members] = v
-    shape = grid_theta.shape
-    dtype = jnp.result_type(top.m)
     return OutcomeMap(
-        top=top, axes=("theta0", "spin"), theta0=jnp.asarray(theta0, dtype),
-        spin=jnp.asarray(spin, dtype), A_over_C=top.A_over_C, eps_over_R=top.eps_over_R,
         model_index=jnp.asarray(index.reshape(shape), jnp.int8), models=tuple(models),
-        t1=float(t1), rtol=float(rtol), atol=float(atol), settle_tol=float(settle_tol),
-        **{key: jnp.asarray(v.reshape(shape)) for key, v in out.items()},
+        **common, **{key: jnp.asarray(v.reshape(shape)) for key, v in out.items()},
     )
 
 
