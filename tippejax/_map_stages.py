@@ -5,40 +5,62 @@ A batch of launches runs in lock-step (`jax.vmap` of a solve takes as many steps
 member), so a batch that mixed slow-flow runs (tens of steps) with full-model runs (thousands)
 would cost as much as the full-model map. Here every launch is a sequence of **stages**, and each
 stage runs the members that need it as a batch of their own, compacted on the host between two
-compiled calls:
+compiled calls (`staged_outcomes`):
 
-1. **Full until slow** (`FullUntilSlowLevel`): a launch the gyroscopic level does not accept
-   (gyroscopic balance does not hold, or it carries more nutation than the level can project,
-   `NUTATION_LAUNCH_MAX`) runs in the full model until the state is inside the level's chart
-   with margins (`entry_margin`), or until contact is lost, or to `t1`.
-2. **Slow** (`GyroscopicLevel(stop_at_hand_over=True)`): the slow flow (G3) from the
-   projection of the state (averaged projection) to `t1`, or to where the level would hand
-   over: its slow manifold repels ($\sigma > 0$, at fast spins during the rise: the route to
-   contact loss) or gyroscopic balance is lost.
-3. A run handed over goes back to stage 1 from the **reconstructed state**: the state on the
-   slow manifold with the nutation the full model carries there (`nutating_state`), so that the
-   full model finds its own contact loss (or none) from the hand-over on.
+1. **Full window**: a launch the gyroscopic level does not accept (`in_chart`: gyroscopic
+   balance fails, or the launch carries more nutation than it can project,
+   `NUTATION_LAUNCH_MAX`) runs in the full model for a window (`FIRST_WINDOW`, doubling on
+   each further window of the same run), ending early where contact is lost. At the end of the
+   window the state is split into the full model's modes at the nearer pole (`split_state`:
+   the slow manifold's component and the nutation), and the gyroscopic level takes the run
+   over where `entry_margin` is positive: gyroscopic balance with a margin, the nutation
+   about the slow manifold decaying ($-\sigma/\nu >$ `ENTRY_DECAY`), the nutation below
+   `ENTRY_NUTATION` and taking less than `ENTRY_CONTACT` of $g$ off the normal force.
+2. **Slow**: the slow flow (G3) (`GyroscopicLevel(stop_at_hand_over=True,
+   contact_margin=HAND_OVER_CONTACT)`) from the slow component (a launch: the averaged
+   projection) to `t1`, or to where the run must go back to the full model: the slow manifold
+   repels ($\sigma > 0$, at fast spins during the rise: the route to contact loss),
+   gyroscopic balance is lost, or the nutation the run carries would take `HAND_OVER_CONTACT`
+   of $g$ off the normal force.
+3. **Replay**: a run handed back goes to the full model again from the state where it last
+   left it (the launch, or the end of its last window), through the hand-over time and on in
+   windows as in 1. The full model thus decides every contact loss from its own state; the
+   slow stage only decides when the full model is needed, and what it computed after that
+   state is discarded.
 
-After `MAX_ROUNDS` rounds of stages 1-2, a run still not finished runs in the full model to
-`t1`. Members of a stage batch are sorted by spin (the full model's steps follow the nutation,
-whose frequency grows with the spin) and run in chunks of `STAGE_CHUNK`, so a chunk holds
-members of similar cost; the chunk is padded with zero-length members (one compilation per
-stage and chunk size).
+A run is handed back at most `MAX_HAND_OVERS` times and goes through at most `MAX_STAGES`
+stages; then it finishes in the full model. Members of a full-model stage are sorted by spin x
+length of the window (the full model's steps follow the nutation, whose frequency grows with
+the spin) and run in chunks of `STAGE_CHUNK`, padded with zero-length members (one compilation
+per stage and chunk size), so a chunk holds members of similar cost.
 
-**The nutation at the hand-over.** The gyroscopic level is the slow flow of the SO(3) model,
-and there the nutation a launch carries (the other root's mode) decays at about 5/s
+**The nutation the slow stage carries.** The gyroscopic level is the slow flow of the SO(3)
+model, and there the nutation a launch carries (the other root's mode) decays at about 5/s
 (`nutation_damping`). In the full model it does not all decay: at the vertical state that mode
 splits into one that decays faster still and one in which the centre of mass rolls round with
 the contact point, which barely decays (`pole_linearisation`: standard top at 200 rad/s,
-$-0.06$/s). A launch at $\theta_0 = 0.1$ keeps about 0.035 rad of it through the whole rise, and
-where the slow manifold repels that nutation grows into the contact loss. A full model
-restarted from the slow manifold without it loses contact late or not at all (standard top,
-$\theta_0 = 0.1$: no loss at 160-180 rad/s against a loss at 5.4-5.7 s). So at each entry into
-the slow stage the state is split into the three modes of `pole_linearisation` at the nearer
-pole, the rolling mode's amplitude $a_e$ is kept with its decay rate $\lambda$ (the real part of
-its eigenvalue), and at the hand-over at $t_h$ the full model restarts with a nutation of
-$a_e e^{\lambda(t_h - t_e)}$. A state entering away from the poles ($\sin\theta >$
-`POLE_SPLIT_SIN`) keeps its linear projection's nutation amplitude instead.
+$-0.06$/s against $-5.1$/s). A launch at $\theta_0 = 0.1$ keeps about 0.035 rad of it through
+the rise, one at $\theta_0 = 0.5$ about 0.15-0.2 rad, and with it the full model loses contact
+where the slow flow ($R_n = mg$, $\sigma < 0$) sees nothing: at $\theta_0 = 0.6$, 175 rad/s,
+the full model loses contact at 5.14 s, at $\theta \approx 0.4$, while the slow manifold only
+repels from $\theta \approx 1.2$ on. The vertical acceleration of the centre of mass that a
+nutation of amplitude $a$ and frequency $\nu$ brings is about $\epsilon\sin\theta\,a\nu^2$, and
+contact is lost where it reaches about $g$. So each run carries into the slow stage the
+amplitude $a$ of its nutation (the modes of `pole_linearisation` other than the slow
+manifold's) and the growth rate of the one that outlives the other (the rolling mode's real
+part), and the slow stage hands over where $\epsilon\sin\theta\,a\nu^2$ reaches
+`HAND_OVER_CONTACT` $g$. A state away from the poles ($\sin\theta >$ `POLE_SPLIT_SIN`) is split
+with the linear projection (SO(3) modes) instead.
+
+Why a replay and not a restart from the slow state with the carried nutation added (a turning
+point of the nutation of the reduced system, at fixed $J$ and momentum of $\bar\varphi$): an
+earlier version that restarted there, handing over only where the slow manifold repels, agreed
+on 95% of the standard map's outcomes and missed 37 of its 141 contact losses, most of them at
+$\theta_0 \geq 0.3$, where the contact loss comes from the carried nutation before the slow
+manifold repels, and the rest near the boundary of the contact-loss region, where the outcome
+turns on the amplitude and phase the full model carries, which the slow stage knows only
+roughly. The replay gives the full model's outcome wherever the slow stage hands over, at the
+cost of the full model from the last window to the hand-over.
 """
 
 from __future__ import annotations
@@ -307,7 +329,7 @@ def staged_outcomes(top: TippeTop, y0: State, t1: float, *, rtol, atol, solver, 
     (`RESULTS` code), `t_invert`, `t_contact_loss`, `num_steps` (all stages), `route` (str:
     the levels that ran, e.g. `"gyroscopic->full"`), `hand_overs` (how many times the slow
     stage handed the run back), and `stages` (a list of `(level, members, steps of each
-    member)` in the order the stages ran).
+    member, RESULTS code of each member)` in the order the stages ran).
     """
     size = np.asarray(y0.axis).shape[0]
     dtype = jnp.result_type(top.m)
@@ -349,7 +371,7 @@ def staged_outcomes(top: TippeTop, y0: State, t1: float, *, rtol, atol, solver, 
         for i in index:
             if not routes[i] or routes[i][-1] != stage:
                 routes[i].append(stage)
-        stages.append((stage, index, out["num_steps"]))
+        stages.append((stage, index, out["num_steps"], out["result"]))
 
     for stage in range(MAX_STAGES):
         last = stage == MAX_STAGES - 1

@@ -82,7 +82,10 @@ class OutcomeMap(eqx.Module):
     - `result`: the `RESULTS` code of each run (int8); `om.message()` gives the messages
       (`tj.RESULTS.message(om.result)`, elementwise).
     - `num_steps`: solver steps of each run.
-    - `model_index`: index into `models`, the level each launch was simulated with.
+    - `model_index`: index into `models`, the level each launch was simulated with; for the
+      staged maps of `model="auto"` the route, e.g. `"full->gyroscopic"` (the levels in the
+      order they ran; a `"full"` after `"gyroscopic"` is the full model run again from where
+      the run last left it, see `tippejax/_map_stages.py`).
     - `t1`, `rtol`, `atol`, `settle_tol`: the settings.
     """
 
@@ -391,13 +394,27 @@ def outcome_map(
     - `top`: one `TippeTop`.
     - `theta0`: launch tilts (rad), 1-d, in $[0, \pi]$; `spin`: launch spins (rad/s), 1-d.
     - `t1`: simulated time (s) of every launch; long enough for the map to settle.
-    - `model`: a level of `simulate`, or `"auto"` (default): for each launch the level
-      `simulate(..., model="auto", tolerance=tolerance)` would use (`tolerance=None`: the
-      full model). Launches on different levels are run as separate batches. The levels
-      without translation (`"so3"`, `"routhian"`) did not see the contact loss of fast
-      launches that the full model sees (`benchmarks/RESULTS.md`, maps.py: 141 of 768 launches
-      of the standard top's map, all "inverted" for them), and `tolerance` bounds the error in
-      theta(t), not this: where contact loss matters keep the full model.
+    - `model`: a level of `simulate`, or `"auto"` (default). With `tolerance=None`, `"auto"`
+      runs each launch at the cheapest level that gives the full model's outcome: the
+      gyroscopic level (slow flow) where it holds and the full model where it does not, each
+      in batches of its own (`tippejax/_map_stages.py`). A launch the gyroscopic level does not
+      accept runs in the full model in windows until it does; the slow flow runs until
+      the slow manifold repels, gyroscopic balance is lost, or the nutation the run carries
+      comes near lifting the top off the table; from there the full model runs again from where
+      the run last left it, so every contact loss is the full model's own. `om.models` names
+      the routes (e.g. `"full->gyroscopic"`: a window of the full model, then the slow flow to
+      `t1`) and `om.model_index` each launch's. Measured (`benchmarks/RESULTS.md`, maps.py,
+      theta0 0.02-1.5 x spin 10-220 rad/s, t1 = 20 s): the same outcome as the full model's
+      map for every launch of the standard (IIb), IIa and III maps and of a shifted grid of
+      each, no contact loss missed, at 1.5-3x the full map's launches per second on 2 CPU
+      cores; most of the cost left is the full model, for the launches whose nutation (at
+      tilts above about 0.3 rad, in the full model a mode that barely decays) keeps them out
+      of the slow flow's reach, and for the replays. With a `tolerance` (max error in
+      theta(t), rad), each launch runs at the level
+      `simulate(..., model="auto", tolerance=tolerance)` would use, in separate batches; the
+      levels without translation (`"so3"`, `"routhian"`) do not see the contact loss of fast
+      launches that the full model sees (141 of 768 launches of the standard top's map, all
+      "inverted" for them), and `tolerance` bounds the error in theta(t), not this.
     - `rtol`, `atol`: solver tolerances. The defaults are looser than `simulate`'s: a map needs
       the end state, not the path (`benchmarks/maps.py` measures how many outcomes change
       against rtol 1e-9).
