@@ -257,7 +257,7 @@ def simulate(
     tolerance: float | None = None,
     summary: bool = False,
     adjoint: diffrax.AbstractAdjoint | None = None,
-    event_samples: int = 16,
+    event_samples: int = 8,
     body: bool | None = None,
 ) -> Solution:
     r"""Integrate the motion of `top` from `y0` at `t0` to `t1` with the chosen level of model.
@@ -398,7 +398,7 @@ def simulate(
 
 
 def simulate_tilt(top: TippeTop, y0: State, ts, *, t0, t1, model: str, rtol, atol,
-                  solver=None, max_steps: int, adjoint, event_samples: int = 16) -> dict:
+                  solver=None, max_steps: int, adjoint, event_samples: int = 8) -> dict:
     """The tilt and precession angle at the save times `ts`, and the contact-loss time, of the
     run `simulate(..., saveat=ts, on_contact_loss="continue", throw=False)` would make.
 

@@ -239,5 +239,6 @@ def run_segment(
         fired=fired,
         observed=observed_times,
         num_steps=sol.stats["num_steps"],
-        num_rejected_steps=sol.stats["num_rejected_steps"],
+        # Counted by the watch, not read from diffrax's own counter (see `_WatchState.tally`).
+        num_rejected_steps=sol.stats["num_steps"] - sol.solver_state.accepted.astype(int),
     )

@@ -21,14 +21,15 @@ crossing.
 The quintic follows the condition to $O((h\nu)^6)$ of its swing over a step ($\nu$ the
 nutation frequency). It replaced a check of the conditions themselves at `samples - 1` points
 of the dense output (a dense-output evaluation and a condition evaluation each). On the first,
-brief dip of $R_n$ of the standard top at 200 rad/s (2 ms below zero, 1% of the swing of
-$R_n$; `tests/test_engine.py`), with exact data, over every placement of a step that holds the
-whole dip: the quintic checked at 16 points sees it in steps of up to 0.9 nutation period, the
-conditions at 8 dense-output points miss it in 17% of the placements of steps of 0.7 period,
-and a cubic from the ends alone misses most. Per step it costs one dense-output evaluation with
-its derivative and two evaluations of the conditions with theirs; in a batch of 1000 SO(3)
-tops the watch adds 0.14 of a plain solve's time, where the 8-point check added 0.36
-(`benchmarks/RESULTS.md`, peers.py).
+brief dip of $R_n$ of the standard top at 200 rad/s (2 ms below zero, 0.8% of the swing of the
+contact condition), with exact data, over every placement of a step that holds the whole dip
+(`benchmarks/watch.py`): both checks at the default 8 points see it in every placement of
+steps up to half a nutation period (Dopri8 takes a third of one at rtol 1e-6); at 0.7 and 0.9
+period the quintic sees it in 87% and 75% of them, the old check in 80% and 60% (the quintic
+at 16 points: all). Per step the quintic costs one dense-output evaluation with its
+derivative and two evaluations of the conditions with theirs; in a batch of 1000 SO(3) tops the
+watch adds about a fifth of a plain solve's time at 8 points (16 points: about a quarter),
+where the old check added a third (`benchmarks/RESULTS.md`, peers.py).
 
 Then
 
@@ -111,7 +112,12 @@ def _quintic_samples(samples: int) -> np.ndarray:
 class _WatchState(eqx.Module):
     inner: PyTree
     previous: Float[Array, " n"]  # watched conditions at the start of the step
-    previous_rate: Float[Array, " n"]  # and their time derivatives there
+    # Their time derivatives there and, last, the number of accepted steps (diffrax keeps a
+    # solver state only from those), in one vector: updated by one kernel. As a counter of its
+    # own, or as diffrax's rejected-step counter, one more small kernel a step made XLA:CPU run
+    # a single top's step on two threads, at twice the cost (47 against 25 ms for the standard
+    # top's 20 s; `benchmarks/RESULTS.md`, peers.py).
+    tally: Float[Array, " n+1"]
     last_t0: Float[Array, ""]  # the last accepted step (where a terminating event is located)
     last_t1: Float[Array, ""]
     last_y0: PyTree  # the state at its start (the step is taken again to locate the event)
@@ -120,6 +126,14 @@ class _WatchState(eqx.Module):
     step_t0: Float[Array, " m"]
     step_t1: Float[Array, " m"]
     step_y0: PyTree  # the state at the start of that step, leading axis m
+
+    @property
+    def previous_rate(self) -> Float[Array, " n"]:
+        return self.tally[:-1]
+
+    @property
+    def accepted(self) -> Float[Array, ""]:
+        return self.tally[-1]
 
 
 class WatchedSolver(diffrax.AbstractWrappedSolver):
@@ -203,7 +217,7 @@ class WatchedSolver(diffrax.AbstractWrappedSolver):
         return _WatchState(
             inner=self.solver.init(terms, t0, t1, y0, args),
             previous=previous,
-            previous_rate=previous_rate,
+            tally=jnp.concatenate([previous_rate, jnp.zeros(1, previous_rate.dtype)]),
             last_t0=t0,
             last_t1=dummy,
             last_y0=y0,
@@ -281,22 +295,40 @@ class WatchedSolver(diffrax.AbstractWrappedSolver):
                 result == diffrax.RESULTS.successful
             )
             result = diffrax.RESULTS.where(stopped, STOP, result)
+        # Where events fell is written only in the steps where one did (a conditional: in a
+        # run of one top, bookkeeping updated at every step made XLA:CPU run the step's small
+        # kernels on two threads, at twice the cost of a step).
+        def write(book):
+            found, step_t0, step_t1, step_y0, last_t0, last_t1, last_y0 = book
+            return (
+                found | new,
+                take(stack(t0), step_t0),
+                take(stack(t1), step_t1),
+                jax.tree_util.tree_map(lambda a, b: take(stack(a), b).astype(b.dtype), y0,
+                                       step_y0),
+                jnp.where(stopped, t0, last_t0),
+                jnp.where(stopped, t1, last_t1),
+                jax.tree_util.tree_map(lambda a, b: jnp.where(stopped, a.astype(b.dtype), b),
+                                       y0, last_y0),
+            )
+
+        book = (solver_state.found, solver_state.step_t0, solver_state.step_t1,
+                solver_state.step_y0, solver_state.last_t0, solver_state.last_t1,
+                solver_state.last_y0)
+        book = jax.lax.cond(jnp.any(new) | stopped, write, lambda b: b, book)
+        found, step_t0, step_t1, step_y0, last_t0, last_t1, last_y0 = book
         state = _WatchState(
             inner=inner,
             previous=end,
-            previous_rate=rates[1],
-            last_t0=t0,
-            last_t1=t1,
-            last_y0=jax.tree_util.tree_map(
-                lambda a, b: a.astype(b.dtype), y0, solver_state.last_y0
-            ),
+            tally=jnp.concatenate([rates[1], solver_state.tally[-1:] + 1]),
+            last_t0=last_t0,
+            last_t1=last_t1,
+            last_y0=last_y0,
             stopped=stopped,
-            found=solver_state.found | new,
-            step_t0=take(stack(t0), solver_state.step_t0),
-            step_t1=take(stack(t1), solver_state.step_t1),
-            step_y0=jax.tree_util.tree_map(
-                lambda a, b: take(stack(a), b).astype(b.dtype), y0, solver_state.step_y0
-            ),
+            found=found,
+            step_t0=step_t0,
+            step_t1=step_t1,
+            step_y0=step_y0,
         )
         return y1, y_error, dense_info, state, result
 
