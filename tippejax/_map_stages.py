@@ -65,6 +65,8 @@ cost of the full model from the last window to the hand-over.
 
 from __future__ import annotations
 
+import inspect
+
 import diffrax
 import equinox as eqx
 import jax
@@ -83,6 +85,7 @@ from ._models.gyroscopic import (
     log_tan_half,
     theta_of,
 )
+from ._simulate import simulate
 from ._solution import RESULTS
 from ._state import State
 from ._top import TippeTop
@@ -90,12 +93,16 @@ from ._top import TippeTop
 STAGE_CHUNK = 64
 """Launches per compiled batch of a stage (rounded up to a multiple of the device count)."""
 
-FIRST_WINDOW = 0.25
+FIRST_WINDOW = 0.5
 """The first window (s) of the full model before the gyroscopic level is asked to take over;
 each further window of the same run is twice as long."""
 
 MAX_STAGES = 12
 """Stages of (full window, slow) at most; a run not finished by then goes to the full model."""
+
+EVENT_SAMPLES = inspect.signature(simulate).parameters["event_samples"].default
+"""Points a step at which the event watch checks its quintics: `simulate`'s default, as the
+full model's map uses."""
 
 MAX_HAND_OVERS = 2
 """Hand-overs of one run at most; after that it stays in the full model to `t1`."""
@@ -136,7 +143,7 @@ def _stage_batch(level, top, states, level_states, t0, t_stop, options):
             level, top, state, start, stop, None, stop_on_contact=True, solver=solver,
             rtol=rtol, atol=atol, max_steps=max_steps,
             adjoint=diffrax.RecursiveCheckpointAdjoint(),
-            progress_meter=diffrax.NoProgressMeter(), samples=16, y0=y0,
+            progress_meter=diffrax.NoProgressMeter(), samples=EVENT_SAMPLES, y0=y0,
         )
         return dict(
             state=out.state_end, t_final=out.t_final,

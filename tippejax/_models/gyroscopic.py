@@ -142,7 +142,17 @@ the chart is integrated by the full model from the start):
 
 `GyroscopicLevel(hand_over=False)` is the slow flow alone, as before: it stops at the chart end
 with `RESULTS.no_gyroscopic_balance` (the $\sigma > 0$ condition then reads: the nutation is
-larger than `NUTATION_MAX` and growing).
+larger than `NUTATION_MAX` and growing). `GyroscopicLevel(stop_at_hand_over=True)` stops where
+the run would hand over, for a caller that continues it itself: the outcome maps of
+`model="auto"` (`tippejax/_map_stages.py`), which also give the level the nutation the full
+model carries (`GyroscopicLevelState.nutation_rate`, `contact_margin`). That nutation is not
+the one this level's $\sigma$ describes: in the full model, the other root's mode splits at
+the vertical state into one that decays faster than $\sigma$ and one in which the centre of
+mass rolls round with the contact point and which barely decays (`pole_linearisation` in
+`full.py`; standard top at 200 rad/s: $-0.06$/s against $\sigma = -5.1$/s). A launch at
+$\theta_0 = 0.1$ keeps about 0.035 rad of it through the rise; that is why the full model
+restarted from the slow manifold at the hand-over loses contact later than from the launch
+(above).
 
 **Projection of a launch** (`from_state`; the option `projection`). A launch with
 $\omega = n a$ is not on the slow manifold (`docs/notes.md`, Launches and the slow manifold):
