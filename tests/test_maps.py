@@ -233,9 +233,9 @@ def test_map_of_a_batch_of_tops_is_refused_clearly(tops):
 
 @pytest.fixture(scope="module")
 def auto_map():
-    """The grid of `standard_map` with `model="auto"` (the default): staged, see
+    """The grid of `standard_map` with `model="auto"`: staged, see
     `tippejax/_map_stages.py`."""
-    return tj.outcome_map(tj.default_top(), THETA0, SPIN, t1=T1)
+    return tj.outcome_map(tj.default_top(), THETA0, SPIN, t1=T1, model="auto")
 
 
 def test_auto_map_gives_the_full_models_outcomes(standard_map, auto_map):

@@ -373,7 +373,7 @@ def outcome_map(
     spin: ArrayLike,
     *,
     t1: float,
-    model: Literal["full", "so3", "routhian", "gyroscopic", "auto"] = "auto",
+    model: Literal["full", "so3", "routhian", "gyroscopic", "auto"] = "full",
     tolerance: float | None = None,
     rtol: float = 1e-6,
     atol: float = 1e-9,
@@ -394,7 +394,8 @@ def outcome_map(
     - `top`: one `TippeTop`.
     - `theta0`: launch tilts (rad), 1-d, in $[0, \pi]$; `spin`: launch spins (rad/s), 1-d.
     - `t1`: simulated time (s) of every launch; long enough for the map to settle.
-    - `model`: a level of `simulate`, or `"auto"` (default). With `tolerance=None`, `"auto"`
+    - `model`: a level of `simulate` (default `"full"`, the only level that sees contact
+      loss), or `"auto"`. With `tolerance=None`, `"auto"`
       runs each launch at the cheapest level that gives the full model's outcome: the
       gyroscopic level (slow flow) where it holds and the full model where it does not, each
       in batches of its own (`tippejax/_map_stages.py`). A launch the gyroscopic level does not
@@ -406,10 +407,12 @@ def outcome_map(
       `t1`) and `om.model_index` each launch's. Measured (`benchmarks/RESULTS.md`, maps.py,
       theta0 0.02-1.5 x spin 10-220 rad/s, t1 = 20 s): the same outcome as the full model's
       map for every launch of the standard (IIb), IIa and III maps and of a shifted grid of
-      each, no contact loss missed, at 1.5-3x the full map's launches per second on 2 CPU
-      cores; most of the cost left is the full model, for the launches whose nutation (at
-      tilts above about 0.3 rad, in the full model a mode that barely decays) keeps them out
-      of the slow flow's reach, and for the replays. With a `tolerance` (max error in
+      each, no contact loss missed, at 0.9-1.6x the full map's launches per second on 2 CPU
+      cores (0.4-0.55x its solver steps; the stages run in lock-step batches of their own, so
+      fewer steps do not all turn into time). It is not the default because it is not
+      faster where it matters: most of the cost left is the full model, for the launches
+      whose nutation (at tilts above about 0.3 rad, in the full model a mode that barely
+      decays) keeps them out of the slow flow's reach, and for the replays. With a `tolerance` (max error in
       theta(t), rad), each launch runs at the level
       `simulate(..., model="auto", tolerance=tolerance)` would use, in separate batches; the
       levels without translation (`"so3"`, `"routhian"`) do not see the contact loss of fast
