@@ -569,3 +569,75 @@ def test_fibre_projection_of_a_spun_launch(top):
     # the settle time is what the projection's decay rate says, and zero on the manifold
     assert 0.2 < float(settle_time(top, y0)) <= SETTLE_TIME_MAX
     assert float(settle_time(top, on_manifold(top, 0.3, 150.0))) == 0.0
+
+
+def test_stop_at_hand_over_and_the_carried_nutation(top):
+    """`stop_at_hand_over` ends the slow flow where `hand_over=True` hands over to the full model,
+    with `RESULTS.no_gyroscopic_balance`. With `contact_margin` it ends earlier, where the
+    nutation the state carries (ln a changing at its own `nutation_rate`, not sigma) would lift
+    that fraction of g off the normal force: eps sin(theta) a nu^2 = contact_margin g there."""
+    from tippejax._engine.chain import run_chain
+
+    y0 = tj.initial_state(top, 0.1, 400.0)
+    chain = tj.simulate(top, y0, 10.0, model="gyroscopic", summary=True, throw=False,
+                        on_contact_loss="continue")
+    switch = float(chain.t_chart_switch)
+    stopped = run_level(GyroscopicLevel(stop_at_hand_over=True), top, y0, 10.0)
+    assert bool(stopped["result"] == tj.RESULTS.no_gyroscopic_balance)
+    assert abs(float(stopped["t_final"]) - switch) < 1e-6
+
+    level = GyroscopicLevel(stop_at_hand_over=True, contact_margin=0.5)
+    start = LEVEL.from_state(top, y0)
+    a0, rate = 0.03, -0.1
+    carried = GyroscopicLevelState(
+        log_tan_half_theta=start.log_tan_half_theta, phi=start.phi, psi=start.psi,
+        nutation=jnp.log(a0), jellet=start.jellet, nutation_rate=jnp.asarray(rate))
+    out = jax.jit(lambda y: run_chain(
+        level, top, y0, 0.0, 10.0, None, stop_on_contact=True, solver=diffrax.Dopri5(),
+        rtol=1e-8, atol=1e-10, max_steps=10_000, adjoint=diffrax.RecursiveCheckpointAdjoint(),
+        progress_meter=diffrax.NoProgressMeter(), samples=8, y0=y))(carried)
+    t_stop = float(out.t_final)
+    assert bool(out.result == tj.RESULTS.no_gyroscopic_balance) and 1.0 < t_stop < switch
+    theta = float(tj.euler_angles(out.state_end)[0])
+    nu2 = float(nutation_frequency(top, theta, start.jellet)) ** 2
+    lift = float(top.eps) * np.sin(theta) * a0 * np.exp(rate * t_stop) * nu2
+    np.testing.assert_allclose(lift, 0.5 * float(top.g), rtol=1e-5)
+
+
+def test_pole_linearisation_is_the_full_models(top):
+    """The complex 3 x 3 form of the full model linearised at the vertical state
+    (`pole_linearisation`) has the eigenvalues of the real Jacobian of the full level's vector
+    field there. One of them is the slow manifold's mode (growing at the slow flow's rate at the
+    pole, precessing at its Omega); of the other root's mode of the SO(3) model (decaying at
+    sigma) the full model makes two, and one of them barely decays."""
+    from tippejax._models.full import FullLevel, pole_linearisation
+    from tippejax._state import State
+
+    for north in (True, False):
+        J = jellet_of(top, 200.0, theta=0.0 if north else np.pi)
+        m = np.asarray(pole_linearisation(top, J, north=north))
+        sign = 1.0 if north else -1.0
+        omega_z = J / (float(top.C) * (float(top.R) - sign * float(top.eps)))
+        level = FullLevel(body=False)
+
+        def field(z, level=level, sign=sign, omega_z=omega_z):
+            y = level.from_state(top, State(position=z[:2], velocity=z[2:4],
+                                            axis=z[4:7], omega=z[7:10],
+                                            body=jnp.array([1.0, 0.0, 0.0])))
+            dy = level.vector_field(0.0, y, top)
+            return jnp.concatenate([dy.position, dy.velocity, dy.axis, dy.omega])
+
+        z = jnp.array([0, 0, 0, 0, 0, 0, sign, 0, 0, omega_z])
+        real = np.linalg.eigvals(np.asarray(jax.jacfwd(field)(z)))
+        values = np.linalg.eigvals(m)
+        for lam in values:
+            assert np.min(np.abs(real - lam)) < 1e-6 * abs(lam) + 1e-9, (lam, real)
+        theta = 0.0 if north else np.pi
+        sm = slow_manifold(top, theta, J)
+        slow = values[np.argmax(np.abs(values.imag))]
+        np.testing.assert_allclose(abs(slow.imag), abs(float(sm.precession)), rtol=0.01)
+        np.testing.assert_allclose(slow.real, sign * float(sm.rate), rtol=0.02)
+        others = np.sort(values[np.abs(values.imag) < 0.5 * abs(slow.imag)].real)
+        sigma = float(nutation_damping(top, theta, J))
+        assert others.size == 2 and others[0] < sigma < others[1] < 0
+        assert others[1] > 0.1 * sigma  # the rolling mode decays ten times slower at least

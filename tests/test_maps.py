@@ -10,7 +10,9 @@ import pytest
 
 import tippejax as tj
 from tippejax._auto import choose_model
+from tippejax._map_stages import staged_outcomes
 from tippejax._maps import INTERMEDIATE, INVERTED, UPRIGHT, _auto_models
+from tippejax._models.levels import LEVELS
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 THETA0 = np.array([0.1, 0.6, 1.2])
@@ -227,3 +229,69 @@ def test_map_of_a_batch_of_tops_is_refused_clearly(tops):
         tj.outcome_map(tops, THETA0, SPIN, t1=T1)
     with pytest.raises(ValueError, match="maps one top"):
         tj.outcome_map_tops(tops, [0.9], [0.3], theta0=0.1, spin=100.0, t1=T1)
+
+
+@pytest.fixture(scope="module")
+def auto_map():
+    """The grid of `standard_map` with `model="auto"`: staged, see
+    `tippejax/_map_stages.py`."""
+    return tj.outcome_map(tj.default_top(), THETA0, SPIN, t1=T1, model="auto")
+
+
+def test_auto_map_gives_the_full_models_outcomes(standard_map, auto_map):
+    """The staged auto map ends every launch where the full model does, on a grid with contact
+    losses, launches the gyroscopic level refuses (tilted 0.6 and 1.2 rad) and runs it hands
+    back to the full model; a contact loss is the full model's own (a replay; the windows
+    restart the solver, so its steps and the located time differ at the level of rtol 1e-6:
+    a restart from the slow manifold was off by 0.1-0.7 s)."""
+    full, auto = standard_map, auto_map
+    np.testing.assert_array_equal(np.asarray(auto.outcome), np.asarray(full.outcome))
+    lost = np.asarray(full.outcome) == tj.OUTCOMES.index("contact_lost")
+    assert lost.any()
+    np.testing.assert_allclose(np.asarray(auto.t_contact_loss)[lost],
+                               np.asarray(full.t_contact_loss)[lost], rtol=1e-4)
+    routes = np.asarray(auto.models)[np.asarray(auto.model_index)]
+    top = full.top
+    refused = ~np.array([[bool(LEVELS["gyroscopic"].in_chart(top, tj.initial_state(top, th, sp)))
+                          for sp in SPIN] for th in THETA0])
+    assert refused.any() and (~refused).any()
+    # a refused launch starts in the full model; an accepted one in the slow flow
+    assert all(r.startswith("full") for r in routes[refused])
+    assert all(r.startswith("gyroscopic") for r in routes[~refused])
+    # the slow flow ran somewhere, and some run went back to the full model after it
+    assert any("gyroscopic" in r for r in routes.ravel())
+    assert any("gyroscopic->full" in r for r in routes.ravel())
+    # the slow flow takes tens of steps where the full model takes hundreds or thousands
+    assert np.sum(np.asarray(auto.num_steps)) < np.sum(np.asarray(full.num_steps))
+
+
+def test_auto_map_stages_are_organised_as_claimed():
+    """Each stage is a batch of its own: the slow stages take few steps; the first full stage
+    holds exactly the launches the gyroscopic level refuses; a launch is in a full stage after
+    a slow stage only if that slow stage handed it back, and a launch the slow stage finished
+    (or that lost contact) is in no later stage."""
+    top = tj.default_top()
+    th, sp = np.meshgrid(THETA0, SPIN, indexing="ij")
+    y0 = tj.initial_state(top, th.ravel(), sp.ravel())
+    refused = ~np.asarray(jax.vmap(lambda y: LEVELS["gyroscopic"].in_chart(top, y))(y0))
+    run = staged_outcomes(top, y0, 8.0, rtol=1e-6, atol=1e-9, solver=tj.default_solver(top),
+                          slow_solver=tj.default_solver(top, slow_flow=True), max_steps=200_000,
+                          devices=jax.devices())
+    stages = run["stages"]
+    level, members, _, _ = stages[0]
+    assert level == "full" and set(members) == set(np.flatnonzero(refused))
+    handed_back = tj.RESULTS.no_gyroscopic_balance._value
+    finished, pending, slow_seen = set(), set(), set()
+    for level, members, steps, codes in stages:
+        assert not finished & set(members), "a finished run came back"
+        if level == "gyroscopic":
+            assert steps.max() < 100, steps.max()
+            slow_seen |= set(members)
+            pending |= set(members[codes == handed_back])
+            finished |= set(members[codes != handed_back])
+        else:
+            # back in the full model after the slow flow only if the slow flow handed it back
+            assert set(members) & slow_seen <= pending
+            finished |= set(members[codes != 0])
+    assert pending, "no run was handed back on this grid"
+    assert np.all(run["hand_overs"][sorted(pending)] >= 1)

@@ -49,7 +49,7 @@ from ._engine.solver_choice import default_solver
 from ._invariants import jellet
 from ._simulate import MODELS, simulate
 from ._solution import RESULTS
-from ._state import initial_state
+from ._state import euler_angles, initial_state
 from ._top import TippeTop
 
 OUTCOMES = ("upright", "inverted", "intermediate", "contact_lost", "failed")
@@ -82,7 +82,10 @@ class OutcomeMap(eqx.Module):
     - `result`: the `RESULTS` code of each run (int8); `om.message()` gives the messages
       (`tj.RESULTS.message(om.result)`, elementwise).
     - `num_steps`: solver steps of each run.
-    - `model_index`: index into `models`, the level each launch was simulated with.
+    - `model_index`: index into `models`, the level each launch was simulated with; for the
+      staged maps of `model="auto"` the route, e.g. `"full->gyroscopic"` (the levels in the
+      order they ran; a `"full"` after `"gyroscopic"` is the full model run again from where
+      the run last left it, see `tippejax/_map_stages.py`).
     - `t1`, `rtol`, `atol`, `settle_tol`: the settings.
     """
 
@@ -320,13 +323,57 @@ def _auto_models(top: TippeTop, flat_theta, flat_spin, tolerance) -> tuple[list[
     return models, index
 
 
+@eqx.filter_jit
+def _classify_all(top, J, theta_final, result, settle_tol):
+    """`classify_end` of every launch; `result` holds `RESULTS` codes as integers."""
+    item = type(RESULTS.successful)
+
+    def one(j, theta, code):
+        code = item(code.astype(RESULTS.successful._value.dtype), RESULTS)
+        return classify_end(top, j, theta, code, settle_tol=settle_tol)
+
+    return jax.vmap(one)(J, theta_final, result)
+
+
+def _staged_map(top: TippeTop, flat_theta, flat_spin, t1, *, rtol, atol, solver, max_steps,
+                settle_tol, devices):
+    """`outcome_map(model="auto")` with `tolerance=None`: the stages of `_map_stages`.
+
+    **Returns:** `(fields, routes, index)`: the per-launch fields of an `OutcomeMap`, the
+    distinct routes (levels in the order they ran) and each launch's index into them."""
+    from ._map_stages import staged_outcomes
+
+    dtype = jnp.result_type(top.m)
+    y0 = initial_state(top, jnp.asarray(flat_theta, dtype), jnp.asarray(flat_spin, dtype))
+    if solver is None:
+        solver, slow_solver = default_solver(top), default_solver(top, slow_flow=True)
+    else:
+        slow_solver = solver
+    run = staged_outcomes(top, y0, t1, rtol=rtol, atol=atol, solver=solver,
+                          slow_solver=slow_solver, max_steps=max_steps, devices=devices)
+    J = np.asarray(jax.vmap(lambda y: jellet(top, y))(y0))
+    theta_final = np.asarray(jax.vmap(lambda y: euler_angles(y)[0])(
+        jax.tree_util.tree_map(jnp.asarray, run["state"])))
+    outcome, settled, expected = _classify_all(
+        top, jnp.asarray(J), jnp.asarray(theta_final), jnp.asarray(run["result"]),
+        float(settle_tol))
+    fields = dict(
+        outcome=np.asarray(outcome), settled=np.asarray(settled), theta_final=theta_final,
+        theta_expected=np.asarray(expected), t_invert=run["t_invert"],
+        t_contact_loss=run["t_contact_loss"], t_final=run["t_final"], jellet=J,
+        result=run["result"].astype(np.int8), num_steps=run["num_steps"].astype(np.int32),
+    )
+    routes, index = np.unique(run["route"], return_inverse=True)
+    return fields, [str(r) for r in routes], index
+
+
 def outcome_map(
     top: TippeTop,
     theta0: ArrayLike,
     spin: ArrayLike,
     *,
     t1: float,
-    model: Literal["full", "so3", "routhian", "gyroscopic", "auto"] = "auto",
+    model: Literal["full", "so3", "routhian", "gyroscopic", "auto"] = "full",
     tolerance: float | None = None,
     rtol: float = 1e-6,
     atol: float = 1e-9,
@@ -347,13 +394,30 @@ def outcome_map(
     - `top`: one `TippeTop`.
     - `theta0`: launch tilts (rad), 1-d, in $[0, \pi]$; `spin`: launch spins (rad/s), 1-d.
     - `t1`: simulated time (s) of every launch; long enough for the map to settle.
-    - `model`: a level of `simulate`, or `"auto"` (default): for each launch the level
-      `simulate(..., model="auto", tolerance=tolerance)` would use (`tolerance=None`: the
-      full model). Launches on different levels are run as separate batches. The levels
-      without translation (`"so3"`, `"routhian"`) did not see the contact loss of fast
-      launches that the full model sees (`benchmarks/RESULTS.md`, maps.py: 141 of 768 launches
-      of the standard top's map, all "inverted" for them), and `tolerance` bounds the error in
-      theta(t), not this: where contact loss matters keep the full model.
+    - `model`: a level of `simulate` (default `"full"`, the only level that sees contact
+      loss), or `"auto"`. With `tolerance=None`, `"auto"`
+      runs each launch at the cheapest level that gives the full model's outcome: the
+      gyroscopic level (slow flow) where it holds and the full model where it does not, each
+      in batches of its own (`tippejax/_map_stages.py`). A launch the gyroscopic level does not
+      accept runs in the full model in windows until it does; the slow flow runs until
+      the slow manifold repels, gyroscopic balance is lost, or the nutation the run carries
+      comes near lifting the top off the table; from there the full model runs again from where
+      the run last left it, so every contact loss is the full model's own. `om.models` names
+      the routes (e.g. `"full->gyroscopic"`: a window of the full model, then the slow flow to
+      `t1`) and `om.model_index` each launch's. Measured (`benchmarks/RESULTS.md`, maps.py,
+      theta0 0.02-1.5 x spin 10-220 rad/s, t1 = 20 s): the same outcome as the full model's
+      map for every launch of the standard (IIb), IIa and III maps and of a shifted grid of
+      each, no contact loss missed, at 0.9-1.6x the full map's launches per second on 2 CPU
+      cores (0.4-0.55x its solver steps; the stages run in lock-step batches of their own, so
+      fewer steps do not all turn into time). It is not the default because it is not
+      faster where it matters: most of the cost left is the full model, for the launches
+      whose nutation (at tilts above about 0.3 rad, in the full model a mode that barely
+      decays) keeps them out of the slow flow's reach, and for the replays. With a `tolerance` (max error in
+      theta(t), rad), each launch runs at the level
+      `simulate(..., model="auto", tolerance=tolerance)` would use, in separate batches; the
+      levels without translation (`"so3"`, `"routhian"`) do not see the contact loss of fast
+      launches that the full model sees (141 of 768 launches of the standard top's map, all
+      "inverted" for them), and `tolerance` bounds the error in theta(t), not this.
     - `rtol`, `atol`: solver tolerances. The defaults are looser than `simulate`'s: a map needs
       the end state, not the path (`benchmarks/maps.py` measures how many outcomes change
       against rtol 1e-9).
@@ -372,12 +436,28 @@ def outcome_map(
     spin = _axis("spin", spin)
     grid_theta, grid_spin = np.meshgrid(theta0, spin, indexing="ij")
     flat_theta, flat_spin = grid_theta.ravel(), grid_spin.ravel()
+    devices = jax.devices() if devices is None else list(devices)
+    shape = grid_theta.shape
+    dtype = jnp.result_type(top.m)
+    common = dict(
+        top=top, axes=("theta0", "spin"), theta0=jnp.asarray(theta0, dtype),
+        spin=jnp.asarray(spin, dtype), A_over_C=top.A_over_C, eps_over_R=top.eps_over_R,
+        t1=float(t1), rtol=float(rtol), atol=float(atol), settle_tol=float(settle_tol),
+    )
+    if model == "auto" and tolerance is None:
+        out, models, index = _staged_map(
+            top, flat_theta, flat_spin, t1, rtol=rtol, atol=atol, solver=solver,
+            max_steps=max_steps, settle_tol=settle_tol, devices=devices,
+        )
+        return OutcomeMap(
+            model_index=jnp.asarray(index.reshape(shape), jnp.int8), models=tuple(models),
+            **common, **{key: jnp.asarray(v.reshape(shape)) for key, v in out.items()},
+        )
     if model == "auto":
         models, index = _auto_models(top, flat_theta, flat_spin, tolerance)
     else:
         models, index = [model], np.zeros(flat_theta.size, int)
     solver = default_solver(top) if solver is None else solver
-    devices = jax.devices() if devices is None else list(devices)
     out = None
     for k, name in enumerate(models):
         members = np.flatnonzero(index == k)
@@ -390,14 +470,9 @@ def outcome_map(
             out = {key: np.empty((flat_theta.size,) + v.shape[1:], v.dtype) for key, v in part.items()}
         for key, v in part.items():
             out[key][members] = v
-    shape = grid_theta.shape
-    dtype = jnp.result_type(top.m)
     return OutcomeMap(
-        top=top, axes=("theta0", "spin"), theta0=jnp.asarray(theta0, dtype),
-        spin=jnp.asarray(spin, dtype), A_over_C=top.A_over_C, eps_over_R=top.eps_over_R,
         model_index=jnp.asarray(index.reshape(shape), jnp.int8), models=tuple(models),
-        t1=float(t1), rtol=float(rtol), atol=float(atol), settle_tol=float(settle_tol),
-        **{key: jnp.asarray(v.reshape(shape)) for key, v in out.items()},
+        **common, **{key: jnp.asarray(v.reshape(shape)) for key, v in out.items()},
     )
 
 

@@ -82,11 +82,14 @@ def run_chain(
     *,
     stop_on_contact: bool,
     inversion: bool = True,
+    y0=None,
     **segment_options,
 ) -> ChainOutput:
     """Run `level`, then its fallbacks, from `state0` at `t0` to `t1` (see the module
     docstring). With `inversion=False` the inversion is not watched (`t_invert` is nan): a
-    caller that needs only the motion (a fit's residuals) compiles a smaller program."""
+    caller that needs only the motion (a fit's residuals) compiles a smaller program. `y0`:
+    the first level's own state at `t0`, for a caller that has it (default
+    `level.from_state(top, state0)`); `state0` must be its common state."""
     chain = level_chain(level)
     dtype = jnp.result_type(top.m)
     nan = jnp.array(jnp.nan, dtype)
@@ -124,7 +127,10 @@ def run_chain(
             result = RESULTS.where(
                 active & ~runs & (result == RESULTS.successful), chart_end, result
             )
-        y0 = lvl.from_state(top, _where_tree(runs, state, stand_in))
+        if i == 0 and y0 is not None:
+            y_start = y0
+        else:
+            y_start = lvl.from_state(top, _where_tree(runs, state, stand_in))
         t_stop = jnp.where(runs, t1, t_start)
         terminating = ("singular",) + (("chart",) if lvl.has_chart else ()) + (
             ("contact",) if stop_on_contact else ()
@@ -133,7 +139,7 @@ def run_chain(
             () if stop_on_contact else ("contact",)
         )
         seg = run_segment(
-            lvl, top, y0, t_start, t_stop, ts, terminating=terminating, observed=observed,
+            lvl, top, y_start, t_start, t_stop, ts, terminating=terminating, observed=observed,
             **segment_options,
         )
         steps = steps + seg.num_steps

@@ -60,6 +60,42 @@ def vector_conditions(top: TippeTop, axis, omega, velocity) -> Conditions:
     )
 
 
+def pole_linearisation(top: TippeTop, J, *, north: bool = True) -> Array:
+    r"""The full model linearised at the vertical state of Jellet `J`, in complex horizontal
+    components: $\dot z = M z$ with $z = (\dot x + i\dot y,\; a_X + ia_Y,\;
+    \omega_X + i\omega_Y)$.
+
+    The vertical state spins at $n = J/(C(R - \epsilon))$ at $\theta = 0$ (`north`), $n =
+    -J/(C(R + \epsilon))$ at $\theta = \pi$ (eq. jello). It is invariant under turns about
+    the vertical, so the real $6\times6$ linearisation in the horizontal components is
+    $\begin{pmatrix}P & -Q\\ Q & P\end{pmatrix}$ (x components first) and $M = P + iQ$
+    ($3\times3$, complex). Its three eigenvalues are the three modes about the vertical state: the
+    slow manifold's (the two roots of (G2) of the gyroscopic level: the fast precession) and, where
+    the SO(3) model has the other root's mode alone, two: one that decays several times faster
+    than the SO(3) model's, and one that barely decays -- the centre of mass rolls round with
+    the contact point (standard top at 200 rad/s: $-0.06 \pm 0.53i$/s against the SO(3)
+    model's $-5.1$/s). Needs concrete or traced values alike; the eigen-decomposition is the
+    caller's (`numpy.linalg.eig`).
+    """
+    dtype = jnp.result_type(top.m, J)
+    J = jnp.asarray(J, dtype)
+    sign = 1.0 if north else -1.0
+    omega_z = J / (top.C * (top.R - top.eps)) if north else J / (top.C * (top.R + top.eps))
+
+    def field(z):  # z = (vx, ax, wx, vy, ay, wy)
+        velocity = jnp.stack([z[0], z[3]])
+        axis = jnp.stack([z[1], z[4], jnp.asarray(sign, dtype)])
+        omega = jnp.stack([z[2], z[5], omega_z])
+        normal_force, omega_dot, v_q, _ = rigid_body_dynamics(top, axis, omega, velocity)
+        velocity_dot = -top.mu * normal_force * v_q[:2] / top.m
+        axis_dot = jnp.cross(omega, axis)
+        return jnp.stack([velocity_dot[0], axis_dot[0], omega_dot[0],
+                          velocity_dot[1], axis_dot[1], omega_dot[1]])
+
+    jac = jax.jacfwd(field)(jnp.zeros(6, dtype))
+    return jac[:3, :3] + 1j * jac[3:, :3]
+
+
 def spin_frame_rates(axis, omega, frame):
     r"""$(\dot c, \dot\sigma)$ of the body vector $b = \cos\sigma\, c + \sin\sigma\, a\times c$.
 

@@ -142,7 +142,17 @@ the chart is integrated by the full model from the start):
 
 `GyroscopicLevel(hand_over=False)` is the slow flow alone, as before: it stops at the chart end
 with `RESULTS.no_gyroscopic_balance` (the $\sigma > 0$ condition then reads: the nutation is
-larger than `NUTATION_MAX` and growing).
+larger than `NUTATION_MAX` and growing). `GyroscopicLevel(stop_at_hand_over=True)` stops where
+the run would hand over, for a caller that continues it itself: the outcome maps of
+`model="auto"` (`tippejax/_map_stages.py`), which also give the level the nutation the full
+model carries (`GyroscopicLevelState.nutation_rate`, `contact_margin`). That nutation is not
+the one this level's $\sigma$ describes: in the full model, the other root's mode splits at
+the vertical state into one that decays faster than $\sigma$ and one in which the centre of
+mass rolls round with the contact point and which barely decays (`pole_linearisation` in
+`full.py`; standard top at 200 rad/s: $-0.06$/s against $\sigma = -5.1$/s). A launch at
+$\theta_0 = 0.1$ keeps about 0.035 rad of it through the rise; that is why the full model
+restarted from the slow manifold at the hand-over loses contact later than from the launch
+(above).
 
 **Projection of a launch** (`from_state`; the option `projection`). A launch with
 $\omega = n a$ is not on the slow manifold (`docs/notes.md`, Launches and the slow manifold):
@@ -589,8 +599,16 @@ def nutation_damping(top: TippeTop, theta, J, *, branch: int = 1) -> Array:
     return _nutation(top, x, s, J, _slow_manifold(top, x, s, J, branch)).damping
 
 
+def _contact_proximity(top: TippeTop, s, log_amplitude, nutation: Nutation, fraction):
+    r"""$\ln(f g) - \ln(\epsilon\sin\theta\,a\nu^2)$: positive while the nutation of
+    amplitude $a = e^{\ln a}$ takes less than the fraction $f$ of $g$ off the normal force."""
+    lift = top.eps * s * nutation.frequency_squared
+    return jnp.log(fraction * top.g) - _safe_log(lift, -2 * POLE) - log_amplitude
+
+
 def _validity(top: TippeTop, x, J, log_amplitude, nutation: Nutation, *,
-              hand_over: bool = False) -> Array:
+              hand_over: bool = False, margin: float = HAND_OVER_MARGIN, sin_theta=None,
+              contact_margin: float | None = None) -> Array:
     h = top.R - top.eps * x
     lever = top.R * x - top.eps
     weight = top.m * top.g * top.eps
@@ -602,7 +620,12 @@ def _validity(top: TippeTop, x, J, log_amplitude, nutation: Nutation, *,
     if hand_over:
         # hand over to the full model as soon as the slow manifold repels: the full model then
         # grows its own nutation (and finds its own contact loss) from the slow state
-        return jnp.minimum(jnp.minimum(balance, decaying - HAND_OVER_MARGIN), projectable)
+        chart = jnp.minimum(jnp.minimum(balance, decaying - margin), projectable)
+        if contact_margin is not None:
+            proximity = _contact_proximity(top, sin_theta, log_amplitude, nutation,
+                                           contact_margin)
+            chart = jnp.minimum(chart, proximity)
+        return chart
     return jnp.minimum(jnp.minimum(balance, jnp.maximum(small, decaying)), projectable)
 
 
@@ -617,6 +640,33 @@ def validity(top: TippeTop, theta, J, log_amplitude) -> Array:
     x, s = jnp.cos(theta), jnp.sin(theta)
     nutation = _nutation(top, x, s, J, _slow_manifold(top, x, s, J))
     return _validity(top, x, J, log_amplitude, nutation)
+
+
+def entry_margin(top: TippeTop, theta, J, log_amplitude, *, nutation_max, decay_min,
+                 balance_min, contact_max) -> Array:
+    r"""How far inside the level's chart the slow state at `theta` (Jellet `J`) with a
+    nutation of amplitude $e^{\ln a}$ (`log_amplitude`) is, with margins:
+    $\min(\Delta_{\rm rel} -$ `BALANCE_MARGIN` $-$ `balance_min`, $-\sigma/\nu -$
+    `decay_min`, $\ln$ `nutation_max` $- \ln a$, $\ln$(`contact_max` $g) -
+    \ln(\epsilon\sin\theta\,a\nu^2))$ (see `contact_margin` of `GyroscopicLevel`). Positive: the level may take over a run of
+    the full model there (`outcome_map(model="auto")`, `tippejax/_map_stages.py`). The margins
+    above those at which the level hands over (`BALANCE_MARGIN`, `HAND_OVER_MARGIN`) keep a run
+    from handing back and forth."""
+    theta = jnp.asarray(theta, dtype=jnp.result_type(theta, top.m))
+    x, s = jnp.cos(theta), jnp.sin(theta)
+    sm = _slow_manifold(top, x, s, J)
+    nutation = _nutation(top, x, s, J, sm)
+    h = top.R - top.eps * x
+    lever = top.R * x - top.eps
+    weight = top.m * top.g * top.eps
+    scale = J**2 + 4 * top.A * h * weight * jnp.abs(lever)
+    balance = (J**2 + 4 * top.A * h * weight * lever) / scale - BALANCE_MARGIN
+    frequency = _safe_sqrt(nutation.frequency_squared)
+    decaying = -nutation.damping / jnp.where(frequency > 0, frequency, 1.0)
+    small = jnp.log(nutation_max) - log_amplitude
+    margin = jnp.minimum(jnp.minimum(balance - balance_min, decaying - decay_min), small)
+    margin = jnp.minimum(margin, _contact_proximity(top, s, log_amplitude, nutation, contact_max))
+    return jnp.where(jnp.isfinite(margin), margin, -1.0)
 
 
 def _complex_ratio(top, theta, J, branch):
@@ -653,7 +703,9 @@ def _slow_state(state: State, north, c_re, c_im, log_gain, turn, spin_turn, side
     modulus = jnp.where(positive, jnp.sqrt(jnp.where(positive, mod2, 1.0)), 0.0)
     modulus = jnp.clip(modulus * jnp.exp(log_gain), 0, 1)
     # sin(tilt) = |xi_s|; tan(tilt/2) = sin/(1 + cos), no cancellation
-    log_tan = _safe_log(modulus / (1 + jnp.sqrt(1 - modulus**2)), -POLE)
+    # (no infinite rate where the modulus is clipped at 1: the event watch of
+    # `FullUntilSlowLevel` differentiates this along the full model)
+    log_tan = _safe_log(modulus / (1 + _safe_sqrt(1 - modulus**2)), -POLE)
     u = jnp.clip(jnp.where(north, log_tan, -log_tan), -POLE, POLE)
     # xi_s = -i sin(theta_s) e^{i phi_s}: phi_s = atan2(Re xi_s, -Im xi_s)
     phi_s = jnp.where(positive, jnp.arctan2(c_re, -c_im) + turn, phi)
@@ -696,7 +748,9 @@ class GyroscopicLevelState(eqx.Module):
     "The level's coordinate" in the module docstring). $\varphi$ and $\psi$ are integrated from
     $\dot\varphi = \Omega$ and $\dot\psi = n - \Omega\cos\theta$ to report the orientation, and
     `nutation` $= \ln a$ from $\sigma$ to watch the nutation that is dropped; none of them feeds
-    back. $J$ is constant.
+    back. $J$ is constant. `nutation_rate` (None by default): a constant $\dot{\ln a}$ that
+    replaces $\sigma$, for a run whose nutation is not the SO(3) model's (the full model's
+    rolling mode, `tippejax/_map_stages.py`).
     """
 
     log_tan_half_theta: Float[Array, ""]
@@ -704,6 +758,7 @@ class GyroscopicLevelState(eqx.Module):
     psi: Float[Array, ""]
     nutation: Float[Array, ""]
     jellet: Float[Array, ""]
+    nutation_rate: Float[Array, ""] | None = None
 
     @property
     def theta(self) -> Array:
@@ -943,7 +998,21 @@ class GyroscopicLevel(AbstractLevel):
       `average_launch`, first-order averaging in closed form, no solve), `"fibre"`
       (`settle_launch`, a short SO(3) solve and a short slow solve per launch) or `"linear"`
       (`project_launch`).
-    - `hand_over` (default True).
+    - `hand_over` (default True): where the chart ends, continue in the full model (see
+      "Where the level ends"); False: the slow flow alone, stopping where the nutation it
+      drops has grown past `NUTATION_MAX` (with `RESULTS.no_gyroscopic_balance`).
+    - `stop_at_hand_over` (default False): with `hand_over`, stop where the run would hand
+      over instead of continuing (with `RESULTS.no_gyroscopic_balance`, at the state on the
+      slow manifold there), for a caller that continues the run itself: `outcome_map` does,
+      in a batch of its own.
+    - `hand_over_margin` (default `HAND_OVER_MARGIN`): with `hand_over`, hand over where
+      $-\sigma/\nu$ falls below this.
+    - `contact_margin` (default None): with `hand_over`, also hand over where the nutation
+      the level carries, of amplitude $a$ and frequency $\nu$, would take the fraction
+      `contact_margin` of $g$ off the normal force: where $\epsilon\sin\theta\,a\nu^2$ (the
+      amplitude of the vertical acceleration of the centre of mass, $h = R - \epsilon
+      \cos\theta$) reaches `contact_margin` $g$. The full model's contact loss comes where it
+      reaches about $g$; the slow flow ($R_n = mg$) cannot see it.
     """
 
     name = "gyroscopic"
@@ -953,6 +1022,9 @@ class GyroscopicLevel(AbstractLevel):
     slow_flow = True
     projection: str = eqx.field(static=True, default="averaged")
     hand_over: bool = eqx.field(static=True, default=True)
+    stop_at_hand_over: bool = eqx.field(static=True, default=False)
+    hand_over_margin: float = eqx.field(static=True, default=HAND_OVER_MARGIN)
+    contact_margin: float | None = eqx.field(static=True, default=None)
 
     def __check_init__(self):
         if self.projection not in PROJECTIONS:
@@ -982,8 +1054,9 @@ class GyroscopicLevel(AbstractLevel):
             log_tan_half_theta=jnp.where(jnp.abs(u) < POLE, sm.rate, 0.0),
             phi=sm.precession,
             psi=sm.spin - sm.precession * x,
-            nutation=nutation.damping,
+            nutation=nutation.damping if y.nutation_rate is None else y.nutation_rate,
             jellet=jnp.zeros_like(y.jellet),
+            nutation_rate=None if y.nutation_rate is None else jnp.zeros_like(y.nutation_rate),
         )
 
     def conditions(self, top, y):
@@ -1001,7 +1074,9 @@ class GyroscopicLevel(AbstractLevel):
             contact=numerator,  # R_n D
             singular=denominator,
             upright=x,
-            chart=_validity(top, x, y.jellet, y.nutation, nutation, hand_over=self.hand_over),
+            chart=_validity(top, x, y.jellet, y.nutation, nutation, hand_over=self.hand_over,
+                            margin=self.hand_over_margin, sin_theta=s,
+                            contact_margin=self.contact_margin),
         )
 
     def in_chart(self, top, state):
@@ -1009,7 +1084,9 @@ class GyroscopicLevel(AbstractLevel):
         return self.conditions(top, _linear_state(top, state)).chart > 0
 
     def fallback(self):
-        return FullLevel(body=self.body) if self.hand_over else None
+        if self.hand_over and not self.stop_at_hand_over:
+            return FullLevel(body=self.body)
+        return None
 
     def error_norm(self, scaled_error):
         return jnp.abs(scaled_error.log_tan_half_theta)

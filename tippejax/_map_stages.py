@@ -1,0 +1,461 @@
+r"""Outcome maps at the cheapest adequate level: the gyroscopic level where it holds, the full
+model where it does not, each in batches of its own (`outcome_map(model="auto")`).
+
+A batch of launches runs in lock-step (`jax.vmap` of a solve takes as many steps as its longest
+member), so a batch that mixed slow-flow runs (tens of steps) with full-model runs (thousands)
+would cost as much as the full-model map. Here every launch is a sequence of **stages**, and each
+stage runs the members that need it as a batch of their own, compacted on the host between two
+compiled calls (`staged_outcomes`):
+
+1. **Full window**: a launch the gyroscopic level does not accept (`in_chart`: gyroscopic
+   balance fails, or the launch carries more nutation than it can project,
+   `NUTATION_LAUNCH_MAX`) runs in the full model for a window (`FIRST_WINDOW`, doubling on
+   each further window of the same run), ending early where contact is lost. At the end of the
+   window the state is split into the full model's modes at the nearer pole (`split_state`:
+   the slow manifold's component and the nutation), and the gyroscopic level takes the run
+   over where `entry_margin` is positive: gyroscopic balance with a margin, the nutation
+   about the slow manifold decaying ($-\sigma/\nu >$ `ENTRY_DECAY`), the nutation below
+   `ENTRY_NUTATION` and taking less than `ENTRY_CONTACT` of $g$ off the normal force.
+2. **Slow**: the slow flow (G3) (`GyroscopicLevel(stop_at_hand_over=True,
+   contact_margin=HAND_OVER_CONTACT)`) from the slow component (a launch: the averaged
+   projection) to `t1`, or to where the run must go back to the full model: the slow manifold
+   repels ($\sigma > 0$, at fast spins during the rise: the route to contact loss),
+   gyroscopic balance is lost, or the nutation the run carries would take `HAND_OVER_CONTACT`
+   of $g$ off the normal force.
+3. **Replay**: a run handed back goes to the full model again from the state where it last
+   left it (the launch, or the end of its last window), through the hand-over time and on in
+   windows as in 1. The full model thus decides every contact loss from its own state; the
+   slow stage only decides when the full model is needed, and what it computed after that
+   state is discarded.
+
+A run is handed back at most `MAX_HAND_OVERS` times and goes through at most `MAX_STAGES`
+stages; then it finishes in the full model. Members of a full-model stage are sorted by spin x
+length of the window (the full model's steps follow the nutation, whose frequency grows with
+the spin) and run in chunks of `STAGE_CHUNK`, padded with zero-length members (one compilation
+per stage and chunk size), so a chunk holds members of similar cost.
+
+**The nutation the slow stage carries.** The gyroscopic level is the slow flow of the SO(3)
+model, and there the nutation a launch carries (the other root's mode) decays at about 5/s
+(`nutation_damping`). In the full model it does not all decay: at the vertical state that mode
+splits into one that decays faster still and one in which the centre of mass rolls round with
+the contact point, which barely decays (`pole_linearisation`: standard top at 200 rad/s,
+$-0.06$/s against $-5.1$/s). A launch at $\theta_0 = 0.1$ keeps about 0.035 rad of it through
+the rise, one at $\theta_0 = 0.5$ about 0.15-0.2 rad, and with it the full model loses contact
+where the slow flow ($R_n = mg$, $\sigma < 0$) sees nothing: at $\theta_0 = 0.6$, 175 rad/s,
+the full model loses contact at 5.14 s, at $\theta \approx 0.4$, while the slow manifold only
+repels from $\theta \approx 1.2$ on. The vertical acceleration of the centre of mass that a
+nutation of amplitude $a$ and frequency $\nu$ brings is about $\epsilon\sin\theta\,a\nu^2$, and
+contact is lost where it reaches about $g$. So each run carries into the slow stage the
+amplitude $a$ of its nutation (the modes of `pole_linearisation` other than the slow
+manifold's) and the growth rate of the one that outlives the other (the rolling mode's real
+part), and the slow stage hands over where $\epsilon\sin\theta\,a\nu^2$ reaches
+`HAND_OVER_CONTACT` $g$. A state away from the poles ($\sin\theta >$ `POLE_SPLIT_SIN`) is split
+with the linear projection (SO(3) modes) instead.
+
+Why a replay and not a restart from the slow state with the carried nutation added (a turning
+point of the nutation of the reduced system, at fixed $J$ and momentum of $\bar\varphi$): an
+earlier version that restarted there, handing over only where the slow manifold repels, agreed
+on 95% of the standard map's outcomes and missed 37 of its 141 contact losses, most of them at
+$\theta_0 \geq 0.3$, where the contact loss comes from the carried nutation before the slow
+manifold repels, and the rest near the boundary of the contact-loss region, where the outcome
+turns on the amplitude and phase the full model carries, which the slow stage knows only
+roughly. The replay gives the full model's outcome wherever the slow stage hands over, at the
+cost of the full model from the last window to the hand-over.
+"""
+
+from __future__ import annotations
+
+import inspect
+
+import diffrax
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from ._engine.chain import run_chain
+from ._models.full import FullLevel, pole_linearisation
+from ._models.gyroscopic import (
+    NUTATION_FLOOR,
+    GyroscopicLevel,
+    GyroscopicLevelState,
+    _projection,
+    entry_margin,
+    log_tan_half,
+    theta_of,
+)
+from ._simulate import simulate
+from ._solution import RESULTS
+from ._state import State
+from ._top import TippeTop
+
+STAGE_CHUNK = 64
+"""Launches per compiled batch of a stage (rounded up to a multiple of the device count)."""
+
+FIRST_WINDOW = 0.5
+"""The first window (s) of the full model before the gyroscopic level is asked to take over;
+each further window of the same run is twice as long."""
+
+MAX_STAGES = 12
+"""Stages of (full window, slow) at most; a run not finished by then goes to the full model."""
+
+EVENT_SAMPLES = inspect.signature(simulate).parameters["event_samples"].default
+"""Points a step at which the event watch checks its quintics: `simulate`'s default, as the
+full model's map uses."""
+
+MAX_HAND_OVERS = 2
+"""Hand-overs of one run at most; after that it stays in the full model to `t1`."""
+
+POLE_SPLIT_SIN = 0.5
+r"""A state with $\sin\theta$ above this is split with the linear projection (SO(3) modes)
+instead of the full model's modes at the pole."""
+
+ENTRY_NUTATION = 0.25
+r"""The gyroscopic level takes over a run of the full model where the nutation (the two
+modes of the full model other than the slow manifold's, at the pole) is below this (rad), as
+it accepts a launch (`NUTATION_LAUNCH_MAX`)..."""
+
+ENTRY_DECAY = 0.005
+r"""... where the nutation about its slow manifold decays at $-\sigma/\nu$ above this (it
+hands over where $-\sigma/\nu$ falls below `HAND_OVER_MARGIN` = 0)..."""
+
+ENTRY_BALANCE = 0.01
+r"""... where $\Delta_{\rm rel}$ is above `BALANCE_MARGIN` by this..."""
+
+ENTRY_CONTACT = 0.25
+r"""... and where the nutation takes less than this fraction of $g$ off the normal force
+($\epsilon\sin\theta\,a\nu^2 <$ `ENTRY_CONTACT` $g$)."""
+
+HAND_OVER_CONTACT = 0.3
+r"""The slow stage hands over where the nutation it carries would take this fraction of $g$
+off the normal force (`GyroscopicLevel(contact_margin=...)`). At 0.5 the Group III map
+(`benchmarks/maps.py`) missed 5 of its 95 contact losses (launches at theta0 0.28-0.41,
+179-207 rad/s, the full model losing contact at 1.7-1.9 s, just after the window the slow
+flow took over from); at 0.3 it misses none, on that grid and on the shifted one."""
+
+
+@eqx.filter_jit
+def _stage_batch(level, top, states, level_states, t0, t_stop, options):
+    """One compiled chunk of a stage: `level` from `(t0, state)` to `t_stop`, per member
+    (starting from `level_states`, the level's own states, where given)."""
+    rtol, atol, solver, max_steps = options
+
+    def one(state, y0, start, stop):
+        out = run_chain(
+            level, top, state, start, stop, None, stop_on_contact=True, solver=solver,
+            rtol=rtol, atol=atol, max_steps=max_steps,
+            adjoint=diffrax.RecursiveCheckpointAdjoint(),
+            progress_meter=diffrax.NoProgressMeter(), samples=EVENT_SAMPLES, y0=y0,
+        )
+        return dict(
+            state=out.state_end, t_final=out.t_final,
+            result=out.result._value.astype(jnp.int8), t_invert=out.t_invert,
+            t_contact_loss=out.t_contact_loss, num_steps=out.num_steps.astype(jnp.int32),
+        )
+
+    return jax.vmap(one)(states, level_states, t0, t_stop)
+
+
+@eqx.filter_jit
+def _accepted(top, states):
+    """Whether the gyroscopic level takes each launch (its `in_chart`)."""
+    return jax.vmap(lambda y: GyroscopicLevel().in_chart(top, y))(states)
+
+
+@eqx.filter_jit
+def _launch_states(top, states, log_nutation, rate):
+    """The gyroscopic level's states of launches (its projection), carrying the nutation
+    `log_nutation` with its own growth `rate`."""
+
+    def one(y, la, r):
+        z = GyroscopicLevel().from_state(top, y)
+        return GyroscopicLevelState(log_tan_half_theta=z.log_tan_half_theta, phi=z.phi,
+                                    psi=z.psi, nutation=la, jellet=z.jellet, nutation_rate=r)
+
+    return jax.vmap(one)(states, log_nutation, rate)
+
+
+@eqx.filter_jit
+def _linearisations(top, J):
+    north = jax.vmap(lambda j: pole_linearisation(top, j, north=True))(J)
+    south = jax.vmap(lambda j: pole_linearisation(top, j, north=False))(J)
+    return north, south
+
+
+@eqx.filter_jit
+def _linear_split(top, states):
+    """(theta_s, phi_s, ln a) of the linear projection (SO(3) modes) of each state."""
+
+    def one(y):
+        u, phi, _, log_amplitude, _ = _projection(top, y)
+        return theta_of(u), phi, log_amplitude
+
+    return jax.vmap(one)(states)
+
+
+@eqx.filter_jit
+def _entry(top, theta, phi, J, log_amplitude, rate):
+    """`entry_margin` of each slow state, and the gyroscopic level's state there (carrying
+    the nutation `log_amplitude` with its growth `rate`) with its common state."""
+    level = GyroscopicLevel()
+
+    def one(th, ph, j, la, r):
+        margin = entry_margin(top, th, j, la, nutation_max=ENTRY_NUTATION,
+                              decay_min=ENTRY_DECAY, balance_min=ENTRY_BALANCE,
+                              contact_max=ENTRY_CONTACT)
+        y = GyroscopicLevelState(log_tan_half_theta=log_tan_half(th), phi=ph,
+                                 psi=jnp.zeros_like(th), nutation=la, jellet=j,
+                                 nutation_rate=r)
+        return margin, y, level.to_state(top, y)
+
+    return jax.vmap(one)(theta, phi, J, log_amplitude, rate)
+
+
+def _bucketed(fn, top, *trees):
+    """`fn(top, *trees)` with the leading axis of `trees` padded to a power of two (at least 16;
+    copies of the last member), cut back after: one compilation per bucket, not per size."""
+    size = np.asarray(jax.tree_util.tree_leaves(trees[0])[0]).shape[0]
+    bucket = max(16, 1 << (size - 1).bit_length())
+
+    def pad(x):
+        x = np.asarray(x)
+        return np.concatenate([x, np.repeat(x[-1:], bucket - size, axis=0)]) if bucket > size else x
+
+    out = fn(top, *(jax.tree_util.tree_map(pad, t) for t in trees))
+    return jax.tree_util.tree_map(lambda x: np.asarray(x)[:size], out)
+
+
+def _take(tree, index):
+    return jax.tree_util.tree_map(lambda x: x[index], tree)
+
+
+def _put_back(tree, index, values):
+    def put(x, v):
+        x = np.array(x)
+        x[index] = v
+        return x
+
+    return jax.tree_util.tree_map(put, tree, values)
+
+
+def split_state(top: TippeTop, states: State, J: np.ndarray):
+    r"""Each state split into the full model's three modes at the nearer pole (host-side,
+    batched; module docstring): `(theta_s, phi_s, a, rate)`, the tilt and phase of the slow
+    manifold's component, the amplitude (rad) of the other two (the nutation), and the
+    growth rate (1/s, at most 0) of the rolling mode, which outlives the other. Away from the
+    poles ($\sin\theta >$ `POLE_SPLIT_SIN`): the linear projection, and rate 0."""
+    north_m, south_m = _bucketed(_linearisations, top, np.asarray(J))
+    axis = np.asarray(states.axis)
+    north = axis[:, 2] >= 0
+    m = np.where(north[:, None, None], north_m, south_m)
+    values, vectors = np.linalg.eig(m)
+    # the slow manifold's mode precesses fastest; of the other two the rolling one decays least
+    slow = np.argmax(np.abs(values.imag), axis=1)
+    real = np.where(np.arange(3)[None, :] == slow[:, None], -np.inf, values.real)
+    rolling = np.argmax(real, axis=1)
+    rows = np.arange(axis.shape[0])
+    velocity, omega = np.asarray(states.velocity), np.asarray(states.omega)
+    z = np.stack([velocity[:, 0] + 1j * velocity[:, 1], axis[:, 0] + 1j * axis[:, 1],
+                  omega[:, 0] + 1j * omega[:, 1]], axis=1)
+    with np.errstate(all="ignore"):
+        coefficients = np.linalg.solve(vectors, z[..., None])[..., 0]
+    tilt = coefficients * vectors[:, 1, :]  # each mode's part of a_X + i a_Y
+    xi_slow = tilt[rows, slow]
+    rest = np.abs(z[:, 1] - xi_slow)
+    sin_s = np.minimum(np.abs(xi_slow), 1.0)
+    theta_s = np.where(north, np.arcsin(sin_s), np.pi - np.arcsin(sin_s))
+    # xi = -i sin(theta) e^{i phi} (either pole)
+    phi_s = np.arctan2(xi_slow.real, -xi_slow.imag)
+    rate = np.minimum(values[rows, rolling].real, 0.0)
+    lin_theta, lin_phi, lin_log_a = _bucketed(_linear_split, top, states)
+    near = np.hypot(axis[:, 0], axis[:, 1]) <= POLE_SPLIT_SIN
+    ok = near & np.isfinite(theta_s) & np.isfinite(rest) & np.isfinite(rate)
+    return (np.where(ok, theta_s, lin_theta), np.where(ok, phi_s, lin_phi),
+            np.where(ok, rest, np.exp(lin_log_a)), np.where(ok, rate, 0.0))
+
+
+class _Runner:
+    """Runs the stages' chunks, sharded over `devices` (as `_maps._run_flat`)."""
+
+    def __init__(self, top, devices, options):
+        self.top = top
+        self.dtype = jnp.result_type(top.m)
+        self.n_dev = len(devices)
+        self.chunk = -(-STAGE_CHUNK // self.n_dev) * self.n_dev
+        mesh = Mesh(np.array(devices), ("launch",))
+        self.sharding = NamedSharding(mesh, PartitionSpec("launch"))
+        self.options = options
+        fields, static = eqx.partition(top, eqx.is_array)
+        fields = jax.tree_util.tree_map(lambda x: np.asarray(x, dtype=self.dtype), fields)
+        self.top_host = eqx.combine(fields, static)
+
+    def _put(self, x):
+        x = np.asarray(x)
+        return jax.make_array_from_callback(x.shape, self.sharding, lambda index: x[index])
+
+    def run(self, level, states, t0, t_stop, order, level_states=None):
+        """`level` for the members `states` (host pytree) from `t0` to `t_stop` (from
+        `level_states` where given); members are sorted by `order` and run in chunks. Returns
+        host arrays in the members' order."""
+        size = t0.shape[0]
+        perm = np.argsort(order, kind="stable")
+        parts = []
+        for start in range(0, size, self.chunk):
+            index = perm[start:start + self.chunk]
+            pad = self.chunk - index.size
+            sel = np.concatenate([index, np.repeat(index[-1:], pad)]) if pad else index
+            stop = np.asarray(t_stop, float)[sel].copy()
+            begin = np.asarray(t0, float)[sel]
+            if pad:
+                stop[index.size:] = begin[index.size:]  # zero-length padding
+            chunk_states, chunk_level = jax.tree_util.tree_map(
+                lambda x: self._put(np.asarray(x, self.dtype)[sel]), (states, level_states))
+            out = _stage_batch(level, self.top_host, chunk_states, chunk_level,
+                               self._put(begin.astype(self.dtype)),
+                               self._put(stop.astype(self.dtype)), self.options)
+            parts.append(jax.tree_util.tree_map(lambda x: _gather(x)[: index.size], out))
+        joined = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs), *parts)
+        inverse = np.empty_like(perm)
+        inverse[perm] = np.arange(size)
+        return jax.tree_util.tree_map(lambda x: x[inverse], joined)
+
+
+def _gather(x) -> np.ndarray:
+    from ._maps import _gather as gather
+
+    return gather(x)
+
+
+def _spin(states) -> np.ndarray:
+    return np.abs(np.sum(np.asarray(states.axis) * np.asarray(states.omega), axis=-1))
+
+
+def staged_outcomes(top: TippeTop, y0: State, t1: float, *, rtol, atol, solver, slow_solver,
+                    max_steps, devices) -> dict[str, np.ndarray]:
+    """Run the launches `y0` (a batched `State`) in stages (module docstring) to `t1`.
+
+    **Returns:** host arrays per launch: `state` (where each run ended), `t_final`, `result`
+    (`RESULTS` code), `t_invert`, `t_contact_loss`, `num_steps` (all stages), `route` (str:
+    the levels that ran, e.g. `"gyroscopic->full"`), `hand_overs` (how many times the slow
+    stage handed the run back), and `stages` (a list of `(level, members, steps of each
+    member, RESULTS code of each member)` in the order the stages ran).
+    """
+    size = np.asarray(y0.axis).shape[0]
+    dtype = jnp.result_type(top.m)
+    runner = _Runner(top, devices, (rtol, atol, solver, max_steps))
+    slow_runner = _Runner(top, devices, (rtol, atol, slow_solver, max_steps))
+    slow = GyroscopicLevel(stop_at_hand_over=True, contact_margin=HAND_OVER_CONTACT,
+                           body=False)
+    full = FullLevel(body=False)
+
+    state = jax.tree_util.tree_map(lambda x: np.asarray(x, dtype), y0)
+    t = np.zeros(size)
+    J = _bucketed(_jellets, top, state)
+    done = np.zeros(size, bool)
+    result = np.zeros(size, np.int8)
+    t_invert = np.full(size, np.nan)
+    t_loss = np.full(size, np.nan)
+    steps = np.zeros(size, np.int64)
+    routes: list[list[str]] = [[] for _ in range(size)]
+    stages = []
+    in_full = ~_bucketed(_accepted, top, state)
+    window = np.full(size, FIRST_WINDOW)
+    replay_until = np.zeros(size)  # a replayed run is not handed to the slow stage before this
+    hand_overs = np.zeros(size, int)
+    # where each run last left the full model (for a replay), and the slow stage's states
+    left, t_left = state, np.zeros(size)
+    _, _, nutation, growth = split_state(top, state, J)
+    slow_states = _bucketed(_launch_states, top, state,
+                            np.log(np.maximum(nutation, NUTATION_FLOOR)).astype(dtype),
+                            growth.astype(dtype))
+
+    def record(index, out, stage):
+        nonlocal state
+        state = _put_back(state, index, out["state"])
+        t[index] = out["t_final"]
+        steps[index] += out["num_steps"]
+        first = np.isnan(t_invert[index])
+        t_invert[index] = np.where(first, out["t_invert"], t_invert[index])
+        t_loss[index] = np.where(np.isnan(t_loss[index]), out["t_contact_loss"], t_loss[index])
+        for i in index:
+            if not routes[i] or routes[i][-1] != stage:
+                routes[i].append(stage)
+        stages.append((stage, index, out["num_steps"], out["result"]))
+
+    for stage in range(MAX_STAGES):
+        last = stage == MAX_STAGES - 1
+        members = np.flatnonzero(in_full & ~done)
+        if members.size:
+            stop = np.full(members.size, float(t1))
+            if not last:
+                ahead = np.maximum(t[members] + window[members], replay_until[members])
+                stop = np.minimum(ahead, t1)
+            out = runner.run(full, _take(state, members), t[members], stop,
+                             -_spin(_take(state, members)) * (stop - t[members]))
+            record(members, out, "full")
+            code = out["result"]
+            ended = (code != RESULTS.successful._value) | (out["t_final"] >= t1)
+            result[members[ended]] = code[ended]
+            done[members[ended]] = True
+            going = members[~ended]
+            if going.size:
+                # does the slow stage take over where the window ended?
+                theta_s, phi_s, nutation, growth = split_state(top, _take(state, going),
+                                                               J[going])
+                log_nutation = np.log(np.maximum(nutation, NUTATION_FLOOR)).astype(dtype)
+                margin, entering, on_manifold = _bucketed(
+                    _entry, top, theta_s.astype(dtype), phi_s.astype(dtype), J[going],
+                    log_nutation, growth.astype(dtype))
+                enter = (margin > 0) & (hand_overs[going] <= MAX_HAND_OVERS)
+                index, rows = going[enter], np.flatnonzero(enter)
+                left = _put_back(left, index, _take(state, index))
+                t_left[index] = t[index]
+                state = _put_back(state, index, _take(on_manifold, rows))
+                slow_states = _put_back(slow_states, index, _take(entering, rows))
+                in_full[index] = False
+                window[going[~enter]] *= 2
+        members = np.flatnonzero(~in_full & ~done)
+        if not members.size:
+            if not np.any(~done):
+                break
+            continue
+        t_invert_before = t_invert[members].copy()
+        out = slow_runner.run(slow, _take(state, members), t[members],
+                              np.full(members.size, float(t1)), np.zeros(members.size),
+                              level_states=_take(slow_states, members))
+        record(members, out, "gyroscopic")
+        code = out["result"]
+        handed = code == RESULTS.no_gyroscopic_balance._value
+        result[members[~handed]] = code[~handed]
+        done[members[~handed]] = True
+        if np.any(handed):
+            # the nutation the full model carries may matter from here on (the slow manifold
+            # repels, or it may lift the top): run the full model again from where the run
+            # left it, at least to the hand-over
+            index = members[handed]
+            replay_until[index] = t[index]
+            t_invert[index] = t_invert_before[handed]
+            state = _put_back(state, index, _take(left, index))
+            t[index] = t_left[index]
+            in_full[index] = True
+            window[index] = FIRST_WINDOW
+            hand_overs[index] += 1
+    members = np.flatnonzero(~done)
+    if members.size:
+        out = runner.run(full, _take(state, members), t[members], np.full(members.size, float(t1)),
+                         -_spin(_take(state, members)))
+        record(members, out, "full")
+        result[members] = out["result"]
+    return dict(
+        state=state, t_final=t, result=result, t_invert=t_invert, t_contact_loss=t_loss,
+        num_steps=steps, route=np.array(["->".join(r) for r in routes]),
+        hand_overs=hand_overs, stages=stages,
+    )
+
+
+@eqx.filter_jit
+def _jellets(top, states):
+    from ._invariants import jellet
+
+    return jax.vmap(lambda y: jellet(top, y))(states)
