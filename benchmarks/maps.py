@@ -204,6 +204,56 @@ def auto_maps(n_theta, n_spin, t1):
     return rows, shifted
 
 
+def auto_random(n_tops, t1, seed=0):
+    """The auto map against the full map on seeded random tops (none of them tuned on):
+    A/C in [0.6, 1.7], eps/R in [0.03, 0.4], mu log-uniform in [0.05, 1] s/m, each on a random
+    12 x 16 grid of launches (theta0 in [0.02, 1.5], spin in [0.5, 8] x its n1, or n2 in group
+    I). Agreement and missed contact losses per top; the time of both maps (one call each
+    after a compiling call, so a rough ratio)."""
+    rng = np.random.default_rng(seed)
+    rows = []
+    for _ in range(n_tops):
+        a_c, e_r = rng.uniform(0.6, 1.7), rng.uniform(0.03, 0.4)
+        mu = float(np.exp(rng.uniform(np.log(0.05), np.log(1.0))))
+        top = tj.TippeTop.from_ratios(a_c, e_r, m=0.02, R=0.025, mu=mu)
+        th = tj.thresholds(top)
+        n_ref = float(th.n1) if np.isfinite(float(th.n1)) else float(th.n2)
+        theta0 = np.sort(rng.uniform(0.02, 1.5, 12))
+        spin = np.sort(rng.uniform(0.5, 8.0, 16)) * n_ref
+        maps, secs = {}, {}
+        for model in ("full", "auto"):
+            tj.outcome_map(top, theta0, spin, t1=t1, model=model)
+            start = time.perf_counter()
+            maps[model] = tj.outcome_map(top, theta0, spin, t1=t1, model=model)
+            secs[model] = time.perf_counter() - start
+        row = dict(group=str(tj.classify(top)), A_over_C=a_c, eps_over_R=e_r, mu=mu,
+                   spins=(float(spin[0]), float(spin[-1])),
+                   **compare(maps["full"], maps["auto"]),
+                   speed=secs["full"] / secs["auto"])
+        rows.append(row)
+        print("random", row, flush=True)
+    return rows
+
+
+def random_text(rows, t1, seed):
+    """The section of RESULTS.md on the random tops."""
+    table_rows = [[r["group"], f"{r['A_over_C']:.2f}", f"{r['eps_over_R']:.2f}",
+                   f"{r['mu']:.2f}", f"{r['spins'][0]:.0f}-{r['spins'][1]:.0f}",
+                   f"{100 * r['agree']:.1f}%", f"{r['missed']} of {r['losses']}",
+                   str(r["extra"]), f"{r['speed']:.2f}x"] for r in rows]
+    n = sum(r["n"] for r in rows)
+    agree = sum(r["agree"] * r["n"] for r in rows) / n
+    return f"""### `model="auto"` on random tops
+
+`python benchmarks/maps.py --auto-random {len(rows)}` (seed {seed}): {len(rows)} seeded random tops, A/C in [0.6, 1.7], eps/R in [0.03, 0.4], mu log-uniform in [0.05, 1] s/m, each on a random grid of 12 tilts in [0.02, 1.5] x 16 spins in [0.5, 8] x n1 (n2 in group I), t1 = {t1:g} s; the auto map against the full map. Speed: one call each after a compiling call (rough).
+
+{table(["group", "A/C", "eps/R", "mu", "spins (rad/s)", "agreement", "missed losses", "extra losses", "speed"], table_rows)}
+
+Over all {n} launches: {100 * agree:.2f}% the same outcome, {sum(r['missed'] for r in rows)} of {sum(r['losses'] for r in rows)} contact losses missed, {sum(r['extra'] for r in rows)} extra.
+
+"""
+
+
 def auto_text(rows, shifted, n_theta, n_spin, t1):
     """The section of RESULTS.md on the auto maps."""
     n = rows[0]["n"]
@@ -256,10 +306,16 @@ def main(argv=None) -> int:
     p.add_argument("--no-processes", action="store_true")
     p.add_argument("--scale", type=int, default=100_000, help="launches of the scale run (0: skip)")
     p.add_argument("--scale-t1", type=float, default=0.5)
+    p.add_argument("--auto-random", type=int, default=0, metavar="K",
+                   help="only the auto map against the full map on K seeded random tops, printed")
     p.add_argument("--auto-only", action="store_true",
                    help="only the auto maps against the full maps (standard, IIa, III), printed")
     args = p.parse_args(argv)
     begin = time.perf_counter()
+    if args.auto_random:
+        rows = auto_random(args.auto_random, args.t1)
+        print(random_text(rows, args.t1, 0))
+        return 0
     if args.auto_only:
         rows, shifted = auto_maps(args.n_theta, args.n_spin, args.t1)
         print(auto_text(rows, shifted, args.n_theta, args.n_spin, args.t1))
