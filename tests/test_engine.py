@@ -344,6 +344,39 @@ def test_ravel_state_round_trip_and_leaves():
         assert np.array_equal(getattr(back, leaf), getattr(z, leaf))
 
 
+def test_one_top_is_packed_in_one_vector_and_a_batch_in_narrow_ones(top):
+    """A run of one top carries its state in one vector, a vmapped batch in vectors of at most
+    `PACK_WIDTH` (only the speed depends on it, `ravel_state`): the layout is picked inside
+    and outside `vmap` as documented, and the full model's end state and inversion time of one
+    top are the same either way (the same arithmetic, to rounding)."""
+    from tippejax._engine.segment import (ONE_TOP_PACK_WIDTH, PACK_WIDTH, pack_width_for,
+                                          ravel_state)
+    from tippejax._models.full import FullLevelState
+
+    z = FullLevelState(position=jnp.zeros(2), velocity=jnp.ones(2), axis=jnp.arange(3.0),
+                       omega=jnp.arange(3.0, 6.0), frame=jnp.arange(6.0, 9.0),
+                       angle=jnp.asarray(9.0))
+    flat, unravel = ravel_state(z, ONE_TOP_PACK_WIDTH)
+    assert [x.shape for x in flat] == [(14,)]
+    assert np.array_equal(unravel(flat).omega, z.omega)
+
+    seen = []
+    jax.vmap(lambda x: seen.append(pack_width_for(x)) or x)(jnp.ones(2))
+    jax.jit(lambda x: seen.append(pack_width_for(x)) or x)(jnp.ones(2))
+    assert seen == [PACK_WIDTH, ONE_TOP_PACK_WIDTH]
+    assert pack_width_for(jnp.ones(2), 1.0) == ONE_TOP_PACK_WIDTH
+
+    y0 = tj.initial_state(top, 0.1, 150.0)
+    one = tj.simulate(top, y0, 6.0, summary=True, model="full")
+    batch = jax.vmap(lambda s: tj.simulate(top, tj.initial_state(top, 0.1, s), 6.0,
+                                           summary=True, model="full", throw=False))(
+        jnp.array([150.0]))
+    assert np.isfinite(float(one.t_invert))
+    np.testing.assert_allclose(float(batch.t_invert[0]), float(one.t_invert), rtol=1e-9)
+    np.testing.assert_allclose(np.asarray(batch.states.omega[0, -1]),
+                               np.asarray(one.states.omega[-1]), rtol=1e-7, atol=1e-7)
+
+
 def test_body_vector_of_a_fast_top_against_a_plain_solve(top, inverting):
     """The SO(3) level's body vector (frame and spin angle) against a plain diffrax solve of
     db/dt = omega x b on the 9-component state (axis, omega, body) at tight tolerance: the

@@ -19,6 +19,7 @@ from jaxtyping import ArrayLike
 
 from ._cache import cacheable, cached_call
 from ._engine.chain import run_chain
+from ._engine.segment import PACK_WIDTH, pack_width_for
 from ._engine.solver_choice import (
     IMPLICIT_RATE,
     STIFF_RATE,
@@ -77,7 +78,8 @@ def _observe(top, states: State, friction_model: str, valid, names=OBSERVED):
 
 @eqx.filter_jit
 def _run(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_on_contact,
-         max_steps, adjoint, progress, samples, names=OBSERVED, inversion=True, locate=True):
+         max_steps, adjoint, progress, samples, names=OBSERVED, inversion=True, locate=True,
+         pack_width=PACK_WIDTH):
     dtype = jnp.result_type(top.m)
     too_stiff = jnp.array(False)
     if guard_stiff:
@@ -89,7 +91,7 @@ def _run(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_on
     out = run_chain(
         level, top, y0, t0, t1, ts, stop_on_contact=stop_on_contact, solver=solver,
         rtol=rtol, atol=atol, max_steps=max_steps, adjoint=adjoint, progress_meter=meter,
-        samples=samples, inversion=inversion, locate=locate,
+        samples=samples, inversion=inversion, locate=locate, pack_width=pack_width,
     )
     result = RESULTS.where(too_stiff, RESULTS.stiff_under_trace, out.result)
     friction_model = level.friction_model
@@ -375,6 +377,7 @@ def simulate(
             level=level, solver=solver, guard_stiff=guard_stiff,
             stop_on_contact=on_contact_loss == "stop", max_steps=int(max_steps),
             adjoint=adjoint, progress=progress, samples=int(event_samples),
+            pack_width=pack_width_for(top, y0, t0, t1, rtol, atol, ts),
         )
     if n_save is not None and out["ts"].shape[0] != n_save:
         for key in _SAVED:

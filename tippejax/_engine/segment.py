@@ -46,13 +46,31 @@ class Watch(eqx.Module):
 
 
 PACK_WIDTH = 6
-"""Most components in one flat vector of a level state (see `ravel_state`)."""
+"""Most components in one flat vector of a level state in a batch (see `ravel_state`)."""
+
+ONE_TOP_PACK_WIDTH = 64
+"""Most components in one flat vector of a level state in a run of one top: the whole state
+in one vector (see `ravel_state`)."""
 
 
-def ravel_state(y: PyTree):
+def pack_width_for(*trees) -> int:
+    """`PACK_WIDTH` where any leaf of `trees` is batched by `jax.vmap` (seen at trace time),
+    else `ONE_TOP_PACK_WIDTH`. JAX has no public test for "inside vmap"; where its private
+    tracer class is not found, the batch layout is used (only speed depends on the choice). A
+    function jitted inside `jax.vmap` is traced unbatched and gets the one-top layout."""
+    try:
+        from jax._src.interpreters.batching import BatchTracer
+    except ImportError:  # pragma: no cover
+        return PACK_WIDTH
+    leaves = jax.tree_util.tree_leaves(trees)
+    return PACK_WIDTH if any(isinstance(x, BatchTracer) for x in leaves) else ONE_TOP_PACK_WIDTH
+
+
+def ravel_state(y: PyTree, width: int = PACK_WIDTH):
     """A level state as a tuple of flat vectors, with the inverse: the leaves, in order, packed
-    whole into vectors of at most `PACK_WIDTH` components (SO(3): axis and omega, then frame and
-    spin angle, 6 + 4; full: 4 + 6 + 4).
+    whole into vectors of at most `width` components (`PACK_WIDTH`, in a batch: SO(3) axis and
+    omega, then frame and spin angle, 6 + 4; full: 4 + 6 + 4; `ONE_TOP_PACK_WIDTH`, for one
+    top: one vector).
 
     diffrax's Runge-Kutta stages combine the state leaf by leaf; with two or three leaves
     instead of the level's five or six, each step runs several times fewer (tiny) operations,
@@ -62,18 +80,27 @@ def ravel_state(y: PyTree):
     (`benchmarks/peers.py`'s scene) in a plain diffrax loop, wall time per top against the
     plain script's 6-component state: 6 + 4 1.29x, one 10-vector 1.46x, 6 + 3 + 1 1.65x,
     9 + 1 (this function's layout before) 2.0x.
+
+    A run of one top wants the opposite: with two or more vectors the stage combinations of a
+    step are independent chains of operations, and XLA:CPU's thunk executor then runs the step
+    on two threads (it runs a program sequentially only if it is a chain or all its buffers
+    are at most 512 bytes), which for steps this small costs more than it gains. Measured on
+    `benchmarks/peers.py`'s single top (full model, no body vector, 2 cores): 4 + 6 31 ms wall
+    and 61 ms CPU, one 10-vector 22.6 ms wall and CPU (the SO(3) level, one 6-vector either
+    way, 21.8 ms). In a batch of 1000 the one 10-vector costs 1.38x the SO(3) level, 4 + 6
+    1.09x; padding it to 12 or 16 does not mend that.
     """
     leaves, treedef = jax.tree_util.tree_flatten(y)
     dtype = jnp.result_type(*leaves)
     shapes = [jnp.shape(x) for x in leaves]
     sizes = [math.prod(shape) for shape in shapes]
-    groups, width = [], PACK_WIDTH
+    groups, filled = [], width
     for i, size in enumerate(sizes):
-        if not groups or width + size > PACK_WIDTH:
+        if not groups or filled + size > width:
             groups.append([])
-            width = 0
+            filled = 0
         groups[-1].append(i)
-        width += size
+        filled += size
     flat = tuple(
         jnp.concatenate([jnp.ravel(jnp.asarray(leaves[i], dtype)) for i in group])
         for group in groups
@@ -96,9 +123,10 @@ class FlatField(eqx.Module):
 
     level: AbstractLevel
     unravel: Callable = eqx.field(static=True)
+    width: int = eqx.field(static=True, default=PACK_WIDTH)
 
     def __call__(self, t, y, top):
-        return ravel_state(self.level.vector_field(t, self.unravel(y), top))[0]
+        return ravel_state(self.level.vector_field(t, self.unravel(y), top), self.width)[0]
 
     def error_norm(self, scaled_error):
         return self.level.error_norm(self.unravel(scaled_error))
@@ -135,6 +163,7 @@ def run_segment(
     progress_meter: diffrax.AbstractProgressMeter,
     samples: int,
     locate: bool = True,
+    pack_width: int = PACK_WIDTH,
 ) -> Segment:
     """Integrate `level` from `(t0, y0)` to `t1` or the first terminating event.
 
@@ -143,10 +172,11 @@ def run_segment(
     a step), and a run that ends on a terminating event ends there, at the state that step
     started from. No step is taken again and no root is found, so the program is smaller to
     compile; for callers that need to know only which save times lie before an event (a
-    fit's residuals)."""
+    fit's residuals). `pack_width`: the layout of the state in the solver (`ravel_state`;
+    `pack_width_for` picks it)."""
     names = terminating + observed
-    y0_flat, unravel = ravel_state(y0)
-    field = FlatField(level, unravel)
+    y0_flat, unravel = ravel_state(y0, pack_width)
+    field = FlatField(level, unravel, pack_width)
     watch = Watch(level, unravel, names)
     controller = diffrax.PIDController(rtol=rtol, atol=atol, norm=field.error_norm)
     if isinstance(solver, diffrax.AbstractImplicitSolver):
