@@ -88,7 +88,9 @@ def ravel_state(y: PyTree, width: int = PACK_WIDTH):
     `benchmarks/peers.py`'s single top (full model, no body vector, 2 cores): 4 + 6 31 ms wall
     and 61 ms CPU, one 10-vector 22.6 ms wall and CPU (the SO(3) level, one 6-vector either
     way, 21.8 ms). In a batch of 1000 the one 10-vector costs 1.38x the SO(3) level, 4 + 6
-    1.09x; padding it to 12 or 16 does not mend that.
+    1.09x; padding it to 12 or 16 does not mend that. The gyroscopic level's chain (slow flow,
+    then the full model from the hand-over) is the exception: one top ran 12 ms with the batch
+    layout and 22 ms with one vector, so `simulate` keeps the batch layout for it.
     """
     leaves, treedef = jax.tree_util.tree_flatten(y)
     dtype = jnp.result_type(*leaves)
