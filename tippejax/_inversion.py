@@ -18,6 +18,7 @@ from jaxtyping import Array, Float
 
 from ._custom_types import RealScalarLike
 from ._engine.solver_choice import is_traced
+from ._engine.watch import EVENT_SAMPLES
 from ._simulate import MODELS, simulate
 from ._solution import RESULTS
 from ._state import State
@@ -38,7 +39,7 @@ def inversion_time(
     adjoint: diffrax.AbstractAdjoint | None = None,
     throw: bool = True,
     tolerance: float | None = None,
-    event_samples: int = 8,
+    event_samples: int = EVENT_SAMPLES,
 ) -> Float[Array, ""]:
     r"""The first upward crossing $t^*$ of $\theta = \pi/2$ after `t0` (nan if none by `t1`).
 

@@ -65,8 +65,6 @@ cost of the full model from the last window to the hand-over.
 
 from __future__ import annotations
 
-import inspect
-
 import diffrax
 import equinox as eqx
 import jax
@@ -75,6 +73,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ._engine.chain import run_chain
+from ._engine.watch import EVENT_SAMPLES
 from ._models.full import FullLevel, pole_linearisation
 from ._models.gyroscopic import (
     NUTATION_FLOOR,
@@ -85,7 +84,6 @@ from ._models.gyroscopic import (
     log_tan_half,
     theta_of,
 )
-from ._simulate import simulate
 from ._solution import RESULTS
 from ._state import State
 from ._top import TippeTop
@@ -99,10 +97,6 @@ each further window of the same run is twice as long."""
 
 MAX_STAGES = 12
 """Stages of (full window, slow) at most; a run not finished by then goes to the full model."""
-
-EVENT_SAMPLES = inspect.signature(simulate).parameters["event_samples"].default
-"""Points a step at which the event watch checks its quintics: `simulate`'s default, as the
-full model's map uses."""
 
 MAX_HAND_OVERS = 2
 """Hand-overs of one run at most; after that it stays in the full model to `t1`."""

@@ -27,6 +27,7 @@ from ._engine.solver_choice import (
     friction_rate,
     is_traced,
 )
+from ._engine.watch import EVENT_SAMPLES
 from ._invariants import energy, jellet, normal_force, slip_velocity
 from ._models.levels import LEVELS
 from ._solution import RESULTS, Solution
@@ -259,7 +260,7 @@ def simulate(
     tolerance: float | None = None,
     summary: bool = False,
     adjoint: diffrax.AbstractAdjoint | None = None,
-    event_samples: int = 8,
+    event_samples: int = EVENT_SAMPLES,
     body: bool | None = None,
 ) -> Solution:
     r"""Integrate the motion of `top` from `y0` at `t0` to `t1` with the chosen level of model.
@@ -404,7 +405,7 @@ def simulate(
 
 
 def simulate_tilt(top: TippeTop, y0: State, ts, *, t0, t1, model: str, rtol, atol,
-                  solver=None, max_steps: int, adjoint, event_samples: int = 8) -> dict:
+                  solver=None, max_steps: int, adjoint, event_samples: int = EVENT_SAMPLES) -> dict:
     """The tilt and precession angle at the save times `ts`, and the contact-loss time, of the
     run `simulate(..., saveat=ts, on_contact_loss="continue", throw=False)` would make.
 

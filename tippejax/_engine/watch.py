@@ -62,6 +62,11 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, PyTree
 
+EVENT_SAMPLES = 8
+"""Points a step at which the watch checks each condition's quintic by default (`simulate`,
+`simulate_tilt`, `inversion_time` and the staged maps; `benchmarks/watch.py` measures what it
+finds)."""
+
 STOP = diffrax.RESULTS.internal_error
 """The result a step returns when a terminating condition fell in it (see `WatchedSolver`):
 a code diffrax keeps to the end of the solve, and that no diffrax solver returns."""
