@@ -381,7 +381,7 @@ def simulate(
             # (a slow-flow level's chain, which hands over to the full model, keeps the batch
             # layout: with one vector its single top ran 22 ms against 12 ms, peers.py scene)
             pack_width=PACK_WIDTH if LEVELS[model].slow_flow else pack_width_for(
-                top, y0, t0, t1, rtol, atol, ts),
+                top, y0, t0, t1, rtol, atol, ts, adjoint=adjoint),
         )
     if n_save is not None and out["ts"].shape[0] != n_save:
         for key in _SAVED:

@@ -52,10 +52,16 @@ ONE_TOP_PACK_WIDTH = 64
 """Most components in one flat vector of a level state in a run of one top: the whole state
 in one vector (see `ravel_state`)."""
 
+FORWARD_MODE_PACK_WIDTH = 4
+"""Most components in one flat vector of a level state in a run of one top differentiated in
+forward mode (`adjoint=diffrax.ForwardMode()`): position and velocity, the axis, omega (and
+frame and spin angle) each a vector of their own (see `ravel_state`)."""
 
-def pack_width_for(*trees) -> int:
-    """`PACK_WIDTH` where any leaf of `trees` is batched by `jax.vmap` (seen at trace time),
-    else `ONE_TOP_PACK_WIDTH`. JAX has no public test for "inside vmap"; where its private
+
+def pack_width_for(*trees, adjoint=None) -> int:
+    """`PACK_WIDTH` where any leaf of `trees` is batched by `jax.vmap` (seen at trace time);
+    else `FORWARD_MODE_PACK_WIDTH` with `adjoint=diffrax.ForwardMode()`, else
+    `ONE_TOP_PACK_WIDTH`. JAX has no public test for "inside vmap"; where its private
     tracer class is not found, the batch layout is used (only speed depends on the choice). A
     function jitted inside `jax.vmap` is traced unbatched and gets the one-top layout."""
     try:
@@ -63,7 +69,11 @@ def pack_width_for(*trees) -> int:
     except ImportError:  # pragma: no cover
         return PACK_WIDTH
     leaves = jax.tree_util.tree_leaves(trees)
-    return PACK_WIDTH if any(isinstance(x, BatchTracer) for x in leaves) else ONE_TOP_PACK_WIDTH
+    if any(isinstance(x, BatchTracer) for x in leaves):
+        return PACK_WIDTH
+    if isinstance(adjoint, diffrax.ForwardMode):
+        return FORWARD_MODE_PACK_WIDTH
+    return ONE_TOP_PACK_WIDTH
 
 
 def ravel_state(y: PyTree, width: int = PACK_WIDTH):
@@ -91,6 +101,16 @@ def ravel_state(y: PyTree, width: int = PACK_WIDTH):
     1.09x; padding it to 12 or 16 does not mend that. The gyroscopic level's chain (slow flow,
     then the full model from the hand-over) is the exception: one top ran 12 ms with the batch
     layout and 22 ms with one vector, so `simulate` keeps the batch layout for it.
+
+    Differentiated in forward mode, one top wants narrower vectors again: each vector then
+    carries a batch of tangents (seven for `jax.jacfwd` over a top's fields), and the chains run
+    on two threads whatever the layout. `jax.jacfwd` of the standard top's t_invert over the
+    seven fields (`benchmarks/gradients.py`'s scene, full model): one 10-vector 121 ms, 4 + 6
+    107 ms, 4 + 3 + 3 95 ms, 2 + 2 + 3 + 3 137 ms, against a forward solve of 26 ms; 201 saved
+    theta 206 ms with one vector, 130 ms with 4 + 3 + 3; SO(3), 3 + 3 against one 6-vector:
+    78 against 84 ms, and 97 against 129 ms with the saves. A vmapped batch keeps
+    `PACK_WIDTH` (64 tops: 2.7 s with it, 4.6 s with 4 + 3 + 3). Reverse mode (`jax.grad`)
+    keeps one vector (180 ms; 4 + 3 + 3 212 ms, 4 + 6 274 ms).
     """
     leaves, treedef = jax.tree_util.tree_flatten(y)
     dtype = jnp.result_type(*leaves)
