@@ -102,8 +102,9 @@ def inversion_time(
     - `adjoint`: how the solve is differentiated, passed to `simulate`:
       `diffrax.RecursiveCheckpointAdjoint()` (default; reverse mode, for `jax.grad`, the
       natural choice for one scalar and many parameters) or `diffrax.ForwardMode()` (for
-      `jax.jvp`/`jax.jacfwd`, cheaper with one or two parameters; the default adjoint does
-      not support forward mode).
+      `jax.jvp`/`jax.jacfwd`; the default adjoint does not support forward mode). For the
+      seven fields of a top forward mode is the cheaper (`benchmarks/RESULTS.md`,
+      gradients.py: about 3.6x a solve against 6.8x).
     - `throw`: raise where the solve failed before a crossing (see above).
     - `tolerance`: for `model="auto"`, the largest acceptable error in $\theta(t)$ (rad).
     - `event_samples`: points per step at which the conditions are checked for a crossing

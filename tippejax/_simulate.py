@@ -296,8 +296,10 @@ def simulate(
       very stiff friction.
     - `max_steps`: maximum number of steps per segment.
     - `adjoint`: how to differentiate through the solve: `diffrax.RecursiveCheckpointAdjoint()`
-      (default, reverse mode, for `jax.grad`) or `diffrax.ForwardMode()` (for `jax.jacfwd`,
-      cheaper with few parameters).
+      (default, reverse mode, for `jax.grad`) or `diffrax.ForwardMode()` (for `jax.jacfwd`;
+      cheaper up to the seven fields of a top: a Jacobian of the standard top's 20 s run in
+      forward mode costs 3.6-3.9x the solve, in reverse mode 6.0-6.8x, `benchmarks/RESULTS.md`,
+      gradients.py; one top then runs its state in narrower vectors, `ravel_state`).
     - `throw`: raise on failure (contact loss with `on_contact_loss="stop"`, the $R_n$
       singularity, max steps, NaN, loss of gyroscopic balance). With `False` the failure is in
       `sol.result`.
