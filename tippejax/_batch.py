@@ -63,6 +63,9 @@ def _shared_batch_run(top, launches, arrays, static, mesh):
     return jax.shard_map(
         local, mesh=mesh, in_specs=(member_spec, PartitionSpec("batch"), PartitionSpec()),
         out_specs=PartitionSpec("batch"),
+        # (diffrax's loop carries arrays made inside it next to the shard's own: with the
+        # check on, their "varying" types differ and the while loop is refused)
+        check_vma=False,
     )(top, launches, arrays)
 
 

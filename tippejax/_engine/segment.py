@@ -473,7 +473,7 @@ def run_segment_shared(
         ys = jax.vmap(jax.vmap(unravel))(
             jax.tree_util.tree_map(lambda x: jnp.moveaxis(x, 0, 1), sol.ys[1])
         )
-    steps = jnp.broadcast_to(sol.stats["num_steps"], (n_members,))
+    steps = jnp.broadcast_to(jnp.asarray(sol.stats["num_steps"], int), (n_members,))
     return Segment(
         ys=ys,
         y_end=y_end,
