@@ -94,6 +94,19 @@ def test_shared_continue_past_contact_loss():
     _close_times(shared.t_contact_loss, per.t_contact_loss, 1e-3)
 
 
+def test_shared_member_dead_at_launch():
+    """A member with R_n < 0 at launch is not integrated (t_final = t0, contact lost at t0) and
+    the others run as usual."""
+    per, shared = _pair(tj.default_top(), np.array([0.1, 2.0]), np.array([150.0, 50.0]),
+                        t1=2.0, theta_dot=np.array([0.0, -100.0]), grid=(), model="so3",
+                        summary=True)
+    np.testing.assert_array_equal(np.asarray(shared.t_final), [2.0, 0.0])
+    np.testing.assert_array_equal(np.asarray(shared.t_contact_loss)[1], 0.0)
+    np.testing.assert_array_equal(np.asarray(shared.result._value), np.asarray(per.result._value))
+    np.testing.assert_allclose(np.asarray(shared.theta), np.asarray(per.theta), atol=1e-6)
+    assert int(shared.num_steps[1]) == 0 and int(shared.num_steps[0]) > 0
+
+
 def test_shared_invariants_so3():
     """Along the saved states of the shared path the Jellet integral is conserved (the SO(3)
     level conserves it exactly) and the energy never increases."""

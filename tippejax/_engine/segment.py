@@ -473,7 +473,7 @@ def run_segment_shared(
         ys = jax.vmap(jax.vmap(unravel))(
             jax.tree_util.tree_map(lambda x: jnp.moveaxis(x, 0, 1), sol.ys[1])
         )
-    steps = jnp.broadcast_to(jnp.asarray(sol.stats["num_steps"], int), (n_members,))
+    steps = jnp.where(idle, 0, jnp.asarray(sol.stats["num_steps"], int))  # idle: none
     return Segment(
         ys=ys,
         y_end=y_end,
@@ -482,5 +482,5 @@ def run_segment_shared(
         fired=fired,
         observed=observed_times,
         num_steps=steps,
-        num_rejected_steps=steps - state.accepted.astype(int),
+        num_rejected_steps=jnp.where(idle, 0, steps - state.accepted.astype(int)),
     )
