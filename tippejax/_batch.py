@@ -154,7 +154,10 @@ def simulate_batch(
     `simulate`; not differentiable. With `shard=True` and several devices every device runs
     its own shared solve on its shard. A batch whose members need very different steps (a
     wide range of spins) is best bucketed (`buckets`), since every member takes the steps of
-    the one that needs the shortest.
+    the one that needs the shortest. For the same reason a member the solver cannot get past
+    (one that would run into `max_steps` on its own, such as some runs continued past a
+    contact loss) holds up its shared solve: every member still running there ends with
+    `max_steps_reached` at that time; run such batches with `steps="per_member"`.
 
     **Arguments:**
 
