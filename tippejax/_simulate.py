@@ -81,7 +81,6 @@ def _observe(top, states: State, friction_model: str, valid, names=OBSERVED):
 def _run(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_on_contact,
          max_steps, adjoint, progress, samples, names=OBSERVED, inversion=True, locate=True,
          pack_width=PACK_WIDTH):
-    dtype = jnp.result_type(top.m)
     too_stiff = jnp.array(False)
     if guard_stiff:
         # Traced top with the default (explicit) solver: a very stiff member would run into
