@@ -7,6 +7,11 @@ Contact loss either ends the run (a terminating event) or is observed and the ru
 it (`stop_on_contact=False`); the inversion is observed (unless `inversion=False`). The chain
 is static (it depends on the level only), so under `jit`/`vmap` every segment is compiled once
 and a member that does not need a segment runs it with zero length.
+
+What a member does before, between and after its segments is written per member
+(`_chain_start`, `_segment_start`, `_segment_end`, `_chain_output`): `run_chain` calls them
+around `run_segment`, and `run_chain_shared` (a batch whose members share their steps, for a
+level that is one segment) vmaps them around one `run_segment_shared` for the whole batch.
 """
 
 from __future__ import annotations
