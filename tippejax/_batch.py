@@ -11,9 +11,10 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import ArrayLike
 
 from ._cache import cacheable
+from ._engine.segment import top_axes
 from ._engine.solver_choice import default_solver, is_traced
 from ._models.levels import LEVELS
-from ._simulate import simulate
+from ._simulate import _SAVED, SHARED_OPTIONS, _run_shared, shared_run_options, simulate
 from ._solution import Solution
 from ._state import check_theta0, initial_state
 from ._top import _FIELDS, TippeTop
@@ -35,6 +36,37 @@ def _batch_run(top, launches, t1, kwargs):
         return simulate(top, y0, t1, throw=False, **kwargs)
 
     return jax.vmap(one, in_axes=(top_axes, 0))(top, launches)
+
+
+def _launch_state(top, launch):
+    theta0, spin, theta_dot, phi_dot, phi, psi, vx, vy = launch
+    y0 = initial_state(top, theta0, spin, theta_dot=theta_dot, phi_dot=phi_dot, phi=phi,
+                       psi=psi, vx=vx, vy=vy)
+    dtype = jnp.result_type(top.m)
+    return jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), y0)
+
+
+@eqx.filter_jit
+def _shared_batch_run(top, launches, arrays, static, mesh):
+    # The batch with shared steps (`_run_shared`). With a `mesh` every device runs its own
+    # shared-step solve on its shard (`jax.shard_map`): steps are shared within a shard only,
+    # and the devices never wait for each other inside the loop.
+    def local(top, launches, arrays):
+        y0s = jax.vmap(_launch_state, in_axes=(top_axes(top), 0))(top, launches)
+        return _run_shared(top, y0s, **arrays, **static)
+
+    if mesh is None:
+        return local(top, launches, arrays)
+    member_spec = jax.tree_util.tree_map(
+        lambda x: PartitionSpec("batch") if jnp.ndim(x) == 1 else PartitionSpec(), top
+    )
+    return jax.shard_map(
+        local, mesh=mesh, in_specs=(member_spec, PartitionSpec("batch"), PartitionSpec()),
+        out_specs=PartitionSpec("batch"),
+        # (diffrax's loop carries arrays made inside it next to the shard's own: with the
+        # check on, their "varying" types differ and the while loop is refused)
+        check_vma=False,
+    )(top, launches, arrays)
 
 
 def _concrete_array(name, value):
@@ -73,6 +105,7 @@ def simulate_batch(
     grid: tuple[str, ...] = ("theta0", "spin"),
     shard: bool = True,
     buckets: int = 1,
+    steps: str = "per_member",
     **kwargs,
 ) -> Solution:
     r"""Simulate a sweep of launches and tops in one compiled batch.
@@ -107,6 +140,25 @@ def simulate_batch(
 
     The default solver is `default_solver` of the stiffest top in the batch.
 
+    With `steps="shared"` the members share their steps instead: the batch is ONE
+    `diffrax.diffeqsolve` whose state is every member's state, with the members' vector field
+    vmapped and the step-size controller's error norm the largest of the members' norms
+    (`run_segment_shared`). Under `jax.vmap` each member has its own step size and the while
+    loop runs batched with selects at every step, which costs several times one loop over
+    the batch. Events are watched and located per member, a member whose run stops (contact
+    loss with `on_contact_loss="stop"`, the $R_n$ singularity) is frozen there while the
+    others go on, and every member's `Solution` fields agree with `steps="per_member"` to
+    about `rtol` (event times to about 1e-6 relative at `rtol=1e-8`); `num_steps` and
+    `num_rejected_steps` are the shared solve's. Only for the models `"full"` and `"so3"`
+    (one segment each) and explicit solvers, with the options `SHARED_OPTIONS` of
+    `simulate`; not differentiable. With `shard=True` and several devices every device runs
+    its own shared solve on its shard. A batch whose members need very different steps (a
+    wide range of spins) is best bucketed (`buckets`), since every member takes the steps of
+    the one that needs the shortest. For the same reason a member the solver cannot get past
+    (one that would run into `max_steps` on its own, such as some runs continued past a
+    contact loss) holds up its shared solve: every member still running there ends with
+    `max_steps_reached` at that time; run such batches with `steps="per_member"`.
+
     **Arguments:**
 
     - `top`: a `TippeTop`, one or a batch.
@@ -115,6 +167,7 @@ def simulate_batch(
     - `t1`: final time (s), common to all members.
     - `grid`: names forming the axes of a grid (see above).
     - `shard`, `buckets`: see above.
+    - `steps`: `"per_member"` (default: `jax.vmap` of `simulate`) or `"shared"` (see above).
     - other keyword arguments go to `simulate` (`model`, `saveat`, `summary`, `rtol`, `atol`,
       `solver`, ...).
 
@@ -123,6 +176,17 @@ def simulate_batch(
     if "throw" in kwargs and kwargs["throw"]:
         raise ValueError("simulate_batch always runs with throw=False; inspect sol.result.")
     kwargs.pop("throw", None)
+    if steps not in ("per_member", "shared"):
+        raise ValueError(
+            f"simulate_batch: steps must be 'per_member' or 'shared', got {steps!r}."
+        )
+    if steps == "shared":
+        bad = sorted(set(kwargs) - set(SHARED_OPTIONS))
+        if bad:
+            raise ValueError(
+                f"simulate_batch(steps='shared') takes the options {SHARED_OPTIONS} of "
+                f"simulate, not {', '.join(bad)}; use steps='per_member' for them."
+            )
     for bad in ("y0", "theta"):
         if bad in kwargs:
             raise ValueError(
@@ -193,7 +257,9 @@ def simulate_batch(
     if batched_top:
         flat_top = {k: np.broadcast_to(v, shape).ravel() for k, v in top_fields.items()}
 
-    if kwargs.get("solver") is None:
+    if steps == "shared":
+        arrays, static, n_save = shared_run_options(top, t1, **kwargs)
+    elif kwargs.get("solver") is None:
         level = LEVELS.get(kwargs.get("model", "full"))
         kwargs["solver"] = default_solver(top, slow_flow=level is not None and level.slow_flow)
     dtype = jnp.result_type(top.m)
@@ -206,9 +272,10 @@ def simulate_batch(
     per = -(-size // buckets)
     per = -(-per // n_dev) * n_dev
     order = np.concatenate([order, np.repeat(order[-1:], per * buckets - size)])
-    sharding = None
+    sharding = mesh = None
     if n_dev > 1:
-        sharding = NamedSharding(Mesh(np.array(devices), ("batch",)), PartitionSpec("batch"))
+        mesh = Mesh(np.array(devices), ("batch",))
+        sharding = NamedSharding(mesh, PartitionSpec("batch"))
 
     def put(x):
         x = jnp.asarray(x, dtype)
@@ -227,7 +294,10 @@ def simulate_batch(
         else:
             member_tops = top
         with cacheable():  # every input was checked above, in Python
-            parts.append(_batch_run(member_tops, launches, t1, kwargs))
+            if steps == "shared":
+                parts.append(_shared_batch_run(member_tops, launches, arrays, static, mesh))
+            else:
+                parts.append(_batch_run(member_tops, launches, t1, kwargs))
     if buckets == 1:
         sol = parts[0]
         back = None
@@ -244,4 +314,10 @@ def simulate_batch(
         x = x[:size] if back is None else x[back]
         return x.reshape(shape + x.shape[1:])
 
+    if steps == "shared":
+        out = dict(sol)
+        if n_save is not None and out["ts"].shape[1] != n_save:
+            for key in _SAVED:
+                out[key] = jax.tree_util.tree_map(lambda x: x[:, :n_save], out[key])
+        sol = Solution(model=static["level"].name, **out)
     return jax.tree_util.tree_map(unflatten, sol)

@@ -18,8 +18,8 @@ import numpy as np
 from jaxtyping import ArrayLike
 
 from ._cache import cacheable, cached_call
-from ._engine.chain import run_chain
-from ._engine.segment import PACK_WIDTH, pack_width_for
+from ._engine.chain import run_chain, run_chain_shared
+from ._engine.segment import PACK_WIDTH, SHARED_PACK_WIDTH, pack_width_for, top_axes
 from ._engine.solver_choice import (
     IMPLICIT_RATE,
     STIFF_RATE,
@@ -81,7 +81,6 @@ def _observe(top, states: State, friction_model: str, valid, names=OBSERVED):
 def _run(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_on_contact,
          max_steps, adjoint, progress, samples, names=OBSERVED, inversion=True, locate=True,
          pack_width=PACK_WIDTH):
-    dtype = jnp.result_type(top.m)
     too_stiff = jnp.array(False)
     if guard_stiff:
         # Traced top with the default (explicit) solver: a very stiff member would run into
@@ -95,6 +94,13 @@ def _run(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_on
         samples=samples, inversion=inversion, locate=locate, pack_width=pack_width,
     )
     result = RESULTS.where(too_stiff, RESULTS.stiff_under_trace, out.result)
+    return _outputs(top, y0, ts, out, result, level=level, names=names)
+
+
+def _outputs(top, y0, ts, out, result, *, level, names=OBSERVED):
+    """`_run`'s outputs for one member from its `ChainOutput` `out` (and its `result`): the
+    observed fields at the save times, with the safety net for a missed contact loss."""
+    dtype = jnp.result_type(top.m)
     friction_model = level.friction_model
     t_contact_loss = out.t_contact_loss
     if ts is None:
@@ -242,6 +248,51 @@ def _check_saveat(saveat, t0, t1, dtype):
     return ts
 
 
+def _check_run_options(max_steps, event_samples, t0, t1, rtol, atol, summary, saveat, body):
+    """`simulate`'s checks of its options past the model, the top and the state."""
+    if not (isinstance(max_steps, (int, np.integer)) and max_steps > 0):
+        raise ValueError(f"max_steps must be a positive integer, got {max_steps!r}.")
+    if not (isinstance(event_samples, (int, np.integer)) and event_samples >= 2):
+        raise ValueError(f"event_samples must be an integer >= 2, got {event_samples!r}.")
+    if _concrete(t0, t1) and not float(t1) > float(t0):
+        raise ValueError(f"t1 must be greater than t0, got t0={t0}, t1={t1}.")
+    _check_tolerances(rtol, atol)
+    if summary and saveat is not None:
+        raise ValueError("Pass either saveat or summary=True, not both.")
+    if body is not None and not isinstance(body, (bool, np.bool_)):
+        raise ValueError(f"body must be True, False or None (the default), got {body!r}.")
+
+
+def _tolerances_for(dtype, rtol, atol):
+    """`rtol`, `atol` raised to at least 1e-5 and 1e-7 for a float32 top."""
+    if dtype != jnp.float64:
+        if _concrete(rtol, atol):
+            rtol, atol = max(float(rtol), 1e-5), max(float(atol), 1e-7)
+        else:
+            rtol, atol = jnp.maximum(rtol, 1e-5), jnp.maximum(atol, 1e-7)
+    return rtol, atol
+
+
+def _save_times(summary, saveat, t0, t1, dtype):
+    """The save grid a run uses (None in summary mode), padded to its bucket, and the number
+    of save times asked for (None in summary mode)."""
+    if summary:
+        ts = None
+    elif saveat is None:
+        ts = jnp.linspace(t0, t1, 1001, dtype=dtype)
+    else:
+        ts = _check_saveat(saveat, t0, t1, dtype)
+    # Save grids are padded to a bucket length (the next power of two, at least 16) with
+    # copies of the last time, and the outputs cut back: a new length of `saveat` reuses the
+    # compiled program of its bucket instead of compiling anew.
+    n_save = None if ts is None else int(ts.shape[0])
+    if ts is not None:
+        bucket = save_bucket(n_save)
+        if bucket > n_save:
+            ts = jnp.concatenate([ts, jnp.broadcast_to(ts[-1:], (bucket - n_save,))])
+    return ts, n_save
+
+
 def simulate(
     top: TippeTop,
     y0: State,
@@ -325,41 +376,14 @@ def simulate(
     if on_contact_loss not in ("stop", "continue"):
         raise ValueError(f"on_contact_loss must be 'stop' or 'continue', got {on_contact_loss!r}.")
     _check_top_and_state(top, y0)
-    if not (isinstance(max_steps, (int, np.integer)) and max_steps > 0):
-        raise ValueError(f"max_steps must be a positive integer, got {max_steps!r}.")
-    if not (isinstance(event_samples, (int, np.integer)) and event_samples >= 2):
-        raise ValueError(f"event_samples must be an integer >= 2, got {event_samples!r}.")
-    if _concrete(t0, t1) and not float(t1) > float(t0):
-        raise ValueError(f"t1 must be greater than t0, got t0={t0}, t1={t1}.")
-    _check_tolerances(rtol, atol)
-    if summary and saveat is not None:
-        raise ValueError("Pass either saveat or summary=True, not both.")
-    if body is not None and not isinstance(body, (bool, np.bool_)):
-        raise ValueError(f"body must be True, False or None (the default), got {body!r}.")
+    _check_run_options(max_steps, event_samples, t0, t1, rtol, atol, summary, saveat, body)
     dtype = jnp.result_type(top.m)
     if model == "auto":
         from ._auto import choose_model
 
         model = choose_model(top, y0, tolerance=tolerance)
-    if dtype != jnp.float64:
-        if _concrete(rtol, atol):
-            rtol, atol = max(float(rtol), 1e-5), max(float(atol), 1e-7)
-        else:
-            rtol, atol = jnp.maximum(rtol, 1e-5), jnp.maximum(atol, 1e-7)
-    if summary:
-        ts = None
-    elif saveat is None:
-        ts = jnp.linspace(t0, t1, 1001, dtype=dtype)
-    else:
-        ts = _check_saveat(saveat, t0, t1, dtype)
-    # Save grids are padded to a bucket length (the next power of two, at least 16) with
-    # copies of the last time, and the outputs cut back: a new length of `saveat` reuses the
-    # compiled program of its bucket instead of compiling anew.
-    n_save = None if ts is None else int(ts.shape[0])
-    if ts is not None:
-        bucket = save_bucket(n_save)
-        if bucket > n_save:
-            ts = jnp.concatenate([ts, jnp.broadcast_to(ts[-1:], (bucket - n_save,))])
+    rtol, atol = _tolerances_for(dtype, rtol, atol)
+    ts, n_save = _save_times(summary, saveat, t0, t1, dtype)
     y0 = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), y0)
     defect = _state_defect(y0)
     if _concrete(defect):
@@ -404,6 +428,73 @@ def simulate(
     if throw:
         sol = _raise_if_failed(sol, on_contact_loss, top)
     return sol
+
+
+SHARED_MODELS = ("full", "so3")
+"""The levels a batch with shared steps runs (`simulate_batch(..., steps="shared")`): the
+levels that are one segment."""
+
+SHARED_OPTIONS = ("model", "saveat", "t0", "rtol", "atol", "solver", "max_steps",
+                  "on_contact_loss", "summary", "event_samples", "body")
+"""The options of `simulate` a batch with shared steps takes."""
+
+
+def shared_run_options(top: TippeTop, t1, *, model="full", saveat=None, t0=0.0, rtol=1e-8,
+                       atol=1e-10, solver=None, max_steps=1_000_000, on_contact_loss="stop",
+                       summary=False, event_samples=EVENT_SAMPLES, body=None):
+    """`simulate`'s checks and defaults for a batch with shared steps (a concrete `top`, one
+    or a batch). Returns the arrays of the run (`ts` None in summary mode, `t0`, `t1`,
+    `rtol`, `atol`), its static options for `_run_shared`, and the number of save times."""
+    if model not in SHARED_MODELS:
+        raise ValueError(
+            f"steps='shared' runs the models {SHARED_MODELS} (one segment each), got "
+            f"model={model!r}; use steps='per_member' for it."
+        )
+    if on_contact_loss not in ("stop", "continue"):
+        raise ValueError(f"on_contact_loss must be 'stop' or 'continue', got {on_contact_loss!r}.")
+    _check_run_options(max_steps, event_samples, t0, t1, rtol, atol, summary, saveat, body)
+    dtype = jnp.result_type(top.m)
+    rtol, atol = _tolerances_for(dtype, rtol, atol)
+    ts, n_save = _save_times(summary, saveat, t0, t1, dtype)
+    if solver is None:
+        solver = default_solver(top, slow_flow=False)
+    if isinstance(solver, diffrax.AbstractImplicitSolver):
+        raise ValueError(
+            "steps='shared' runs explicit solvers only (an implicit one would solve the whole "
+            f"batch as one system), got {type(solver).__name__} (the default for very stiff "
+            "friction); use steps='per_member' for it."
+        )
+    level = dataclasses.replace(LEVELS[model], body=not summary if body is None else bool(body))
+    arrays = dict(ts=ts, t0=jnp.asarray(t0, dtype), t1=jnp.asarray(t1, dtype),
+                  rtol=jnp.asarray(rtol, dtype), atol=jnp.asarray(atol, dtype))
+    static = dict(level=level, solver=solver, stop_on_contact=on_contact_loss == "stop",
+                  max_steps=int(max_steps), samples=int(event_samples))
+    return arrays, static, n_save
+
+
+@eqx.filter_jit
+def _run_shared(tops, y0s, ts, t0, t1, rtol, atol, *, level, solver, stop_on_contact,
+                max_steps, samples, pack_width=SHARED_PACK_WIDTH):
+    """`_run` for a batch whose members share their steps (`run_chain_shared`): `y0s` has a
+    leading member axis, `tops` is one top or one per member. Returns `_run`'s outputs with
+    the member axis leading, and each member's outcome and settled flag."""
+    axes = top_axes(tops)
+    out = run_chain_shared(
+        level, tops, y0s, t0, t1, ts, stop_on_contact=stop_on_contact, solver=solver,
+        rtol=rtol, atol=atol, max_steps=max_steps,
+        # Not differentiated: the plain while loop of forward mode.
+        adjoint=diffrax.ForwardMode(), progress_meter=diffrax.NoProgressMeter(),
+        samples=samples, pack_width=pack_width,
+    )
+    fields = jax.vmap(
+        lambda top, y0, o: _outputs(top, y0, ts, o, o.result, level=level),
+        in_axes=(axes, 0, 0),
+    )(tops, y0s, out)
+    theta_end, jellet_launch = fields.pop("theta_end"), fields.pop("jellet_launch")
+    outcome, settled = jax.vmap(_outcome, in_axes=(axes, 0, 0, 0))(
+        tops, jellet_launch, theta_end, fields["result"]
+    )
+    return dict(fields, outcome=outcome, settled=settled)
 
 
 def simulate_tilt(top: TippeTop, y0: State, ts, *, t0, t1, model: str, rtol, atol,

@@ -7,6 +7,11 @@ Contact loss either ends the run (a terminating event) or is observed and the ru
 it (`stop_on_contact=False`); the inversion is observed (unless `inversion=False`). The chain
 is static (it depends on the level only), so under `jit`/`vmap` every segment is compiled once
 and a member that does not need a segment runs it with zero length.
+
+What a member does before, between and after its segments is written per member
+(`_chain_start`, `_segment_start`, `_segment_end`, `_chain_output`): `run_chain` calls them
+around `run_segment`, and `run_chain_shared` (a batch whose members share their steps, for a
+level that is one segment) vmaps them around one `run_segment_shared` for the whole batch.
 """
 
 from __future__ import annotations
@@ -15,13 +20,13 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, PyTree
 
 from .._invariants import normal_force, normal_force_denominator
 from .._models.base import AbstractLevel
 from .._solution import RESULTS
 from .._state import State, state_from_euler
-from .segment import run_segment
+from .segment import run_segment, run_segment_shared, top_axes
 
 
 def level_chain(level: AbstractLevel) -> tuple[AbstractLevel, ...]:
@@ -72,6 +77,174 @@ class ChainOutput(eqx.Module):
     num_rejected_steps: Array
 
 
+class _Carry(eqx.Module):
+    """What a chain carries from one segment to the next (one member; leading axes only under
+    `vmap`): the fields of `ChainOutput` so far, and where the next segment starts."""
+
+    states: State | None
+    state_end: State
+    t_final: Float[Array, ""]
+    result: RESULTS
+    t_invert: Float[Array, ""]
+    t_contact_loss: Float[Array, ""]
+    t_chart_switch: Float[Array, ""]
+    num_steps: Array
+    num_rejected_steps: Array
+    state: State  # the common state the next segment starts from
+    t_start: Float[Array, ""]
+    active: Array  # whether the member runs the next segment
+
+
+class _Start(eqx.Module):
+    """How one member enters a segment (see `_segment_start`)."""
+
+    runs: Array  # it integrates the segment (else the segment has zero length for it)
+    hand_over_now: Array  # outside this level's chart from the start: on to the fallback
+    y_start: PyTree  # the level's state at the segment's start
+    t_stop: Float[Array, ""]
+    result: RESULTS
+
+
+def _chain_start(level: AbstractLevel, top, state0: State, t0, ts, stop_on_contact: bool):
+    """The carry of one member before its first segment: the checks at `t0`."""
+    dtype = jnp.result_type(top.m)
+    nan = jnp.array(jnp.nan, dtype)
+    friction_model = level.friction_model
+    # R_n <= 0, or its denominator <= 0, already at t0: no sign change for an event to see.
+    singular0 = normal_force_denominator(top, state0, model=friction_model) <= 0
+    lost0 = (normal_force(top, state0, model=friction_model) <= 0) & ~singular0
+    dead0 = singular0 | (lost0 & stop_on_contact)
+    result = RESULTS.where(singular0, RESULTS.normal_force_singular, RESULTS.successful)
+    result = RESULTS.where(lost0 & ~singular0, RESULTS.contact_lost, result)
+    t_start = jnp.asarray(t0, dtype)
+    states = None
+    if ts is not None:
+        states = jax.tree_util.tree_map(
+            lambda x: jnp.full(ts.shape + x.shape, jnp.nan, dtype), state0
+        )
+    return _Carry(
+        states=states, state_end=state0, t_final=t_start, result=result, t_invert=nan,
+        t_contact_loss=jnp.where(lost0, t_start, nan), t_chart_switch=nan,
+        num_steps=jnp.array(0), num_rejected_steps=jnp.array(0), state=state0,
+        t_start=t_start, active=~dead0,
+    )
+
+
+def _segment_start(chain, i: int, top, carry: _Carry, t1, y0=None) -> _Start:
+    """How one member enters segment `i` of `chain`."""
+    lvl, last = chain[i], i == len(chain) - 1
+    dtype = jnp.result_type(top.m)
+    # A regular stand-in for members whose segment is skipped (zero length), so that no
+    # conversion from a singular chart makes nans that would poison gradients.
+    stand_in = state_from_euler(1.0, 0.0, 0.0, 0.0, 0.0, 1.0)
+    stand_in = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), stand_in)
+    active, state, result = carry.active, carry.state, carry.result
+    runs = active & lvl.in_chart(top, state)
+    chart_end = _chart_end_code(lvl)
+    hand_over_now = jnp.array(False)
+    if not last:
+        # Outside this level's chart from the start: hand over at once.
+        hand_over_now = active & ~runs
+    elif chart_end is not None:
+        # Outside the chart of a level with no fallback: nothing to integrate; say why.
+        result = RESULTS.where(
+            active & ~runs & (result == RESULTS.successful), chart_end, result
+        )
+    if i == 0 and y0 is not None:
+        y_start = y0
+    else:
+        y_start = lvl.from_state(top, _where_tree(runs, state, stand_in))
+    t_stop = jnp.where(runs, t1, carry.t_start)
+    return _Start(runs=runs, hand_over_now=hand_over_now, y_start=y_start, t_stop=t_stop,
+                  result=result)
+
+
+def _segment_events(lvl: AbstractLevel, stop_on_contact: bool, inversion: bool):
+    """The terminating and the observed event names of a segment of `lvl`."""
+    terminating = ("singular",) + (("chart",) if lvl.has_chart else ()) + (
+        ("contact",) if stop_on_contact else ()
+    )
+    observed = (("upright",) if inversion else ()) + (() if stop_on_contact else ("contact",))
+    return terminating, observed
+
+
+def _segment_end(chain, i: int, top, carry: _Carry, start: _Start, seg, ts, *,
+                 stop_on_contact: bool, inversion: bool) -> _Carry:
+    """The carry of one member after segment `i` of `chain` (its `Segment` `seg`)."""
+    lvl, last = chain[i], i == len(chain) - 1
+    dtype = jnp.result_type(top.m)
+    nan = jnp.array(jnp.nan, dtype)
+    runs, t_start = start.runs, carry.t_start
+    seg_result = _segment_result(seg, stop_on_contact, _chart_end_code(lvl))
+    result = RESULTS.where(runs & (start.result == RESULTS.successful), seg_result,
+                           start.result)
+    states = carry.states
+    if ts is not None:
+        inside = runs & (ts >= t_start) & (ts <= seg.t_end)
+        seg_states = jax.vmap(lambda y: lvl.to_state(top, y))(seg.ys)
+        states = jax.tree_util.tree_map(
+            lambda new, old: jnp.where(
+                inside.reshape(inside.shape + (1,) * (new.ndim - 1)), new, old
+            ),
+            seg_states,
+            states,
+        )
+    end = lvl.to_state(top, seg.y_end)
+    t_invert = carry.t_invert
+    if inversion:
+        upright = seg.observed["upright"]
+        t_invert = jnp.where(runs & jnp.isnan(t_invert), upright, t_invert)
+    if stop_on_contact:
+        contact = jnp.where(seg.fired["contact"], seg.t_end, nan)
+    else:
+        contact = seg.observed["contact"]
+    t_contact_loss = carry.t_contact_loss
+    t_contact_loss = jnp.where(runs & jnp.isnan(t_contact_loss), contact, t_contact_loss)
+    state, active, t_chart_switch = carry.state, carry.active, carry.t_chart_switch
+    if not last:
+        switch = runs & seg.fired["chart"] & (seg_result == RESULTS.successful)
+        switch = switch | start.hand_over_now
+        t_chart_switch = jnp.where(switch, jnp.where(runs, seg.t_end, t_start), t_chart_switch)
+        state = _where_tree(runs, end, state)
+        t_start = jnp.where(runs, seg.t_end, t_start)
+        active = switch
+    return _Carry(
+        states=states,
+        state_end=_where_tree(runs, end, carry.state_end),
+        t_final=jnp.where(runs, seg.t_end, carry.t_final),
+        result=result,
+        t_invert=t_invert,
+        t_contact_loss=t_contact_loss,
+        t_chart_switch=t_chart_switch,
+        num_steps=carry.num_steps + seg.num_steps,
+        num_rejected_steps=carry.num_rejected_steps + seg.num_rejected_steps,
+        state=state,
+        t_start=t_start,
+        active=active,
+    )
+
+
+def _chain_output(carry: _Carry, stop_on_contact: bool) -> ChainOutput:
+    result = carry.result
+    if not stop_on_contact:
+        result = RESULTS.where(
+            (result == RESULTS.successful) & jnp.isfinite(carry.t_contact_loss),
+            RESULTS.contact_lost,
+            result,
+        )
+    return ChainOutput(
+        states=carry.states,
+        state_end=carry.state_end,
+        t_final=carry.t_final,
+        result=result,
+        t_invert=carry.t_invert,
+        t_contact_loss=carry.t_contact_loss,
+        t_chart_switch=carry.t_chart_switch,
+        num_steps=carry.num_steps,
+        num_rejected_steps=carry.num_rejected_steps,
+    )
+
+
 def run_chain(
     level: AbstractLevel,
     top,
@@ -91,105 +264,57 @@ def run_chain(
     the first level's own state at `t0`, for a caller that has it (default
     `level.from_state(top, state0)`); `state0` must be its common state."""
     chain = level_chain(level)
-    dtype = jnp.result_type(top.m)
-    nan = jnp.array(jnp.nan, dtype)
-    friction_model = chain[0].friction_model
-    # R_n <= 0, or its denominator <= 0, already at t0: no sign change for an event to see.
-    singular0 = normal_force_denominator(top, state0, model=friction_model) <= 0
-    lost0 = (normal_force(top, state0, model=friction_model) <= 0) & ~singular0
-    dead0 = singular0 | (lost0 & stop_on_contact)
-    result = RESULTS.where(singular0, RESULTS.normal_force_singular, RESULTS.successful)
-    result = RESULTS.where(lost0 & ~singular0, RESULTS.contact_lost, result)
-    # A regular stand-in for members whose segment is skipped (zero length), so that no
-    # conversion from a singular chart makes nans that would poison gradients.
-    stand_in = state_from_euler(1.0, 0.0, 0.0, 0.0, 0.0, 1.0)
-    stand_in = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), stand_in)
-
-    state, t_start = state0, jnp.asarray(t0, dtype)
-    active = ~dead0
-    states = None
-    if ts is not None:
-        states = jax.tree_util.tree_map(
-            lambda x: jnp.full(ts.shape + x.shape, jnp.nan, dtype), state0
-        )
-    t_invert, t_contact_loss, t_chart_switch = nan, jnp.where(lost0, t_start, nan), nan
-    steps = rejected = jnp.array(0)
-    state_end, t_final = state0, t_start
+    carry = _chain_start(chain[0], top, state0, t0, ts, stop_on_contact)
     for i, lvl in enumerate(chain):
-        last = i == len(chain) - 1
-        runs = active & lvl.in_chart(top, state)
-        chart_end = _chart_end_code(lvl)
-        if not last:
-            # Outside this level's chart from the start: hand over at once.
-            hand_over_now = active & ~runs
-        elif chart_end is not None:
-            # Outside the chart of a level with no fallback: nothing to integrate; say why.
-            result = RESULTS.where(
-                active & ~runs & (result == RESULTS.successful), chart_end, result
-            )
-        if i == 0 and y0 is not None:
-            y_start = y0
-        else:
-            y_start = lvl.from_state(top, _where_tree(runs, state, stand_in))
-        t_stop = jnp.where(runs, t1, t_start)
-        terminating = ("singular",) + (("chart",) if lvl.has_chart else ()) + (
-            ("contact",) if stop_on_contact else ()
-        )
-        observed = (("upright",) if inversion else ()) + (
-            () if stop_on_contact else ("contact",)
-        )
+        start = _segment_start(chain, i, top, carry, t1, y0)
+        terminating, observed = _segment_events(lvl, stop_on_contact, inversion)
         seg = run_segment(
-            lvl, top, y_start, t_start, t_stop, ts, terminating=terminating, observed=observed,
-            **segment_options,
+            lvl, top, start.y_start, carry.t_start, start.t_stop, ts, terminating=terminating,
+            observed=observed, **segment_options,
         )
-        steps = steps + seg.num_steps
-        rejected = rejected + seg.num_rejected_steps
-        seg_result = _segment_result(seg, stop_on_contact, chart_end)
-        result = RESULTS.where(
-            runs & (result == RESULTS.successful), seg_result, result
+        carry = _segment_end(chain, i, top, carry, start, seg, ts,
+                             stop_on_contact=stop_on_contact, inversion=inversion)
+    return _chain_output(carry, stop_on_contact)
+
+
+def run_chain_shared(
+    level: AbstractLevel,
+    tops,
+    states0: State,
+    t0,
+    t1,
+    ts,
+    *,
+    stop_on_contact: bool,
+    inversion: bool = True,
+    **segment_options,
+) -> ChainOutput:
+    """`run_chain` for a batch of members (leading axis of `states0`; `tops` one top or one per
+    member, see `top_axes`) whose steps are shared: one `run_segment_shared` for all. Only for
+    a level that is one segment (no chart, no fallback: the full and SO(3) levels). Every
+    member's output is what `run_chain` gives it, to about the tolerances (its steps differ);
+    the checks before and after the segment are `run_chain`'s own, vmapped."""
+    chain = level_chain(level)
+    if len(chain) != 1 or level.has_chart:
+        raise ValueError(
+            f"shared steps run one segment; the {level.name!r} level chains segments."
         )
-        if ts is not None:
-            inside = runs & (ts >= t_start) & (ts <= seg.t_end)
-            seg_states = jax.vmap(lambda y: lvl.to_state(top, y))(seg.ys)
-            states = jax.tree_util.tree_map(
-                lambda new, old: jnp.where(
-                    inside.reshape(inside.shape + (1,) * (new.ndim - 1)), new, old
-                ),
-                seg_states,
-                states,
-            )
-        end = lvl.to_state(top, seg.y_end)
-        state_end = _where_tree(runs, end, state_end)
-        t_final = jnp.where(runs, seg.t_end, t_final)
-        if inversion:
-            upright = seg.observed["upright"]
-            t_invert = jnp.where(runs & jnp.isnan(t_invert), upright, t_invert)
-        if stop_on_contact:
-            contact = jnp.where(seg.fired["contact"], seg.t_end, nan)
-        else:
-            contact = seg.observed["contact"]
-        t_contact_loss = jnp.where(runs & jnp.isnan(t_contact_loss), contact, t_contact_loss)
-        if not last:
-            switch = runs & seg.fired["chart"] & (seg_result == RESULTS.successful)
-            switch = switch | hand_over_now
-            t_chart_switch = jnp.where(switch, jnp.where(runs, seg.t_end, t_start), t_chart_switch)
-            state = _where_tree(runs, end, state)
-            t_start = jnp.where(runs, seg.t_end, t_start)
-            active = switch
-    if not stop_on_contact:
-        result = RESULTS.where(
-            (result == RESULTS.successful) & jnp.isfinite(t_contact_loss),
-            RESULTS.contact_lost,
-            result,
-        )
-    return ChainOutput(
-        states=states,
-        state_end=state_end,
-        t_final=t_final,
-        result=result,
-        t_invert=t_invert,
-        t_contact_loss=t_contact_loss,
-        t_chart_switch=t_chart_switch,
-        num_steps=steps,
-        num_rejected_steps=rejected,
+    axes = top_axes(tops)
+    carry = jax.vmap(
+        lambda top, s: _chain_start(level, top, s, t0, ts, stop_on_contact), in_axes=(axes, 0)
+    )(tops, states0)
+    start = jax.vmap(
+        lambda top, c: _segment_start(chain, 0, top, c, t1), in_axes=(axes, 0)
+    )(tops, carry)
+    terminating, observed = _segment_events(level, stop_on_contact, inversion)
+    seg = run_segment_shared(
+        level, tops, start.y_start, t0, t1, ts, idle=~start.runs, terminating=terminating,
+        observed=observed, **segment_options,
     )
+    carry = jax.vmap(
+        lambda top, c, st, sg: _segment_end(chain, 0, top, c, st, sg, ts,
+                                            stop_on_contact=stop_on_contact,
+                                            inversion=inversion),
+        in_axes=(axes, 0, 0, 0),
+    )(tops, carry, start, seg)
+    return jax.vmap(lambda c: _chain_output(c, stop_on_contact))(carry)

@@ -271,15 +271,8 @@ class WatchedSolver(diffrax.AbstractWrappedSolver):
             points, tangents
         )
         mid, end = values[0], values[1]
-        h = h.astype(end.dtype)
-        data = (solver_state.previous, h * solver_state.previous_rate, mid, h * rates[0], end,
-                h * rates[1])
-        # The quintic at the check points: a sum of scaled rows, which XLA fuses (as a matrix
-        # product it ran as a small batched dot per member of a batch).
-        weights = _quintic_samples(self.samples).astype(np.dtype(end.dtype))
-        interior = sum(weights[:, j, None] * data[j][None, :] for j in range(6))
-        values = jnp.concatenate([solver_state.previous[None], interior, end[None]])
-        positive = values > 0
+        positive = _signs(solver_state.previous, solver_state.previous_rate, mid, rates[0],
+                          end, rates[1], h, self.samples)
         changes = jnp.sum(positive[1:] != positive[:-1], axis=0)
         hidden = jnp.any(changes > 1)
         if y_error is not None:
@@ -326,6 +319,198 @@ class WatchedSolver(diffrax.AbstractWrappedSolver):
             inner=inner,
             previous=end,
             tally=jnp.concatenate([rates[1], solver_state.tally[-1:] + 1]),
+            last_t0=last_t0,
+            last_t1=last_t1,
+            last_y0=last_y0,
+            stopped=stopped,
+            found=found,
+            step_t0=step_t0,
+            step_t1=step_t1,
+            step_y0=step_y0,
+        )
+        return y1, y_error, dense_info, state, result
+
+
+def _signs(previous, previous_rate, mid, mid_rate, end, end_rate, h, samples: int):
+    """Whether each condition is positive at the start of a step, at its `samples - 1` check
+    points (its quintic, see the module docstring) and at its end: shape
+    `(samples + 1,) + end.shape` (the conditions on the last axis, any leading axes before)."""
+    h = h.astype(end.dtype)
+    data = (previous, h * previous_rate, mid, h * mid_rate, end, h * end_rate)
+    # The quintic at the check points: a sum of scaled rows, which XLA fuses (as a matrix
+    # product it ran as a small batched dot per member of a batch).
+    weights = _quintic_samples(samples).astype(np.dtype(end.dtype))
+    lead = (1,) * end.ndim
+    interior = sum(weights[:, j].reshape((-1,) + lead) * data[j][None] for j in range(6))
+    values = jnp.concatenate([previous[None], interior, end[None]])
+    return values > 0
+
+
+class _SharedWatchState(eqx.Module):
+    """`_WatchState` for a batch whose members share their steps: every field has a leading
+    member axis but the inner solver's state and the count of accepted steps (the steps are
+    common). `stopped` marks the members frozen since a terminating event (or from the start,
+    `SharedWatchedSolver.idle`)."""
+
+    inner: PyTree
+    previous: Float[Array, "N n"]
+    previous_rate: Float[Array, "N n"]
+    accepted: Float[Array, ""]
+    last_t0: Float[Array, " N"]
+    last_t1: Float[Array, " N"]
+    last_y0: PyTree
+    stopped: Bool[Array, " N"]
+    found: Bool[Array, "N m"]
+    step_t0: Float[Array, "N m"]
+    step_t1: Float[Array, "N m"]
+    step_y0: PyTree  # leading axes (N, m): each member's own state only
+
+    def member_states(self) -> _WatchState:
+        """The per-member records as a `_WatchState` with a leading member axis, for
+        `jax.vmap` of `locate_observed` and `locate_terminating` (which read only these)."""
+        return _WatchState(
+            inner=None, previous=None, tally=None, last_t0=self.last_t0,
+            last_t1=self.last_t1, last_y0=self.last_y0, stopped=self.stopped,
+            found=self.found, step_t0=self.step_t0, step_t1=self.step_t1,
+            step_y0=self.step_y0,
+        )
+
+
+class SharedWatchedSolver(WatchedSolver):
+    """`WatchedSolver` for a batch of members integrated as one state with shared steps.
+
+    The state's leaves have a leading member axis; `watch(y, args)` returns the conditions of
+    every member, shape `(N, n)`. Each member is watched as `WatchedSolver` watches one run,
+    and:
+
+    - a step is rejected if a condition of ANY running member changes sign more than once
+      inside it (its error is set to infinity, so the batch norm is infinite);
+    - observed events are recorded per member (`found`, `step_t0`, `step_t1` of shape
+      `(N, m)`, `step_y0` that member's own state), so that after the solve each member's
+      event is located on its own step, taken again for that member alone;
+    - a terminating event does not end the solve: it FREEZES its member. From the step it
+      fell in, the member's new state is the state it started that step from (kept with the
+      step in `last_t0`, `last_t1`, `last_y0` for `locate_terminating`), and from the next
+      step on its error is zero, so that it no longer sets the step size. The step it fell in
+      keeps its error (the crossing is located on that step's dense output, which must be as
+      accurate as in a run of its own). Whatever a frozen member's lane computes after (its
+      stages from a state past its event may be nan or inf) is discarded with `jnp.where`,
+      never multiplied, so it cannot reach the norm or the other members;
+    - the solve ends (the step returns `STOP`) when every member is frozen, else at `t1`.
+
+    `idle`: members that do not run at all (frozen from the start, no event recorded).
+    """
+
+    idle: Bool[Array, " N"] | None = None
+
+    def init(self, terms, t0, t1, y0, args) -> _SharedWatchState:
+        m = len(self.observed)
+        dtype = jnp.result_type(t0, t1)
+        t0 = jnp.asarray(t0, dtype)
+        previous, previous_rate = self._watch_with_rate(
+            y0, self.solver.func(terms, t0, y0, args), args
+        )
+        n_members = previous.shape[0]
+        # The dummy step of `WatchedSolver.init`, for members with no event recorded.
+        tiny = jnp.finfo(dtype).eps * 64 * jnp.maximum(1.0, jnp.abs(t0))
+        dummy = t0 + jnp.maximum(1e-6 * jnp.abs(jnp.asarray(t1, dtype) - t0), tiny)
+        per_event = lambda x: jnp.broadcast_to(x[:, None], (n_members, m) + x.shape[1:])  # noqa: E731
+        idle = jnp.zeros(n_members, bool) if self.idle is None else self.idle
+        return _SharedWatchState(
+            inner=self.solver.init(terms, t0, t1, y0, args),
+            previous=previous,
+            previous_rate=previous_rate,
+            accepted=jnp.zeros((), previous_rate.dtype),
+            last_t0=jnp.full(n_members, t0),
+            last_t1=jnp.full(n_members, dummy),
+            last_y0=y0,
+            stopped=idle,
+            found=jnp.zeros((n_members, m), bool),
+            step_t0=jnp.full((n_members, m), t0),
+            step_t1=jnp.full((n_members, m), dummy),
+            step_y0=jax.tree_util.tree_map(per_event, y0),
+        )
+
+    def step(self, terms, t0, t1, y0, args, solver_state: _SharedWatchState, made_jump):
+        y1, y_error, dense_info, inner, result = self.solver.step(
+            terms, t0, t1, y0, args, solver_state.inner, made_jump
+        )
+        h = t1 - t0
+        y_mid, y_mid_dot = _midpoint(self.solver, dense_info, h)
+        points = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), y_mid, y1)
+        tangents = jax.tree_util.tree_map(
+            lambda a, b: jnp.stack([a, b.astype(a.dtype)]),
+            y_mid_dot, self._end_rate(terms, t1, y1, args, inner),
+        )
+        values, rates = jax.vmap(lambda y, y_dot: self._watch_with_rate(y, y_dot, args))(
+            points, tangents
+        )
+        mid, end = values[0], values[1]  # (N, n)
+        positive = _signs(solver_state.previous, solver_state.previous_rate, mid, rates[0],
+                          end, rates[1], h, self.samples)  # (samples + 1, N, n)
+        frozen = solver_state.stopped
+        running = ~frozen
+        changes = jnp.sum(positive[1:] != positive[:-1], axis=0)
+        hidden = jnp.any(changes > 1, axis=-1) & running
+        fell = jnp.any(positive[:-1] & ~positive[1:], axis=0)  # (N, n)
+        observed = jnp.asarray(self.observed, int)
+        new = fell[:, observed] & ~solver_state.found & running[:, None]
+        stops_now = jnp.zeros_like(running)
+        if self.terminating:
+            stops = jnp.asarray(self.terminating, int)
+            stops_now = jnp.any(fell[:, stops], axis=-1) & running & (
+                result == diffrax.RESULTS.successful
+            )
+        hold = frozen | stops_now
+
+        def member(mask, a):  # a mask on the leading axes of `a`, broadcast over the rest
+            return mask.reshape(mask.shape + (1,) * (jnp.ndim(a) - mask.ndim))
+
+        y1 = jax.tree_util.tree_map(
+            lambda a, b: jnp.where(member(hold, a), a.astype(b.dtype), b), y0, y1
+        )
+        if y_error is not None:
+            y_error = jax.tree_util.tree_map(
+                lambda e: jnp.where(member(frozen, e), jnp.zeros((), e.dtype),
+                                    jnp.where(member(hidden, e), jnp.inf, e)),
+                y_error,
+            )
+        stopped = hold
+        every = jnp.all(stopped)
+        result = diffrax.RESULTS.where(every & (result == diffrax.RESULTS.successful), STOP,
+                                       result)
+        time_dtype = solver_state.step_t0.dtype
+        t0, t1 = jnp.asarray(t0, time_dtype), jnp.asarray(t1, time_dtype)
+
+        def write(book):
+            found, step_t0, step_t1, step_y0, last_t0, last_t1, last_y0 = book
+            at_event = lambda x: jnp.broadcast_to(x[:, None], step_t0.shape + x.shape[1:])  # noqa: E731
+            return (
+                found | new,
+                jnp.where(new, t0, step_t0),
+                jnp.where(new, t1, step_t1),
+                jax.tree_util.tree_map(
+                    lambda a, b: jnp.where(member(new, b), at_event(a).astype(b.dtype), b),
+                    y0, step_y0,
+                ),
+                jnp.where(stops_now, t0, last_t0),
+                jnp.where(stops_now, t1, last_t1),
+                jax.tree_util.tree_map(
+                    lambda a, b: jnp.where(member(stops_now, b), a.astype(b.dtype), b),
+                    y0, last_y0,
+                ),
+            )
+
+        book = (solver_state.found, solver_state.step_t0, solver_state.step_t1,
+                solver_state.step_y0, solver_state.last_t0, solver_state.last_t1,
+                solver_state.last_y0)
+        book = jax.lax.cond(jnp.any(new) | jnp.any(stops_now), write, lambda b: b, book)
+        found, step_t0, step_t1, step_y0, last_t0, last_t1, last_y0 = book
+        state = _SharedWatchState(
+            inner=inner,
+            previous=end,
+            previous_rate=rates[1],
+            accepted=solver_state.accepted + 1,
             last_t0=last_t0,
             last_t1=last_t1,
             last_y0=last_y0,
