@@ -352,8 +352,13 @@ def test_one_top_is_packed_in_one_vector_and_a_batch_in_narrow_ones(top):
     inversion time of one top are the same either way (the same arithmetic, to rounding; the
     derivatives in both modes are checked against each other and against finite differences
     in `test_grad.py`)."""
-    from tippejax._engine.segment import (FORWARD_MODE_PACK_WIDTH, ONE_TOP_PACK_WIDTH,
-                                          PACK_WIDTH, pack_width_for, ravel_state)
+    from tippejax._engine.segment import (
+        FORWARD_MODE_PACK_WIDTH,
+        ONE_TOP_PACK_WIDTH,
+        PACK_WIDTH,
+        pack_width_for,
+        ravel_state,
+    )
     from tippejax._models.full import FullLevelState
 
     z = FullLevelState(position=jnp.zeros(2), velocity=jnp.ones(2), axis=jnp.arange(3.0),

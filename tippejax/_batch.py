@@ -3,6 +3,8 @@ devices."""
 
 from __future__ import annotations
 
+from typing import Literal
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -105,7 +107,7 @@ def simulate_batch(
     grid: tuple[str, ...] = ("theta0", "spin"),
     shard: bool = True,
     buckets: int = 1,
-    steps: str = "per_member",
+    steps: Literal["per_member", "shared"] = "per_member",
     **kwargs,
 ) -> Solution:
     r"""Simulate a sweep of launches and tops in one compiled batch.
@@ -148,7 +150,8 @@ def simulate_batch(
     the batch. Events are watched and located per member, a member whose run stops (contact
     loss with `on_contact_loss="stop"`, the $R_n$ singularity) is frozen there while the
     others go on, and every member's `Solution` fields agree with `steps="per_member"` to
-    about `rtol` (event times to about 1e-6 relative at `rtol=1e-8`); `num_steps` and
+    about `rtol` (at `rtol=1e-8`: inversion times to about 1e-6 relative; contact-loss
+    times, where $R_n$ grazes zero before it crosses, to about 1e-5); `num_steps` and
     `num_rejected_steps` are the shared solve's. Only for the models `"full"` and `"so3"`
     (one segment each) and explicit solvers, with the options `SHARED_OPTIONS` of
     `simulate`; not differentiable. With `shard=True` and several devices every device runs
