@@ -119,13 +119,23 @@ def worker(rounds: int) -> dict:
                                  grid=("spin",))
     reference_full = np.concatenate([np.asarray(ref_full.states.axis[:, -1]),
                                      np.asarray(ref_full.states.omega[:, -1])], axis=1)
-    errors, firsts = {}, {}
+    errors, firsts, mismatched = {}, {}, {}
     for name, fn in runs.items():
         start = time.perf_counter()
         out = np.asarray(jax.block_until_ready(fn()))
         firsts[name] = time.perf_counter() - start
         ref = reference_full if "full" in name else reference
-        errors[name] = max(peers.state_error(out[i], ref[i]) for i in range(BATCH))
+        members = range(BATCH)
+        if name.startswith("tippejax full"):
+            # 16% of these launches lose contact in the full model, some by a grazing dip of
+            # R_n that one tolerance finds and another not: compare the members whose run
+            # ended as the reference's did, and count the others.
+            model, steps = "full", name.split(", ")[1].replace(" ", "_")
+            same = (np.asarray(sols[(model, steps)].result._value)
+                    == np.asarray(ref_full.result._value))
+            members = np.flatnonzero(same)
+            mismatched[name] = int(BATCH - same.sum())
+        errors[name] = max(peers.state_error(out[i], ref[i]) for i in members)
     times = {name: [] for name in runs}
     for _ in range(rounds):
         for name, fn in runs.items():
@@ -150,7 +160,7 @@ def worker(rounds: int) -> dict:
             to_plain=statistics.median(t / p for t, p in zip(ts, times[PLAIN])),
             error=errors[name], first=firsts[name]))
     return dict(devices=len(devices), threads=numba.get_num_threads(), rows=rows,
-                agreement=agreement)
+                agreement=agreement, mismatched=mismatched)
 
 
 def main():
@@ -187,7 +197,12 @@ def main():
         f"theta0 0.1, {BATCH} spins 140-160 rad/s, 20 s, summary mode, rtol 1e-8 for every "
         f"run; {rounds} interleaved rounds after a compiling call, ratios paired per round. "
         "Error: largest over the members of the final state's error against the plain script "
-        "at rtol 1e-12 (the full model's rows: against tippejax's full model at rtol 1e-12). numba runs its `prange` loop on every core in both rows (its thread "
+        "at rtol 1e-12 (the full model's rows: against tippejax's full model at rtol 1e-12, "
+        "over the members whose run ended as the reference's did; 16% of these launches lose "
+        "contact in the full model, some by a grazing dip of R_n that one tolerance finds and "
+        "another not: "
+        + ", ".join(f"{k} {v}" for k, v in results[-1]["mismatched"].items())
+        + " members ended otherwise). numba runs its `prange` loop on every core in both rows (its thread "
         "count is printed); the JAX runs on 1 device, then on every core as a device.",
         "",
         "| target | measured | verdict |",
