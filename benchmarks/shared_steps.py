@@ -22,6 +22,14 @@ once with one JAX device and once with every core a device (two subprocesses), a
 section of `benchmarks/RESULTS.md`.
 
     python benchmarks/shared_steps.py [ROUNDS]     # default 5
+    python benchmarks/shared_steps.py --random K   # agreement on K seeded random tops
+
+`--random K`: the two paths on tops nobody tuned on, drawn as `maps.py --auto-random` draws
+them (seed 0: A/C in [0.6, 1.7], eps/R in [0.03, 0.4], mu log-uniform in [0.05, 1] s/m), each
+with 48 random launches (theta0 in [0.02, 1.5], spin in [0.5, 8] x its n1, n2 in group I),
+10 s, the full and SO(3) levels, contact loss stopping a member (the default), 4 buckets by
+spin for both paths: the result codes, the outcomes, t_invert, t_contact_loss and the final
+tilt of every member compared. Writes its own section of RESULTS.md.
 """
 
 from __future__ import annotations
@@ -234,8 +242,101 @@ def main():
     print(f"done in {elapsed:.0f} s")
 
 
+def random_check(n_tops: int, seed: int = 0, t1: float = 10.0, launches: int = 48):
+    os.environ.setdefault("TIPPEJAX_HOST_DEVICES", str(os.cpu_count()))
+    import jax
+    import numpy as np
+
+    import tippejax as tj
+
+    sys.path.insert(0, HERE)
+    from _common import machine_line, table, write_section
+
+    start = time.perf_counter()
+    print(machine_line(), flush=True)
+    rng = np.random.default_rng(seed)
+    rows = []
+    for _ in range(n_tops):
+        a_c, e_r = rng.uniform(0.6, 1.7), rng.uniform(0.03, 0.4)
+        mu = float(np.exp(rng.uniform(np.log(0.05), np.log(1.0))))
+        top = tj.TippeTop.from_ratios(a_c, e_r, m=0.02, R=0.025, mu=mu)
+        th = tj.thresholds(top)
+        n_ref = float(th.n1) if np.isfinite(float(th.n1)) else float(th.n2)
+        theta0 = rng.uniform(0.02, 1.5, launches)
+        spin = rng.uniform(0.5, 8.0, launches) * n_ref
+        for model in ("full", "so3"):
+            sols, secs = {}, {}
+            for steps in ("per_member", "shared"):
+                def run():
+                    return tj.simulate_batch(top, theta0=theta0, spin=spin, t1=t1, model=model,
+                                             summary=True, grid=(), buckets=4, steps=steps)
+                jax.block_until_ready(run().theta)
+                begin = time.perf_counter()
+                sols[steps] = run()
+                jax.block_until_ready(sols[steps].theta)
+                secs[steps] = time.perf_counter() - begin
+            a, b = sols["per_member"], sols["shared"]
+            code_a, code_b = np.asarray(a.result._value), np.asarray(b.result._value)
+            same = code_a == code_b
+
+            def diff(name, a=a, b=b, same=same):
+                x, y = np.asarray(getattr(a, name)), np.asarray(getattr(b, name))
+                if x.ndim > 1:
+                    x, y = x[..., -1], y[..., -1]
+                both = same & np.isfinite(x) & np.isfinite(y)
+                nan_mismatch = int(np.sum(same & (np.isfinite(x) != np.isfinite(y))))
+                return float(np.max(np.abs(x - y)[both], initial=0.0)), nan_mismatch
+
+            row = dict(group=str(tj.classify(top)), A_over_C=a_c, eps_over_R=e_r, mu=mu,
+                       model=model, spins=(float(spin.min()), float(spin.max())),
+                       same=int(same.sum()), n=launches,
+                       outcome=int(np.sum(np.asarray(a.outcome) == np.asarray(b.outcome))),
+                       lost=int(np.sum(code_a == int(tj.RESULTS.contact_lost._value))),
+                       t_invert=diff("t_invert"), t_contact_loss=diff("t_contact_loss"),
+                       theta=diff("theta"), speed=secs["per_member"] / secs["shared"])
+            rows.append(row)
+            print("random", row, flush=True)
+    n = sum(r["n"] for r in rows)
+    same = sum(r["same"] for r in rows)
+    outcome = sum(r["outcome"] for r in rows)
+    table_rows = [[r["group"], r["model"], f"{r['A_over_C']:.2f}", f"{r['eps_over_R']:.2f}",
+                   f"{r['mu']:.2f}", f"{r['spins'][0]:.0f}-{r['spins'][1]:.0f}",
+                   f"{r['same']}/{r['n']}", f"{r['outcome']}/{r['n']}", str(r["lost"]),
+                   f"{r['t_invert'][0]:.1e}", f"{r['t_contact_loss'][0]:.1e}",
+                   f"{r['theta'][0]:.1e}",
+                   str(r["t_invert"][1] + r["t_contact_loss"][1]), f"{r['speed']:.2f}x"]
+                  for r in rows]
+    elapsed = time.perf_counter() - start
+    body = "\n".join([
+        "## shared_steps.py --random: shared against per-member steps on random tops",
+        "",
+        f"`python benchmarks/shared_steps.py --random {n_tops}` ({elapsed:.0f} s, seed {seed},"
+        f" {len(jax.devices())} devices). Seeded random tops (A/C in [0.6, 1.7], eps/R in "
+        "[0.03, 0.4], mu log-uniform in [0.05, 1] s/m), each with "
+        f"{launches} random launches (theta0 in [0.02, 1.5], spin in [0.5, 8] x n1, n2 in "
+        f"group I), t1 = {t1:g} s, summary mode, contact loss stopping a member, `buckets=4` "
+        "for both paths. Differences are the largest over the members whose result code is "
+        "the same on both paths; 'event nan mismatches': members with the same result code "
+        "where one path found an inversion or contact loss and the other did not. Speed: "
+        "per-member time / shared time, one call each after a compiling call (rough).",
+        "",
+        f"Over all {n} member runs: {100 * same / n:.2f}% the same result code, "
+        f"{100 * outcome / n:.2f}% the same outcome.",
+        "",
+        table(["group", "level", "A/C", "eps/R", "mu", "spins (rad/s)", "same result",
+               "same outcome", "contact lost (per member)", "max d t_invert s",
+               "max d t_contact_loss s", "max d final theta rad", "event nan mismatches",
+               "speed"], table_rows),
+        "",
+    ])
+    write_section("shared_steps.py --random", body)
+    print(f"done in {elapsed:.0f} s: {same}/{n} same result codes, {outcome}/{n} same outcomes")
+
+
 if __name__ == "__main__":
-    if "--worker" in sys.argv:
+    if "--random" in sys.argv:
+        random_check(int(sys.argv[sys.argv.index("--random") + 1]))
+    elif "--worker" in sys.argv:
         rounds = int(sys.argv[sys.argv.index("--worker") + 1])
         print(json.dumps(worker(rounds)))
     else:
