@@ -253,9 +253,13 @@ class WatchedSolver(diffrax.AbstractWrappedSolver):
             return inner[1]
         return self.solver.func(terms, t1, y1, args)
 
-    def step(self, terms, t0, t1, y0, args, solver_state: _WatchState, made_jump):
+    def _watched_step(self, terms, t0, t1, y0, args, inner, previous, previous_rate,
+                      made_jump):
+        """The inner solver's step, the watched conditions and their rates at its end, and
+        the signs of every condition along it (`_signs`, from `previous` and `previous_rate`
+        at its start): `(y1, y_error, dense_info, inner, result, end, end_rate, positive)`."""
         y1, y_error, dense_info, inner, result = self.solver.step(
-            terms, t0, t1, y0, args, solver_state.inner, made_jump
+            terms, t0, t1, y0, args, inner, made_jump
         )
         h = t1 - t0
         y_mid, y_mid_dot = _midpoint(self.solver, dense_info, h)
@@ -270,9 +274,16 @@ class WatchedSolver(diffrax.AbstractWrappedSolver):
         values, rates = jax.vmap(lambda y, y_dot: self._watch_with_rate(y, y_dot, args))(
             points, tangents
         )
-        mid, end = values[0], values[1]
-        positive = _signs(solver_state.previous, solver_state.previous_rate, mid, rates[0],
-                          end, rates[1], h, self.samples)
+        end, end_rate = values[1], rates[1]
+        positive = _signs(previous, previous_rate, values[0], rates[0], end, end_rate, h,
+                          self.samples)
+        return y1, y_error, dense_info, inner, result, end, end_rate, positive
+
+    def step(self, terms, t0, t1, y0, args, solver_state: _WatchState, made_jump):
+        y1, y_error, dense_info, inner, result, end, end_rate, positive = self._watched_step(
+            terms, t0, t1, y0, args, solver_state.inner, solver_state.previous,
+            solver_state.previous_rate, made_jump,
+        )
         changes = jnp.sum(positive[1:] != positive[:-1], axis=0)
         hidden = jnp.any(changes > 1)
         if y_error is not None:
@@ -318,7 +329,7 @@ class WatchedSolver(diffrax.AbstractWrappedSolver):
         state = _WatchState(
             inner=inner,
             previous=end,
-            tally=jnp.concatenate([rates[1], solver_state.tally[-1:] + 1]),
+            tally=jnp.concatenate([end_rate, solver_state.tally[-1:] + 1]),
             last_t0=last_t0,
             last_t1=last_t1,
             last_y0=last_y0,
@@ -432,22 +443,11 @@ class SharedWatchedSolver(WatchedSolver):
         )
 
     def step(self, terms, t0, t1, y0, args, solver_state: _SharedWatchState, made_jump):
-        y1, y_error, dense_info, inner, result = self.solver.step(
-            terms, t0, t1, y0, args, solver_state.inner, made_jump
+        # end, end_rate: (N, n); positive: (samples + 1, N, n)
+        y1, y_error, dense_info, inner, result, end, end_rate, positive = self._watched_step(
+            terms, t0, t1, y0, args, solver_state.inner, solver_state.previous,
+            solver_state.previous_rate, made_jump,
         )
-        h = t1 - t0
-        y_mid, y_mid_dot = _midpoint(self.solver, dense_info, h)
-        points = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), y_mid, y1)
-        tangents = jax.tree_util.tree_map(
-            lambda a, b: jnp.stack([a, b.astype(a.dtype)]),
-            y_mid_dot, self._end_rate(terms, t1, y1, args, inner),
-        )
-        values, rates = jax.vmap(lambda y, y_dot: self._watch_with_rate(y, y_dot, args))(
-            points, tangents
-        )
-        mid, end = values[0], values[1]  # (N, n)
-        positive = _signs(solver_state.previous, solver_state.previous_rate, mid, rates[0],
-                          end, rates[1], h, self.samples)  # (samples + 1, N, n)
         frozen = solver_state.stopped
         running = ~frozen
         changes = jnp.sum(positive[1:] != positive[:-1], axis=0)
@@ -509,7 +509,7 @@ class SharedWatchedSolver(WatchedSolver):
         state = _SharedWatchState(
             inner=inner,
             previous=end,
-            previous_rate=rates[1],
+            previous_rate=end_rate,
             accepted=solver_state.accepted + 1,
             last_t0=last_t0,
             last_t1=last_t1,
