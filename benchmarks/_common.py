@@ -215,6 +215,21 @@ def verdict(met: bool) -> str:
     return "**met**" if met else "**missed**"
 
 
+def random_top(rng):
+    """A seeded random top from the ranges users have, none of them tuned on: A/C in
+    [0.6, 1.7], eps/R in [0.03, 0.4], mu log-uniform in [0.05, 1] s/m (m 20 g, R 25 mm).
+    Returns `(top, A/C, eps/R, mu, n_ref)` with `n_ref` its n1 (n2 in group I, where n1 is
+    not finite), the scale of its launch spins."""
+    import tippejax as tj
+
+    a_c, e_r = rng.uniform(0.6, 1.7), rng.uniform(0.03, 0.4)
+    mu = float(np.exp(rng.uniform(np.log(0.05), np.log(1.0))))
+    top = tj.TippeTop.from_ratios(a_c, e_r, m=0.02, R=0.025, mu=mu)
+    th = tj.thresholds(top)
+    n_ref = float(th.n1) if np.isfinite(float(th.n1)) else float(th.n2)
+    return top, a_c, e_r, mu, n_ref
+
+
 # ----------------------------------------------------------------------------------------------
 # scipy baseline: the vector-form model of tippejax/_models/_rigid_body.py, in numpy
 # ----------------------------------------------------------------------------------------------

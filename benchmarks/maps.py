@@ -38,7 +38,7 @@ import tippejax as tj
 from tippejax._maps import _run_chunk
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _common import machine_line, table, write_section  # noqa: E402
+from _common import machine_line, random_top, table, write_section  # noqa: E402
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -213,11 +213,7 @@ def auto_random(n_tops, t1, seed=0):
     rng = np.random.default_rng(seed)
     rows = []
     for _ in range(n_tops):
-        a_c, e_r = rng.uniform(0.6, 1.7), rng.uniform(0.03, 0.4)
-        mu = float(np.exp(rng.uniform(np.log(0.05), np.log(1.0))))
-        top = tj.TippeTop.from_ratios(a_c, e_r, m=0.02, R=0.025, mu=mu)
-        th = tj.thresholds(top)
-        n_ref = float(th.n1) if np.isfinite(float(th.n1)) else float(th.n2)
+        top, a_c, e_r, mu, n_ref = random_top(rng)
         theta0 = np.sort(rng.uniform(0.02, 1.5, 12))
         spin = np.sort(rng.uniform(0.5, 8.0, 16)) * n_ref
         maps, secs = {}, {}

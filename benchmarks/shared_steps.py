@@ -250,18 +250,14 @@ def random_check(n_tops: int, seed: int = 0, t1: float = 10.0, launches: int = 4
     import tippejax as tj
 
     sys.path.insert(0, HERE)
-    from _common import machine_line, table, write_section
+    from _common import machine_line, random_top, table, write_section
 
     start = time.perf_counter()
     print(machine_line(), flush=True)
     rng = np.random.default_rng(seed)
     rows = []
     for _ in range(n_tops):
-        a_c, e_r = rng.uniform(0.6, 1.7), rng.uniform(0.03, 0.4)
-        mu = float(np.exp(rng.uniform(np.log(0.05), np.log(1.0))))
-        top = tj.TippeTop.from_ratios(a_c, e_r, m=0.02, R=0.025, mu=mu)
-        th = tj.thresholds(top)
-        n_ref = float(th.n1) if np.isfinite(float(th.n1)) else float(th.n2)
+        top, a_c, e_r, mu, n_ref = random_top(rng)
         theta0 = rng.uniform(0.02, 1.5, launches)
         spin = rng.uniform(0.5, 8.0, launches) * n_ref
         for model in ("full", "so3"):
