@@ -168,3 +168,23 @@ def test_shared_steps_sharded_over_two_host_devices():
     assert r["devices"] == 2
     assert r["shape"] == [5, 1]  # 5 launches padded to 6 and cut back
     assert r["diff"] < 1e-5  # each device shares steps over its own shard only
+
+
+def test_shared_large_batch_is_split_into_blocks(so3_summary, monkeypatch):
+    """A batch of more than `SHARED_BLOCK` members per device runs as several shared solves
+    (buckets by spin, put back in order): with a block of 2, the six members of
+    `so3_summary` give every member the result of its per-member run, in the same order."""
+    import jax
+
+    import tippejax._batch as batch
+
+    per, _ = so3_summary
+    monkeypatch.setattr(batch, "SHARED_BLOCK", 2)
+    blocks = tj.simulate_batch(tj.default_top(), 0.1, SPINS, t1=T1, model="so3", summary=True,
+                               grid=("spin",), steps="shared")
+    np.testing.assert_array_equal(np.asarray(blocks.result._value), np.asarray(per.result._value))
+    _close_times(blocks.t_invert, per.t_invert, 1e-5)
+    _close_times(blocks.t_final, per.t_final, 1e-3)
+    # more than one solve: the members' step counts differ between blocks (one per device's
+    # shard within a block)
+    assert len(set(np.asarray(blocks.num_steps).tolist())) > len(jax.devices())
