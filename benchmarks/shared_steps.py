@@ -48,15 +48,7 @@ NUMBA = "numba DOP853, prange"
 PLAIN = "plain diffrax, vmap"
 
 
-def member_norm(x):
-    """The largest member's RMS norm of a batched (N, 6) error."""
-    import jax.numpy as jnp
-
-    return jnp.max(jnp.sqrt(jnp.mean(x**2, axis=1)))
-
-
 def worker(rounds: int) -> dict:
-    import diffrax
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -72,15 +64,7 @@ def worker(rounds: int) -> dict:
     spec = PartitionSpec("batch")
 
     def plain_shared_solve(spins, rtol, atol):
-        axis = jnp.array([0.0, -jnp.sin(peers.THETA0), jnp.cos(peers.THETA0)])
-        y0 = jnp.concatenate([jnp.broadcast_to(axis, (spins.shape[0], 3)),
-                              spins[:, None] * axis], axis=1)
-        field = jax.vmap(peers.so3_field, in_axes=(None, 0, None))
-        sol = diffrax.diffeqsolve(
-            diffrax.ODETerm(field), diffrax.Dopri8(), 0.0, peers.T1, None, y0,
-            tuple(peers.PARAMS), saveat=diffrax.SaveAt(t1=True), max_steps=100_000,
-            stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol, norm=member_norm))
-        return sol.ys[-1]
+        return peers.plain_shared_solve(spins, rtol, atol)[0]
 
     if len(devices) == 1:
         plain_shared = jax.jit(plain_shared_solve)

@@ -72,13 +72,24 @@ def _shared_batch_run(top, launches, arrays, static, mesh):
 
 
 SHARED_BLOCK = 512
-"""Most members per device in one solve with shared steps: a larger batch is split into
+"""Most members per CPU device in one solve with shared steps: a larger batch is split into
 buckets by spin (`simulate_batch`'s `buckets`), each its own shared solve. The state of a
 shared solve and its stages outgrow the cores' caches with the batch: SO(3) level, the scene
 of `benchmarks/shared_steps.py`, time per top on one device, 1000 members in one solve 1.63
 ms, in 2 buckets of 500 1.41, in 4 of 250 1.43; 1e4 members on 2 devices, one solve per
 device 1.21 ms, 10 buckets (500 per device) 0.63 ms (the 1000-member batch on 2 devices,
 500 per device: 0.68 ms)."""
+
+SHARED_BLOCK_ACCELERATOR = 2**20
+"""Most members per GPU (or other accelerator) device in one shared solve. A GPU runs each
+step's arithmetic across the members in parallel and pays a fixed cost per kernel launch, so
+the widest state is the cheapest per member; the bound only keeps one solve's stages (13
+copies of the batched state for Dopri8) to a few GB in float64 (`benchmarks/gpu.py`)."""
+
+
+def shared_block(platform: str) -> int:
+    """`SHARED_BLOCK` on CPU devices, `SHARED_BLOCK_ACCELERATOR` on the others."""
+    return SHARED_BLOCK if platform == "cpu" else SHARED_BLOCK_ACCELERATOR
 
 
 def _concrete_array(name, value):
@@ -166,8 +177,9 @@ def simulate_batch(
     (one segment each) and explicit solvers, with the options `SHARED_OPTIONS` of
     `simulate`; not differentiable. With `shard=True` and several devices every device runs
     its own shared solve on its shard, and a batch is split into buckets (by spin) of at
-    most `SHARED_BLOCK` members per device, whatever `buckets` says (each solve then fits
-    the cores' caches). A batch whose members need very different steps (a wide range of
+    most `SHARED_BLOCK` (512) members per CPU device, whatever `buckets` says (each solve
+    then fits the cores' caches); on a GPU, up to `SHARED_BLOCK_ACCELERATOR` (2^20) members
+    run in one solve. A batch whose members need very different steps (a wide range of
     spins) is best bucketed (`buckets`), since every member takes the steps of
     the one that needs the shortest. For the same reason a member the solver cannot get past
     (one that would run into `max_steps` on its own, such as some runs continued past a
@@ -281,8 +293,9 @@ def simulate_batch(
     devices = jax.devices()
     n_dev = len(devices) if shard else 1
     if steps == "shared":
-        # At most SHARED_BLOCK members per device in one shared solve (see its docstring).
-        buckets = max(int(buckets), -(-size // (SHARED_BLOCK * n_dev)))
+        # At most shared_block(...) members per device in one shared solve (see SHARED_BLOCK).
+        block = shared_block(devices[0].platform)
+        buckets = max(int(buckets), -(-size // (block * n_dev)))
     buckets = min(int(buckets), size)
     # Member order: by |spin| when bucketing, else the batch's. Each bucket holds `per`
     # members, a multiple of the device count; the tail is padded with the last member.
