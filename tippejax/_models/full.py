@@ -19,7 +19,7 @@ from jaxtyping import Array, Float
 
 from .._state import State
 from .._top import TippeTop
-from ._rigid_body import rigid_body_dynamics
+from ._rigid_body import cross, rigid_body_dynamics
 from .base import AbstractLevel, Conditions
 
 
@@ -29,9 +29,9 @@ def _single(top: TippeTop, y: State) -> State:
     return State(
         position=y.velocity,
         velocity=velocity_dot,
-        axis=jnp.cross(y.omega, y.axis),
+        axis=cross(y.omega, y.axis),
         omega=omega_dot,
-        body=jnp.cross(y.omega, y.body),
+        body=cross(y.omega, y.body),
     )
 
 
@@ -88,7 +88,7 @@ def pole_linearisation(top: TippeTop, J, *, north: bool = True) -> Array:
         omega = jnp.stack([z[2], z[5], omega_z])
         normal_force, omega_dot, v_q, _ = rigid_body_dynamics(top, axis, omega, velocity)
         velocity_dot = -top.mu * normal_force * v_q[:2] / top.m
-        axis_dot = jnp.cross(omega, axis)
+        axis_dot = cross(omega, axis)
         return jnp.stack([velocity_dot[0], axis_dot[0], omega_dot[0],
                           velocity_dot[1], axis_dot[1], omega_dot[1]])
 
@@ -111,8 +111,8 @@ def spin_frame_rates(axis, omega, frame):
     """
     if frame is None:  # a level without the body vector
         return None, None
-    n = jnp.dot(omega, axis)
-    return jnp.cross(omega - n * axis, frame), n
+    n = omega[..., 0] * axis[..., 0] + omega[..., 1] * axis[..., 1] + omega[..., 2] * axis[..., 2]
+    return cross(omega - n[..., None] * axis, frame), n
 
 
 def body_of(axis, frame, angle):
@@ -120,7 +120,7 @@ def body_of(axis, frame, angle):
     without the body vector (`frame` None)."""
     if frame is None:
         return jnp.full_like(axis, jnp.nan)
-    return jnp.cos(angle) * frame + jnp.sin(angle) * jnp.cross(axis, frame)
+    return jnp.cos(angle) * frame + jnp.sin(angle) * cross(axis, frame)
 
 
 class FullLevelState(eqx.Module):
@@ -163,7 +163,7 @@ class FullLevel(AbstractLevel):
         return FullLevelState(
             position=y.velocity,
             velocity=-top.mu * normal_force * v_q[:2] / top.m,
-            axis=jnp.cross(y.omega, y.axis),
+            axis=cross(y.omega, y.axis),
             omega=omega_dot,
             frame=frame_dot,
             angle=angle_dot,

@@ -17,7 +17,7 @@ from jaxtyping import Array, Float
 
 from .._state import State
 from .._top import TippeTop
-from ._rigid_body import rigid_body_dynamics
+from ._rigid_body import cross, rigid_body_dynamics
 from .base import AbstractLevel
 from .full import body_of, spin_frame_rates, vector_conditions
 
@@ -28,9 +28,9 @@ def _single(top: TippeTop, y: State) -> State:
     return State(
         position=zero,
         velocity=zero,
-        axis=jnp.cross(y.omega, y.axis),
+        axis=cross(y.omega, y.axis),
         omega=omega_dot,
-        body=jnp.cross(y.omega, y.body),
+        body=cross(y.omega, y.body),
     )
 
 
@@ -84,7 +84,7 @@ class SO3Level(AbstractLevel):
         _, omega_dot, _, _ = rigid_body_dynamics(top, y.axis, y.omega, zero)
         frame_dot, angle_dot = spin_frame_rates(y.axis, y.omega, y.frame)
         return RigidState(
-            axis=jnp.cross(y.omega, y.axis),
+            axis=cross(y.omega, y.axis),
             omega=omega_dot,
             frame=frame_dot,
             angle=angle_dot,
