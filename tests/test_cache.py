@@ -163,3 +163,31 @@ def test_compile_ahead_compiles_on_the_side_and_the_call_uses_it(tmp_path, monke
 
     monkeypatch.setattr(ahead, "future", type("F", (), {"result": lambda self: refuses})())
     assert jnp.array_equal(cache.cached_call(poly, x, power=3), jnp.cumsum(x**3))
+
+
+SHARDED = """
+import jax, jax.numpy as jnp, numpy as np
+import tippejax
+from tippejax import _cache
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+assert len(jax.devices()) == 2
+mesh = Mesh(np.array(jax.devices()), ("batch",))
+x = jax.device_put(jnp.arange(8.0), NamedSharding(mesh, PartitionSpec("batch")))
+jax.jit(lambda v: jnp.sin(v) * 3.0)(x).block_until_ready()  # over both devices
+jax.jit(lambda v: jnp.cos(v) * 5.0)(jnp.arange(8.0)).block_until_ready()  # on one
+print(_cache.MULTI_DEVICE_GUARD)
+"""
+
+
+def test_programs_over_several_cpu_devices_bypass_the_cache(tmp_path):
+    """Loading a program sharded over host devices from the persistent cache crashed new
+    processes (`guard_multi_device_programs`): such programs are neither stored nor read,
+    while the program of one device is stored as before."""
+    cache = str(tmp_path / "cache")
+    env = dict(TIPPEJAX_COMPILATION_CACHE=cache, TIPPEJAX_HOST_DEVICES="2",
+               JAX_PLATFORMS="cpu")
+    guard, _ = _run(SHARDED + "import jax; jax.config.update('jax_log_compiles', False)", **env)
+    assert guard == "True"
+    names = os.listdir(cache)
+    assert any("jit__lambda" in name for name in names), names  # the one-device program
+    assert sum("jit__lambda" in name for name in names) == 1, names  # ... only

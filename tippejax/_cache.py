@@ -20,7 +20,9 @@ XLA compilation only: each process still traces the Python functions again (abou
 first `simulate` on a loaded 2-core machine, `benchmarks/compile_cache.py`).
 
 JAX does not store programs with host callbacks, which every `eqx.error_if` is; see
-`cacheable` for how the solve is kept free of them.
+`cacheable` for how the solve is kept free of them. Programs that span several CPU devices (a
+batch sharded over the cores) are kept out of the cache: loading them crashed processes
+(`guard_multi_device_programs`).
 
 **Traced programs too.** The XLA cache does not spare a new process the tracing of the Python
 functions (diffrax's loop, the events, the fit's optimiser): 3-4 s of a first `simulate`, 8-15 s
@@ -109,8 +111,66 @@ def cacheable():
         errors.EQX_ON_ERROR = old
 
 
+def _spans_cpu_devices(backend, devices) -> bool:
+    try:
+        return backend.platform == "cpu" and len(devices) > 1
+    except Exception:  # pragma: no cover - another jaxlib's objects
+        return False
+
+
+def guard_multi_device_programs() -> bool:
+    """Keep XLA:CPU programs that span several devices out of JAX's persistent cache: they
+    are neither read from it nor written to it, and compile in every process.
+
+    Loading such a program from the cache crashed the process (SIGABRT, no message) in 2 to
+    4 of 10 new processes on this project's machine (jax 0.10.2, 2 host devices): a
+    `simulate_batch` of two tops x two spins with launch rates and 21 saves, sharded over
+    the devices; never when the same program was compiled afresh (0 of 16), nor on one
+    device with the cache (0 of 22), nor for a plain diffrax batch sharded the same way (0 of
+    10). The programs of one device (every `simulate`, `grad` and `fit` of one record) are
+    still cached. JAX has no public switch per program, so this wraps its private
+    `compiler._cache_read` and `_cache_write`; where they are not found (another jax) nothing
+    is changed.
+
+    **Returns:** whether the guard is in place.
+    """
+    try:
+        from jax._src import compiler
+    except ImportError:  # pragma: no cover
+        return False
+    read = getattr(compiler, "_cache_read", None)
+    write = getattr(compiler, "_cache_write", None)
+    if read is None or write is None:  # pragma: no cover - another jax
+        return False
+    if getattr(read, "_tippejax_guard", False):
+        return True
+
+    def guarded_read(module_name, cache_key, compile_options, backend, executable_devices,
+                     *args, **kwargs):
+        if _spans_cpu_devices(backend, executable_devices):
+            return None, None
+        return read(module_name, cache_key, compile_options, backend, executable_devices,
+                    *args, **kwargs)
+
+    def guarded_write(cache_key, compile_time_secs, module_name, backend, executable,
+                      *args, **kwargs):
+        devices = getattr(executable, "local_devices", lambda: ())()
+        if _spans_cpu_devices(backend, devices):
+            return None
+        return write(cache_key, compile_time_secs, module_name, backend, executable,
+                     *args, **kwargs)
+
+    guarded_read._tippejax_guard = True
+    compiler._cache_read, compiler._cache_write = guarded_read, guarded_write
+    return True
+
+
 CACHE_DIR = enable_compilation_cache()
 """The directory this process caches in (None: off, or a directory the user configured)."""
+
+MULTI_DEVICE_GUARD = guard_multi_device_programs()
+"""Whether programs over several CPU devices bypass the persistent cache (see
+`guard_multi_device_programs`)."""
 
 EXPORT_DIR = None if CACHE_DIR is None else CACHE_DIR.rstrip(os.sep) + "-exports"
 """Where `cached_call` keeps traced programs (None: off, with the persistent cache)."""
