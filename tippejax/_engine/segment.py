@@ -60,9 +60,14 @@ forward mode (`adjoint=diffrax.ForwardMode()`): position and velocity, the axis,
 frame and spin angle) each a vector of their own (see `ravel_state`)."""
 
 
-SHARED_PACK_WIDTH = PACK_WIDTH
+SHARED_PACK_WIDTH = 4
 """Most components in one flat vector of a member's state in a batch with shared steps
-(`run_segment_shared`; see `ravel_state`)."""
+(`run_segment_shared`; see `ravel_state`): SO(3) axis, omega (3 + 3), full position and
+velocity, axis, omega (4 + 3 + 3). With the members last (`MEMBER_AXIS`) every component is a
+row of the batch, and narrower vectors gave XLA:CPU smaller loops over the rows:
+`simulate_batch(..., steps="shared")`, 1000 tops of `benchmarks/shared_steps.py`'s scene, one
+device, ms per top: width 6 so3 1.14, full 1.65; width 4 so3 0.85, full 1.44; width 3 so3 0.84,
+full 1.62 (2 + 2 + 3 + 3)."""
 
 
 def pack_width_for(*trees, adjoint=None) -> int:
@@ -241,7 +246,7 @@ def run_segment(
     # (its result is `event_occurred`); the crossing is then located inside that step.
     stopped = ended_on_event(sol.result, sol.solver_state)
     solver_result = diffrax.RESULTS.where(stopped, diffrax.RESULTS.event_occurred, sol.result)
-    flat_last = jax.tree_util.tree_map(lambda x: x[-1], sol.ys[0])
+    flat_last = members_first(jax.tree_util.tree_map(lambda x: x[-1], sol.ys[0]))
     if terminating and not locate:
         state = sol.solver_state
         t_event, flat_event = state.last_t0, state.last_y0
@@ -316,30 +321,53 @@ def top_axes(top):
     return jax.tree_util.tree_map(lambda x: 0 if jnp.ndim(x) == 1 else None, top)
 
 
+MEMBER_AXIS = -1
+"""Where the members are in the leaves of a shared solve's state: LAST, each leaf `(w, N)`,
+so that each component of the batch is one contiguous row and the stages' arithmetic runs
+along the members (structure of arrays). The plain diffrax script with shared steps
+(`benchmarks/shared_steps.py`'s scene, 512 tops, one CPU device): members last 0.87 ms per
+top, members first 1.06 ms; with the field's algebra written out by components
+(`rigid_body_dynamics`) 0.55 against 1.06; on an H200 at 1e6 tops (`benchmarks/gpu.py`'s
+scene) 11.8 against 14.6 s."""
+
+
+def members_last(tree):
+    """Leaves `(N, ...)` -> `(..., N)`: the layout of a shared solve's state."""
+    return jax.tree_util.tree_map(lambda x: jnp.moveaxis(x, 0, -1), tree)
+
+
+def members_first(tree):
+    """Leaves `(..., N)` -> `(N, ...)`: one member per leading index, for `jax.vmap`."""
+    return jax.tree_util.tree_map(lambda x: jnp.moveaxis(x, -1, 0), tree)
+
+
 class SharedField(eqx.Module):
     """The vector field of a batch integrated as one state: `FlatField` vmapped over the
-    members (the leading axis of every leaf); `args` is the top, one or one per member."""
+    members (the LAST axis of every leaf, `MEMBER_AXIS`); `args` is the top, one or one per
+    member."""
 
     field: FlatField
     axes: PyTree = eqx.field(static=True)  # `top_axes` of the top
 
     def __call__(self, t, y, top):
-        return jax.vmap(self.field, in_axes=(None, 0, self.axes))(t, y, top)
+        return jax.vmap(self.field, in_axes=(None, MEMBER_AXIS, self.axes),
+                        out_axes=MEMBER_AXIS)(t, y, top)
 
     def error_norm(self, scaled_error):
         """The largest of the members' own norms (`FlatField.error_norm`): a step is accepted
         when it is accurate enough for every member, as each member's own run asks."""
-        return jnp.max(jax.vmap(self.field.error_norm)(scaled_error))
+        return jnp.max(jax.vmap(self.field.error_norm, in_axes=MEMBER_AXIS)(scaled_error))
 
 
 class SharedWatch(eqx.Module):
-    """`Watch` vmapped over the members: the conditions of a batch, shape `(N, n)`."""
+    """`Watch` vmapped over the members (the last axis of the state's leaves): the conditions
+    of a batch, shape `(N, n)`."""
 
     watch: Watch
     axes: PyTree = eqx.field(static=True)
 
     def __call__(self, y, top):
-        return jax.vmap(self.watch, in_axes=(0, self.axes))(y, top)
+        return jax.vmap(self.watch, in_axes=(MEMBER_AXIS, self.axes))(y, top)
 
 
 def run_segment_shared(
@@ -364,7 +392,8 @@ def run_segment_shared(
     pack_width: int = PACK_WIDTH,
 ) -> Segment:
     """`run_segment` for a batch of members with shared steps: one `diffrax.diffeqsolve` whose
-    state is every member's state (`y0`'s leaves have a leading member axis N), with the
+    state is every member's state (`y0`'s leaves have a leading member axis N; in the solve
+    the members are the last axis, `MEMBER_AXIS`), with the
     members' field vmapped, the error norm the largest member norm, and the events watched per
     member by `SharedWatchedSolver` (a member whose terminating event fell is frozen while
     the others go on). `top`: one top, or one per member (see `top_axes`). `t0`, `t1` are
@@ -381,7 +410,8 @@ def run_segment_shared(
     names = terminating + observed
     member0 = jax.tree_util.tree_map(lambda x: x[0], y0)
     _, unravel = ravel_state(member0, pack_width)
-    y0_flat = jax.vmap(lambda y: ravel_state(y, pack_width)[0])(y0)
+    y0_members = jax.vmap(lambda y: ravel_state(y, pack_width)[0])(y0)  # leaves (N, w)
+    y0_flat = members_last(y0_members)  # leaves (w, N)
     field = FlatField(level, unravel, pack_width)
     watch = Watch(level, unravel, names)
     axes = top_axes(top)
@@ -425,7 +455,7 @@ def run_segment_shared(
         )
     )(ended, idle)
     t_last = sol.ts[0][-1]
-    flat_last = jax.tree_util.tree_map(lambda x: x[-1], sol.ys[0])
+    flat_last = members_first(jax.tree_util.tree_map(lambda x: x[-1], sol.ys[0]))
     # Each member's events on its own step, taken again for that member alone.
     single = WatchedSolver(solver, watch, observed_idx, samples=samples,
                            terminating=terminating_idx)
@@ -450,7 +480,7 @@ def run_segment_shared(
         t_end = jnp.where(ended, t_event.astype(t_end.dtype), t_end)
         flat_end = where_member(ended, flat_event, flat_end)
     t_end = jnp.where(idle, jnp.asarray(t0, t_end.dtype), t_end)
-    flat_end = where_member(idle, y0_flat, flat_end)
+    flat_end = where_member(idle, y0_members, flat_end)
     y_end = jax.vmap(unravel)(flat_end)
     member_watch = jax.vmap(watch, in_axes=(0, axes))
     end_values = member_watch(flat_end if locate else flat_last, top)[:, : len(terminating)]
@@ -470,8 +500,8 @@ def run_segment_shared(
         observed_times[name] = jnp.where(t_obs <= t_end, t_obs, jnp.nan)
     ys = None
     if ts is not None:
-        ys = jax.vmap(jax.vmap(unravel))(
-            jax.tree_util.tree_map(lambda x: jnp.moveaxis(x, 0, 1), sol.ys[1])
+        ys = jax.vmap(jax.vmap(unravel))(  # (T, w, N) -> (N, T, w)
+            jax.tree_util.tree_map(lambda x: jnp.moveaxis(x, -1, 0), sol.ys[1])
         )
     steps = jnp.where(idle, 0, jnp.asarray(sol.stats["num_steps"], int))  # idle: none
     return Segment(

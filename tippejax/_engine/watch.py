@@ -358,9 +358,11 @@ def _signs(previous, previous_rate, mid, mid_rate, end, end_rate, h, samples: in
 
 
 class _SharedWatchState(eqx.Module):
-    """`_WatchState` for a batch whose members share their steps: every field has a leading
-    member axis but the inner solver's state and the count of accepted steps (the steps are
-    common). `stopped` marks the members frozen since a terminating event (or from the start,
+    """`_WatchState` for a batch whose members share their steps: every field has a member
+    axis but the inner solver's state and the count of accepted steps (the steps are
+    common); the member axis leads in the times and flags, and is LAST in the states
+    (`last_y0` leaves `(w, N)`, `step_y0` leaves `(w, N, m)`), as in the solve's state.
+    `stopped` marks the members frozen since a terminating event (or from the start,
     `SharedWatchedSolver.idle`)."""
 
     inner: PyTree
@@ -374,24 +376,28 @@ class _SharedWatchState(eqx.Module):
     found: Bool[Array, "N m"]
     step_t0: Float[Array, "N m"]
     step_t1: Float[Array, "N m"]
-    step_y0: PyTree  # leading axes (N, m): each member's own state only
+    step_y0: PyTree  # trailing axes (N, m): each member's own state only
 
     def member_states(self) -> _WatchState:
         """The per-member records as a `_WatchState` with a leading member axis, for
         `jax.vmap` of `locate_observed` and `locate_terminating` (which read only these)."""
+        lead = lambda x, k: jnp.moveaxis(x, tuple(range(x.ndim - k, x.ndim)),  # noqa: E731
+                                         tuple(range(k)))
         return _WatchState(
             inner=None, previous=None, tally=None, last_t0=self.last_t0,
-            last_t1=self.last_t1, last_y0=self.last_y0, stopped=self.stopped,
-            found=self.found, step_t0=self.step_t0, step_t1=self.step_t1,
-            step_y0=self.step_y0,
+            last_t1=self.last_t1,
+            last_y0=jax.tree_util.tree_map(lambda x: lead(x, 1), self.last_y0),
+            stopped=self.stopped, found=self.found, step_t0=self.step_t0,
+            step_t1=self.step_t1,
+            step_y0=jax.tree_util.tree_map(lambda x: lead(x, 2), self.step_y0),
         )
 
 
 class SharedWatchedSolver(WatchedSolver):
     """`WatchedSolver` for a batch of members integrated as one state with shared steps.
 
-    The state's leaves have a leading member axis; `watch(y, args)` returns the conditions of
-    every member, shape `(N, n)`. Each member is watched as `WatchedSolver` watches one run,
+    The state's leaves have the members as their LAST axis (`segment.MEMBER_AXIS`);
+    `watch(y, args)` returns the conditions of every member, shape `(N, n)`. Each member is watched as `WatchedSolver` watches one run,
     and:
 
     - a step is rejected if a condition of ANY running member changes sign more than once
@@ -425,7 +431,7 @@ class SharedWatchedSolver(WatchedSolver):
         # The dummy step of `WatchedSolver.init`, for members with no event recorded.
         tiny = jnp.finfo(dtype).eps * 64 * jnp.maximum(1.0, jnp.abs(t0))
         dummy = t0 + jnp.maximum(1e-6 * jnp.abs(jnp.asarray(t1, dtype) - t0), tiny)
-        per_event = lambda x: jnp.broadcast_to(x[:, None], (n_members, m) + x.shape[1:])  # noqa: E731
+        per_event = lambda x: jnp.broadcast_to(x[..., None], x.shape + (m,))  # noqa: E731
         idle = jnp.zeros(n_members, bool) if self.idle is None else self.idle
         return _SharedWatchState(
             inner=self.solver.init(terms, t0, t1, y0, args),
@@ -463,16 +469,15 @@ class SharedWatchedSolver(WatchedSolver):
             )
         hold = frozen | stops_now
 
-        def member(mask, a):  # a mask on the leading axes of `a`, broadcast over the rest
-            return mask.reshape(mask.shape + (1,) * (jnp.ndim(a) - mask.ndim))
-
+        # Masks over the members, `(N,)` or `(N, m)`, broadcast against the states' trailing
+        # member axes: `(w, N)` or `(w, N, m)`.
         y1 = jax.tree_util.tree_map(
-            lambda a, b: jnp.where(member(hold, a), a.astype(b.dtype), b), y0, y1
+            lambda a, b: jnp.where(hold, a.astype(b.dtype), b), y0, y1
         )
         if y_error is not None:
             y_error = jax.tree_util.tree_map(
-                lambda e: jnp.where(member(frozen, e), jnp.zeros((), e.dtype),
-                                    jnp.where(member(hidden, e), jnp.inf, e)),
+                lambda e: jnp.where(frozen, jnp.zeros((), e.dtype),
+                                    jnp.where(hidden, jnp.inf, e)),
                 y_error,
             )
         stopped = hold
@@ -484,20 +489,18 @@ class SharedWatchedSolver(WatchedSolver):
 
         def write(book):
             found, step_t0, step_t1, step_y0, last_t0, last_t1, last_y0 = book
-            at_event = lambda x: jnp.broadcast_to(x[:, None], step_t0.shape + x.shape[1:])  # noqa: E731
+            at_event = lambda x: x[..., None]  # (w, N) -> (w, N, 1), against (w, N, m)  # noqa: E731
             return (
                 found | new,
                 jnp.where(new, t0, step_t0),
                 jnp.where(new, t1, step_t1),
                 jax.tree_util.tree_map(
-                    lambda a, b: jnp.where(member(new, b), at_event(a).astype(b.dtype), b),
-                    y0, step_y0,
+                    lambda a, b: jnp.where(new, at_event(a).astype(b.dtype), b), y0, step_y0
                 ),
                 jnp.where(stops_now, t0, last_t0),
                 jnp.where(stops_now, t1, last_t1),
                 jax.tree_util.tree_map(
-                    lambda a, b: jnp.where(member(stops_now, b), a.astype(b.dtype), b),
-                    y0, last_y0,
+                    lambda a, b: jnp.where(stops_now, a.astype(b.dtype), b), y0, last_y0
                 ),
             )
 
