@@ -7,6 +7,7 @@ downward crossing of each observed condition (see `watch.py`).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable
 
@@ -408,6 +409,9 @@ def run_segment_shared(
     while loop runs batched with selects at every step, about 2.5x the cost of one loop over
     the whole batch (plain diffrax, 1000 SO(3) tops at spins 140-160, 20 s, rtol 1e-8)."""
     names = terminating + observed
+    # the field's algebra written out by components: with the members last it vectorises
+    # along them (`AbstractLevel.by_components`)
+    level = dataclasses.replace(level, by_components=True)
     member0 = jax.tree_util.tree_map(lambda x: x[0], y0)
     _, unravel = ravel_state(member0, pack_width)
     y0_members = jax.vmap(lambda y: ravel_state(y, pack_width)[0])(y0)  # leaves (N, w)

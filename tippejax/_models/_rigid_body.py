@@ -49,17 +49,6 @@ def contact_velocity(top: TippeTop, axis, omega, velocity):
     return v_q.at[2].set(0.0)
 
 
-def cross(u, v):
-    r"""$u\times v$ of 3-vectors (last axis), written out by components.
-
-    The same numbers as `jnp.cross`, which XLA builds from slices and a concatenation; in a
-    batch whose members run as one state (`simulate_batch(..., steps="shared")`) the written-out
-    form fuses with the arithmetic around it (see `rigid_body_dynamics`)."""
-    u0, u1, u2 = u[..., 0], u[..., 1], u[..., 2]
-    v0, v1, v2 = v[..., 0], v[..., 1], v[..., 2]
-    return jnp.stack([u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0], axis=-1)
-
-
 def rigid_body_dynamics(top: TippeTop, axis, omega, velocity):
     r"""Normal force, angular acceleration and slip velocity for a given horizontal velocity.
 
@@ -76,17 +65,49 @@ def rigid_body_dynamics(top: TippeTop, axis, omega, velocity):
     The denominator $1/m - \ddot h_1$ is the one of eq. reactie; it can vanish (`docs/notes.md`, The R_n singularity),
     where the model with friction proportional to $R_n$ has no solution.
 
-    The algebra is written out by components (each a scalar, or an array over leading axes),
+    **Returns:** `(normal_force, omega_dot, slip_velocity, denominator)`.
+    """
+    n = jnp.dot(omega, axis)
+    axis_dot = jnp.cross(omega, axis)
+    q = contact_vector(top, axis)
+    v_q = contact_velocity(top, axis, omega, velocity)
+    force_per_rn = e_z(axis.dtype) - top.mu * v_q
+    torque_per_rn = jnp.cross(q, force_per_rn)
+    omega_dot_0 = -(top.C - top.A) / top.A * n * axis_dot
+    omega_dot_1 = inverse_inertia(top, axis, torque_per_rn)
+    h_ddot_0 = -top.eps * (jnp.cross(omega_dot_0, axis)[2] + jnp.cross(omega, axis_dot)[2])
+    h_ddot_1 = -top.eps * jnp.cross(omega_dot_1, axis)[2]
+    denominator = 1.0 / top.m - h_ddot_1
+    normal_force = (top.g + h_ddot_0) / denominator
+    omega_dot = omega_dot_0 + normal_force * omega_dot_1
+    return normal_force, omega_dot, v_q, denominator
+
+
+def cross(u, v):
+    r"""$u\times v$ of 3-vectors (last axis), written out by components.
+
+    The same numbers as `jnp.cross`, which XLA builds from slices and a concatenation; in a
+    batch whose members run as one state (`simulate_batch(..., steps="shared")`) the written-out
+    form fuses with the arithmetic around it (see `rigid_body_dynamics_by_components`)."""
+    u0, u1, u2 = u[..., 0], u[..., 1], u[..., 2]
+    v0, v1, v2 = v[..., 0], v[..., 1], v[..., 2]
+    return jnp.stack([u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0], axis=-1)
+
+
+def rigid_body_dynamics_by_components(top: TippeTop, axis, omega, velocity):
+    r"""`rigid_body_dynamics` (same arguments, same returns, same equations) with the algebra
+    written out by components (each a scalar, or an array over leading axes),
     with $q = \epsilon a - R e_Z$ and $v_Q = v_O + \omega\times q$ (horizontal; see
     `contact_vector`, `contact_velocity`), and only the returned vectors stacked. In vector form
     (`jnp.cross`, `jnp.dot`, a concatenation for $v_O$) XLA keeps the intermediate 3-vectors as
     concatenations, which do not vectorise when the members of a batch are the fast axis:
     `simulate_batch(..., steps="shared")` at the SO(3) level, the field in a plain diffrax loop
     over 512 tops, 1.06 ms per top in vector form with the members leading and 0.69 ms in this
-    form with the members trailing (0.86 in vector form); a run of one top 21 -> 19 ms.
-    `tests/vector_reference.py` checks the models against the vector form.
-
-    **Returns:** `(normal_force, omega_dot, slip_velocity, denominator)`.
+    form with the members trailing (0.86 in vector form). Elsewhere the vector form stays
+    (`AbstractLevel.by_components`): under `jax.jacfwd` this form doubled the cost of a
+    Jacobian of one top (`benchmarks/gradients.py`: 7.4x the solve against 3.6x), and a run of
+    one top or a vmapped batch gained 3-10%. `tests/test_models.py` checks that both forms
+    give the same numbers.
     """
     a0, a1, a2 = axis[..., 0], axis[..., 1], axis[..., 2]
     w0, w1, w2 = omega[..., 0], omega[..., 1], omega[..., 2]

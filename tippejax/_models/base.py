@@ -76,6 +76,11 @@ class AbstractLevel(eqx.Module):
     their state is the axis and angular velocity alone (and the translation), and `to_state`
     gives a body vector of nans. The Routhian and gyroscopic levels report $\psi$ from angles
     they carry anyway, and pass the option on to their fallback."""
+    by_components: bool = eqx.field(static=True, default=False, kw_only=True)
+    """Whether the full and SO(3) levels evaluate their field and conditions with the algebra
+    written out by components (`_rigid_body.rigid_body_dynamics_by_components`, the same
+    numbers): the form for a batch whose members are one state's fast axis (shared steps);
+    everywhere else the vector form is the cheaper. Other levels ignore it."""
 
     @abc.abstractmethod
     def from_state(self, top: TippeTop, state: State) -> PyTree:

@@ -19,7 +19,7 @@ from jaxtyping import Array, Float
 
 from .._state import State
 from .._top import TippeTop
-from ._rigid_body import cross, rigid_body_dynamics
+from ._rigid_body import cross, rigid_body_dynamics, rigid_body_dynamics_by_components
 from .base import AbstractLevel, Conditions
 
 
@@ -29,9 +29,9 @@ def _single(top: TippeTop, y: State) -> State:
     return State(
         position=y.velocity,
         velocity=velocity_dot,
-        axis=cross(y.omega, y.axis),
+        axis=jnp.cross(y.omega, y.axis),
         omega=omega_dot,
-        body=cross(y.omega, y.body),
+        body=jnp.cross(y.omega, y.body),
     )
 
 
@@ -48,9 +48,12 @@ def full_vector_field(t, y: State, top: TippeTop) -> State:
     return fn(top, y)
 
 
-def vector_conditions(top: TippeTop, axis, omega, velocity) -> Conditions:
-    """Event conditions of the vector form (full and SO(3) levels)."""
-    normal_force, _, _, denominator = rigid_body_dynamics(top, axis, omega, velocity)
+def vector_conditions(top: TippeTop, axis, omega, velocity, *, by_components: bool = False
+                      ) -> Conditions:
+    """Event conditions of the vector form (full and SO(3) levels); `by_components`: see
+    `AbstractLevel.by_components`."""
+    dynamics = rigid_body_dynamics_by_components if by_components else rigid_body_dynamics
+    normal_force, _, _, denominator = dynamics(top, axis, omega, velocity)
     one = jnp.ones_like(denominator)
     return Conditions(
         contact=normal_force * denominator,
@@ -88,7 +91,7 @@ def pole_linearisation(top: TippeTop, J, *, north: bool = True) -> Array:
         omega = jnp.stack([z[2], z[5], omega_z])
         normal_force, omega_dot, v_q, _ = rigid_body_dynamics(top, axis, omega, velocity)
         velocity_dot = -top.mu * normal_force * v_q[:2] / top.m
-        axis_dot = cross(omega, axis)
+        axis_dot = jnp.cross(omega, axis)
         return jnp.stack([velocity_dot[0], axis_dot[0], omega_dot[0],
                           velocity_dot[1], axis_dot[1], omega_dot[1]])
 
@@ -111,8 +114,8 @@ def spin_frame_rates(axis, omega, frame):
     """
     if frame is None:  # a level without the body vector
         return None, None
-    n = omega[..., 0] * axis[..., 0] + omega[..., 1] * axis[..., 1] + omega[..., 2] * axis[..., 2]
-    return cross(omega - n[..., None] * axis, frame), n
+    n = jnp.dot(omega, axis)
+    return jnp.cross(omega - n * axis, frame), n
 
 
 def body_of(axis, frame, angle):
@@ -120,7 +123,7 @@ def body_of(axis, frame, angle):
     without the body vector (`frame` None)."""
     if frame is None:
         return jnp.full_like(axis, jnp.nan)
-    return jnp.cos(angle) * frame + jnp.sin(angle) * cross(axis, frame)
+    return jnp.cos(angle) * frame + jnp.sin(angle) * jnp.cross(axis, frame)
 
 
 class FullLevelState(eqx.Module):
@@ -158,16 +161,19 @@ class FullLevel(AbstractLevel):
         )
 
     def vector_field(self, t, y, top):
-        normal_force, omega_dot, v_q, _ = rigid_body_dynamics(top, y.axis, y.omega, y.velocity)
+        dynamics, cross_ = ((rigid_body_dynamics_by_components, cross) if self.by_components
+                            else (rigid_body_dynamics, jnp.cross))
+        normal_force, omega_dot, v_q, _ = dynamics(top, y.axis, y.omega, y.velocity)
         frame_dot, angle_dot = spin_frame_rates(y.axis, y.omega, y.frame)
         return FullLevelState(
             position=y.velocity,
             velocity=-top.mu * normal_force * v_q[:2] / top.m,
-            axis=cross(y.omega, y.axis),
+            axis=cross_(y.omega, y.axis),
             omega=omega_dot,
             frame=frame_dot,
             angle=angle_dot,
         )
 
     def conditions(self, top, y):
-        return vector_conditions(top, y.axis, y.omega, y.velocity)
+        return vector_conditions(top, y.axis, y.omega, y.velocity,
+                                 by_components=self.by_components)

@@ -17,7 +17,7 @@ from jaxtyping import Array, Float
 
 from .._state import State
 from .._top import TippeTop
-from ._rigid_body import cross, rigid_body_dynamics
+from ._rigid_body import cross, rigid_body_dynamics, rigid_body_dynamics_by_components
 from .base import AbstractLevel
 from .full import body_of, spin_frame_rates, vector_conditions
 
@@ -28,9 +28,9 @@ def _single(top: TippeTop, y: State) -> State:
     return State(
         position=zero,
         velocity=zero,
-        axis=cross(y.omega, y.axis),
+        axis=jnp.cross(y.omega, y.axis),
         omega=omega_dot,
-        body=cross(y.omega, y.body),
+        body=jnp.cross(y.omega, y.body),
     )
 
 
@@ -81,14 +81,17 @@ class SO3Level(AbstractLevel):
 
     def vector_field(self, t, y, top):
         zero = jnp.zeros(2, y.axis.dtype)
-        _, omega_dot, _, _ = rigid_body_dynamics(top, y.axis, y.omega, zero)
+        dynamics, cross_ = ((rigid_body_dynamics_by_components, cross) if self.by_components
+                            else (rigid_body_dynamics, jnp.cross))
+        _, omega_dot, _, _ = dynamics(top, y.axis, y.omega, zero)
         frame_dot, angle_dot = spin_frame_rates(y.axis, y.omega, y.frame)
         return RigidState(
-            axis=cross(y.omega, y.axis),
+            axis=cross_(y.omega, y.axis),
             omega=omega_dot,
             frame=frame_dot,
             angle=angle_dot,
         )
 
     def conditions(self, top, y):
-        return vector_conditions(top, y.axis, y.omega, jnp.zeros(2, y.axis.dtype))
+        return vector_conditions(top, y.axis, y.omega, jnp.zeros(2, y.axis.dtype),
+                                 by_components=self.by_components)
