@@ -247,7 +247,7 @@ def run_segment(
     # (its result is `event_occurred`); the crossing is then located inside that step.
     stopped = ended_on_event(sol.result, sol.solver_state)
     solver_result = diffrax.RESULTS.where(stopped, diffrax.RESULTS.event_occurred, sol.result)
-    flat_last = members_first(jax.tree_util.tree_map(lambda x: x[-1], sol.ys[0]))
+    flat_last = jax.tree_util.tree_map(lambda x: x[-1], sol.ys[0])
     if terminating and not locate:
         state = sol.solver_state
         t_event, flat_event = state.last_t0, state.last_y0
@@ -328,7 +328,7 @@ so that each component of the batch is one contiguous row and the stages' arithm
 along the members (structure of arrays). The plain diffrax script with shared steps
 (`benchmarks/shared_steps.py`'s scene, 512 tops, one CPU device): members last 0.87 ms per
 top, members first 1.06 ms; with the field's algebra written out by components
-(`rigid_body_dynamics`) 0.55 against 1.06; on an H200 at 1e6 tops (`benchmarks/gpu.py`'s
+(`rigid_body_dynamics_by_components`) 0.55 against 1.06; on an H200 at 1e6 tops (`benchmarks/gpu.py`'s
 scene) 11.8 against 14.6 s."""
 
 

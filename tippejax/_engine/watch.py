@@ -397,8 +397,8 @@ class SharedWatchedSolver(WatchedSolver):
     """`WatchedSolver` for a batch of members integrated as one state with shared steps.
 
     The state's leaves have the members as their LAST axis (`segment.MEMBER_AXIS`);
-    `watch(y, args)` returns the conditions of every member, shape `(N, n)`. Each member is watched as `WatchedSolver` watches one run,
-    and:
+    `watch(y, args)` returns the conditions of every member, shape `(N, n)`. Each member is
+    watched as `WatchedSolver` watches one run, and:
 
     - a step is rejected if a condition of ANY running member changes sign more than once
       inside it (its error is set to infinity, so the batch norm is infinite);
