@@ -13,6 +13,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import ArrayLike
 
 from ._cache import cacheable
+from ._devices import shard_over
 from ._engine.segment import top_axes
 from ._engine.solver_choice import default_solver, is_traced
 from ._models.levels import LEVELS
@@ -26,18 +27,21 @@ LAUNCH = ("theta0", "spin", "theta_dot", "phi_dot", "phi", "psi", "vx", "vy")
 
 
 @eqx.filter_jit
-def _batch_run(top, launches, t1, kwargs):
+def _batch_run(top, launches, t1, kwargs, mesh=None):
     # Module-level and jitted once per (shapes, static options): repeated calls reuse it.
     # `top` has either scalar fields (one top) or fields of the launches' length (a sweep).
-    top_axes = jax.tree_util.tree_map(lambda x: 0 if jnp.ndim(x) == 1 else None, top)
+    def local(top, launches, t1):
+        def one(top, launch):
+            theta0, spin, theta_dot, phi_dot, phi, psi, vx, vy = launch
+            y0 = initial_state(top, theta0, spin, theta_dot=theta_dot, phi_dot=phi_dot,
+                               phi=phi, psi=psi, vx=vx, vy=vy)
+            return simulate(top, y0, t1, throw=False, **kwargs)
 
-    def one(top, launch):
-        theta0, spin, theta_dot, phi_dot, phi, psi, vx, vy = launch
-        y0 = initial_state(top, theta0, spin, theta_dot=theta_dot, phi_dot=phi_dot, phi=phi,
-                           psi=psi, vx=vx, vy=vy)
-        return simulate(top, y0, t1, throw=False, **kwargs)
+        return jax.vmap(one, in_axes=(top_axes(top), 0))(top, launches)
 
-    return jax.vmap(one, in_axes=(top_axes, 0))(top, launches)
+    if mesh is None:
+        return local(top, launches, t1)
+    return shard_over(local, mesh, "batch", (top, launches, t1), (True, True, False))
 
 
 def _launch_state(top, launch):
@@ -59,16 +63,7 @@ def _shared_batch_run(top, launches, arrays, static, mesh):
 
     if mesh is None:
         return local(top, launches, arrays)
-    member_spec = jax.tree_util.tree_map(
-        lambda x: PartitionSpec("batch") if jnp.ndim(x) == 1 else PartitionSpec(), top
-    )
-    return jax.shard_map(
-        local, mesh=mesh, in_specs=(member_spec, PartitionSpec("batch"), PartitionSpec()),
-        out_specs=PartitionSpec("batch"),
-        # (diffrax's loop carries arrays made inside it next to the shard's own: with the
-        # check on, their "varying" types differ and the while loop is refused)
-        check_vma=False,
-    )(top, launches, arrays)
+    return shard_over(local, mesh, "batch", (top, launches, arrays), (True, True, False))
 
 
 SHARED_BLOCK = 512
@@ -328,7 +323,7 @@ def simulate_batch(
             if steps == "shared":
                 parts.append(_shared_batch_run(member_tops, launches, arrays, static, mesh))
             else:
-                parts.append(_batch_run(member_tops, launches, t1, kwargs))
+                parts.append(_batch_run(member_tops, launches, t1, kwargs, mesh))
     if buckets == 1:
         sol = parts[0]
         back = None

@@ -85,3 +85,31 @@ def batch_sharding(size: int):
     if count == 1:
         return None
     return NamedSharding(Mesh(np.array(devices[:count]), ("batch",)), PartitionSpec("batch"))
+
+
+
+def shard_over(fn, mesh, axis: str, args, members):
+    """`fn(*args)` for a batch whose members are independent, each device running its own
+    shard of the members by itself (`jax.shard_map` over `mesh`'s axis `axis`). `members[i]`
+    says whether `args[i]` holds members: its array leaves with at least one axis are split
+    along their first, its scalars are given whole to every device; the other arguments go
+    whole to every device. The outputs are the shards' put together along their first axis.
+
+    A batch of solves jitted on sharded inputs instead (`jax.jit`'s automatic partitioning)
+    runs ONE while loop over all devices, whose condition (is any member still running?) is
+    reduced across them at every step: every device takes as many steps as the slowest member
+    of the whole batch and waits for the others at each. Here each device loops until its own
+    members are done (`benchmarks/shared_steps.py`, 1000 SO(3) tops, one solve per member,
+    2 host devices: 1.68 -> 1.38 s)."""
+    import jax
+    from jax.sharding import PartitionSpec
+
+    def spec(x, split):
+        return PartitionSpec(axis) if split and getattr(x, "ndim", 0) >= 1 else PartitionSpec()
+
+    specs = tuple(jax.tree_util.tree_map(lambda x, split=split: spec(x, split), arg)
+                  for arg, split in zip(args, members, strict=True))
+    # check_vma off: diffrax's loop carries arrays made inside it next to the shard's own;
+    # with the check on their "varying" types differ and the while loop is refused.
+    return jax.shard_map(fn, mesh=mesh, in_specs=specs, out_specs=PartitionSpec(axis),
+                         check_vma=False)(*args)

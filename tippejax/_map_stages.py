@@ -65,6 +65,8 @@ cost of the full model from the last window to the hand-over.
 
 from __future__ import annotations
 
+import functools
+
 import diffrax
 import equinox as eqx
 import jax
@@ -72,6 +74,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from ._devices import shard_over
 from ._engine.chain import run_chain
 from ._engine.watch import EVENT_SAMPLES
 from ._models.full import FullLevel, pole_linearisation
@@ -130,9 +133,15 @@ flow took over from); at 0.3 it misses none, on that grid and on the shifted one
 
 
 @eqx.filter_jit
-def _stage_batch(level, top, states, level_states, t0, t_stop, options):
+def _stage_batch(level, top, states, level_states, t0, t_stop, options, mesh):
     """One compiled chunk of a stage: `level` from `(t0, state)` to `t_stop`, per member
-    (starting from `level_states`, the level's own states, where given)."""
+    (starting from `level_states`, the level's own states, where given), each device its own
+    shard (`shard_over`)."""
+    return shard_over(functools.partial(_stage_runs, level, options), mesh, "launch",
+                      (top, states, level_states, t0, t_stop), (False, True, True, True, True))
+
+
+def _stage_runs(level, options, top, states, level_states, t0, t_stop):
     rtol, atol, solver, max_steps = options
 
     def one(state, y0, start, stop):
@@ -277,8 +286,8 @@ class _Runner:
         self.dtype = jnp.result_type(top.m)
         self.n_dev = len(devices)
         self.chunk = -(-STAGE_CHUNK // self.n_dev) * self.n_dev
-        mesh = Mesh(np.array(devices), ("launch",))
-        self.sharding = NamedSharding(mesh, PartitionSpec("launch"))
+        self.mesh = Mesh(np.array(devices), ("launch",))
+        self.sharding = NamedSharding(self.mesh, PartitionSpec("launch"))
         self.options = options
         fields, static = eqx.partition(top, eqx.is_array)
         fields = jax.tree_util.tree_map(lambda x: np.asarray(x, dtype=self.dtype), fields)
@@ -307,7 +316,7 @@ class _Runner:
                 lambda x: self._put(np.asarray(x, self.dtype)[sel]), (states, level_states))
             out = _stage_batch(level, self.top_host, chunk_states, chunk_level,
                                self._put(begin.astype(self.dtype)),
-                               self._put(stop.astype(self.dtype)), self.options)
+                               self._put(stop.astype(self.dtype)), self.options, self.mesh)
             parts.append(jax.tree_util.tree_map(lambda x: _gather(x)[: index.size], out))
         joined = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs), *parts)
         inverse = np.empty_like(perm)

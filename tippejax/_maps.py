@@ -32,6 +32,7 @@ all local devices, or on a cluster; see `examples/distributed_map.py` for the la
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Literal
 
@@ -45,6 +46,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._analysis.potential import effective_potential_d2_closed_form
 from ._analysis.steady_states import _branch_pieces, _find_root
+from ._devices import shard_over
 from ._engine.solver_choice import default_solver
 from ._invariants import jellet
 from ._simulate import MODELS, simulate
@@ -182,8 +184,14 @@ def classify_end(top: TippeTop, J, theta_final, result, *, settle_tol):
 
 
 @eqx.filter_jit
-def _run_chunk(top_fields, top_static, thetas, spins, t1, options):
-    """Simulate and classify one sharded chunk of launches (summary outputs only)."""
+def _run_chunk(top_fields, top_static, thetas, spins, t1, options, mesh):
+    """Simulate and classify one sharded chunk of launches (summary outputs only), each
+    device its own shard (`shard_over`)."""
+    return shard_over(functools.partial(_classified_runs, top_static, options), mesh,
+                      "launch", (top_fields, thetas, spins, t1), (True, True, True, False))
+
+
+def _classified_runs(top_static, options, top_fields, thetas, spins, t1):
     model, rtol, atol, solver, max_steps, settle_tol = options
 
     def one(fields, theta0, spin):
@@ -255,7 +263,7 @@ def _run_flat(top: TippeTop, thetas, spins, t1, *, batched_top: bool, model, rto
             chunk_fields = jax.tree_util.tree_map(lambda x: put(padded(x)), fields)
         else:
             chunk_fields = fields
-        out = _run_chunk(chunk_fields, static, th, sp, t1, options)
+        out = _run_chunk(chunk_fields, static, th, sp, t1, options, mesh)
         parts.append({k: _gather(v)[: stop - start] for k, v in out.items()})
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
