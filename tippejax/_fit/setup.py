@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._cache import cacheable, cached_call, compile_ahead, to_device
-from .._devices import batch_sharding
+from .._devices import batch_sharding, shard_over
 from .optimise import least_squares, optimise
 from .params import physical
 from .problem import (
@@ -76,6 +76,8 @@ class Setup:
         self.rtol = rtol
         # a batch's records split over the devices (`jax.sharding`), one core each
         self.sharding = batch_sharding(self.bsize) if batched else None
+        # ... each device running its records' solves alone (`shard_over`)
+        self.mesh = None if self.sharding is None else self.sharding.mesh
         self.template = self.place(template)
         self.fitted = np.ones_like(mask)  # the samples a fit may use (trim shortens it)
         self.padded = template.ts.shape[-1]  # the data arrays' length (a bucket, >= n)
@@ -182,7 +184,7 @@ class Setup:
             return self._evaluations[key][1]
         with cacheable():  # the fit's programs go to the persistent cache too (`_cache.py`)
             out = cached_call(_run_evaluate, to_device(u), data, cfg=self.cfg,
-                              batched=self.batched)
+                              batched=self.batched, mesh=self.mesh)
         if len(self._evaluations) >= 8:
             del self._evaluations[next(iter(self._evaluations))]
         self._evaluations[key] = (data, out)  # (holding `data` keeps its id unique)
@@ -194,7 +196,8 @@ class Setup:
         cfg = self.cfg
         if cfg.method == "adam":
             with cacheable():
-                return cached_call(_run_optimise, u, data, cfg=cfg, batched=self.batched)
+                return cached_call(_run_optimise, u, data, cfg=cfg, batched=self.batched,
+                                   mesh=self.mesh)
         dtype = self.template.ts.dtype
 
         def evaluate(v):
@@ -243,7 +246,7 @@ class Setup:
             with cacheable():
                 out.append(np.asarray(cached_call(
                     _run_losses, to_device(part, self.template.ts.dtype), data,
-                    cfg=self.cfg, batched=self.batched)))
+                    cfg=self.cfg, batched=self.batched, mesh=self.mesh)))
         losses = np.concatenate(out)[:k]
         return np.where(np.isfinite(losses), losses, np.inf)
 
@@ -255,7 +258,7 @@ class Setup:
         shape = (CHUNK,) + ((self.bsize,) if self.batched else ()) + (len(self.cfg.free),)
         with cacheable():
             compile_ahead(_run_losses, to_device(np.zeros(shape), self.template.ts.dtype),
-                          self.data(), cfg=self.cfg, batched=self.batched)
+                          self.data(), cfg=self.cfg, batched=self.batched, mesh=self.mesh)
 
     def nutation_cycles(self, spin_u):
         """Number of fast-nutation cycles, C|n|/(2 pi A) x the record, at spin coordinates
@@ -275,34 +278,43 @@ class Setup:
                                to_device(np.full(self.bsize, np.asarray(code._value))))
         with cacheable():
             return cached_call(_run_finish, u, code, data, value, jac, run, cfg=self.cfg,
-                               batched=self.batched)
+                               batched=self.batched, mesh=self.mesh)
+
+
+def _over_records(fn, mesh, *args):
+    """`jax.vmap(fn)(*args)` over a batch's records (the first axis of every array), each
+    device running its own records alone where the records are split over devices (`mesh`)."""
+    if mesh is None:
+        return jax.vmap(fn)(*args)
+    return shard_over(jax.vmap(fn), mesh, "batch", args, (True,) * len(args))
 
 
 @eqx.filter_jit
-def _run_optimise(u0, data, cfg, batched):
+def _run_optimise(u0, data, cfg, batched, mesh=None):
     if batched:
-        return jax.vmap(lambda u, d: optimise(u, d, cfg))(u0, data)
+        return _over_records(lambda u, d: optimise(u, d, cfg), mesh, u0, data)
     return optimise(u0, data, cfg)
 
 
 @eqx.filter_jit
-def _run_evaluate(u, data, cfg, batched):
+def _run_evaluate(u, data, cfg, batched, mesh=None):
     if batched:
-        return jax.vmap(lambda v, d: value_jacobian_solution(v, d, cfg))(u, data)
+        return _over_records(lambda v, d: value_jacobian_solution(v, d, cfg), mesh, u, data)
     return value_jacobian_solution(u, data, cfg)
 
 
 @eqx.filter_jit
-def _run_losses(u, data, cfg, batched):
+def _run_losses(u, data, cfg, batched, mesh=None):
     def loss(v, d):
         r = residuals(v, d, cfg)
         return 0.5 * jnp.sum(r**2)
 
-    if batched:
-        one_start = jax.vmap(loss)  # over recordings
-    else:
-        one_start = loss
-    return jax.vmap(lambda v: one_start(v, data))(u)
+    if not batched:
+        return jax.vmap(lambda v: loss(v, data))(u)
+    # u: (starts, records, p); over the records on the outside, the starts inside
+    by_record = _over_records(lambda v, d: jax.vmap(lambda w: loss(w, d))(v), mesh,
+                              jnp.swapaxes(u, 0, 1), data)
+    return jnp.swapaxes(by_record, 0, 1)
 
 
 def finish(u, code, data: Data, value, jac_u, sol, cfg: Config):
@@ -351,7 +363,7 @@ def finish(u, code, data: Data, value, jac_u, sol, cfg: Config):
 
 
 @eqx.filter_jit
-def _run_finish(u, code, data, value, jac, sol, cfg, batched):
+def _run_finish(u, code, data, value, jac, sol, cfg, batched, mesh=None):
     if batched:
-        return jax.vmap(lambda *a: finish(*a, cfg))(u, code, data, value, jac, sol)
+        return _over_records(lambda *a: finish(*a, cfg), mesh, u, code, data, value, jac, sol)
     return finish(u, code, data, value, jac, sol, cfg)
