@@ -99,12 +99,11 @@ def inversion_time(
     - `rtol`, `atol`: tolerances of the step-size controller (as in `simulate`).
     - `solver`: any diffrax solver with an error estimate (default `default_solver(top)`).
     - `max_steps`: maximum number of solver steps per segment.
-    - `adjoint`: how the solve is differentiated, passed to `simulate`:
-      `diffrax.RecursiveCheckpointAdjoint()` (default; reverse mode, for `jax.grad`, the
-      natural choice for one scalar and many parameters) or `diffrax.ForwardMode()` (for
-      `jax.jvp`/`jax.jacfwd`; the default adjoint does not support forward mode). For the
-      seven fields of a top forward mode is the cheaper (`benchmarks/RESULTS.md`,
-      gradients.py: about 3.6x a solve against 6.8x).
+    - `adjoint`: how the solve is differentiated, passed to `simulate`: by default from
+      its forward-mode Jacobian, for `jax.grad` and `jax.jacfwd`/`jax.jvp` alike (about 4x a
+      solve for the seven fields of a top, `benchmarks/RESULTS.md`, gradients.py); or a
+      diffrax adjoint (`diffrax.RecursiveCheckpointAdjoint()`: reverse mode through the
+      solve's steps; `diffrax.ForwardMode()`: forward mode).
     - `throw`: raise where the solve failed before a crossing (see above).
     - `tolerance`: for `model="auto"`, the largest acceptable error in $\theta(t)$ (rad).
     - `event_samples`: points per step at which the conditions are checked for a crossing

@@ -8,6 +8,7 @@ checks the arguments, picks the level and the solver, and computes the observed 
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Literal
 
 import diffrax
@@ -19,7 +20,14 @@ from jaxtyping import ArrayLike
 
 from ._cache import cacheable, cached_call
 from ._engine.chain import run_chain, run_chain_shared
-from ._engine.segment import PACK_WIDTH, SHARED_PACK_WIDTH, pack_width_for, top_axes
+from ._engine.segment import (
+    FORWARD_MODE_PACK_WIDTH,
+    PACK_WIDTH,
+    SHARED_PACK_WIDTH,
+    pack_width_for,
+    top_axes,
+)
+from ._engine.sensitivity import ForwardSensitivities, forward_sensitivities
 from ._engine.solver_choice import (
     IMPLICIT_RATE,
     STIFF_RATE,
@@ -80,7 +88,25 @@ def _observe(top, states: State, friction_model: str, valid, names=OBSERVED):
 @eqx.filter_jit
 def _run(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_on_contact,
          max_steps, adjoint, progress, samples, names=OBSERVED, inversion=True, locate=True,
-         pack_width=PACK_WIDTH):
+         pack_width=PACK_WIDTH, jacobian_pack_width=FORWARD_MODE_PACK_WIDTH):
+    run = functools.partial(
+        _run_core, level=level, solver=solver, guard_stiff=guard_stiff,
+        stop_on_contact=stop_on_contact, max_steps=max_steps, progress=progress,
+        samples=samples, names=names, inversion=inversion, locate=locate)
+    if isinstance(adjoint, ForwardSensitivities):
+        # (the default: derivatives from the forward-mode Jacobian, `sensitivity.py`)
+        run = forward_sensitivities(
+            functools.partial(run, adjoint=diffrax.RecursiveCheckpointAdjoint(),
+                              pack_width=pack_width),
+            functools.partial(run, adjoint=diffrax.ForwardMode(),
+                              pack_width=jacobian_pack_width))
+    else:
+        run = functools.partial(run, adjoint=adjoint, pack_width=pack_width)
+    return run(top, y0, ts, t0, t1, rtol, atol)
+
+
+def _run_core(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_on_contact,
+              max_steps, adjoint, progress, samples, names, inversion, locate, pack_width):
     too_stiff = jnp.array(False)
     if guard_stiff:
         # Traced top with the default (explicit) solver: a very stiff member would run into
@@ -346,11 +372,16 @@ def simulate(
       Dopri8 (Dopri5 for the gyroscopic level), Tsit5 under strong friction, Kvaerno5 under
       very stiff friction.
     - `max_steps`: maximum number of steps per segment.
-    - `adjoint`: how to differentiate through the solve: `diffrax.RecursiveCheckpointAdjoint()`
-      (default, reverse mode, for `jax.grad`) or `diffrax.ForwardMode()` (for `jax.jacfwd`;
-      cheaper up to the seven fields of a top: a Jacobian of the standard top's 20 s run in
-      forward mode costs 3.6-3.9x the solve, in reverse mode 6.0-6.8x, `benchmarks/RESULTS.md`,
-      gradients.py; one top then runs its state in narrower vectors, `ravel_state`).
+    - `adjoint`: how derivatives of the run are computed. Default (None): from the run's
+      forward-mode Jacobian in the inputs that are differentiated (top fields, launch state,
+      times), for `jax.grad`/`jax.vjp` and `jax.jacfwd`/`jax.jvp` alike
+      (`tippejax/_engine/sensitivity.py`): its cost grows with the number of differentiated
+      scalars (a run of one top has at most ~25), not with the outputs; for the seven fields
+      of the standard top's 20 s run about 4x the solve in either mode
+      (`benchmarks/RESULTS.md`, gradients.py), against 6-9x for reverse mode through the
+      solve's steps. Or a diffrax adjoint: `diffrax.RecursiveCheckpointAdjoint()` (reverse
+      mode through the steps; no forward mode) or `diffrax.ForwardMode()` (forward mode
+      only).
     - `throw`: raise on failure (contact loss with `on_contact_loss="stop"`, the $R_n$
       singularity, max steps, NaN, loss of gyroscopic balance). With `False` the failure is in
       `sol.result`.
@@ -395,7 +426,7 @@ def simulate(
     if solver is None:
         solver = default_solver(top, slow_flow=LEVELS[model].slow_flow)
     if adjoint is None:
-        adjoint = diffrax.RecursiveCheckpointAdjoint()
+        adjoint = ForwardSensitivities()
     level = dataclasses.replace(LEVELS[model], body=not summary if body is None else bool(body))
     with cacheable():
         out = cached_call(
@@ -408,6 +439,8 @@ def simulate(
             # layout: with one vector its single top ran 22 ms against 12 ms, peers.py scene)
             pack_width=PACK_WIDTH if LEVELS[model].slow_flow else pack_width_for(
                 top, y0, t0, t1, rtol, atol, ts, adjoint=adjoint),
+            jacobian_pack_width=PACK_WIDTH if LEVELS[model].slow_flow else pack_width_for(
+                top, y0, t0, t1, rtol, atol, ts, adjoint=diffrax.ForwardMode()),
         )
     if n_save is not None and out["ts"].shape[0] != n_save:
         for key in _SAVED:
