@@ -451,7 +451,8 @@ def _devices_run(**env_changes):
     import subprocess
     import sys
 
-    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "TIPPEJAX_HOST_DEVICES")}
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("XLA_FLAGS", "TIPPEJAX_HOST_DEVICES", "TIPPEJAX_CPU_SCHEDULER")}
     env.update(env_changes)
     out = subprocess.run([sys.executable, "-c", DEVICES_SCRIPT], env=env, capture_output=True,
                          text=True, check=True).stdout
@@ -469,9 +470,26 @@ def test_every_core_is_a_device_by_default():
     assert "--xla_force_host_platform_device_count=2" in two["flags"]
     assert _devices_run(TIPPEJAX_HOST_DEVICES="1")["devices"] == 1
     user = _devices_run(XLA_FLAGS="--xla_force_host_platform_device_count=3")
-    assert user["devices"] == 3 and user["flags"] == "--xla_force_host_platform_device_count=3"
+    assert user["devices"] == 3
+    assert user["flags"].split()[0] == "--xla_force_host_platform_device_count=3"
     default = _devices_run()
     assert default["devices"] == (os.cpu_count() or 1)
+
+
+def test_sequential_cpu_scheduler_by_default_and_its_opt_outs():
+    """XLA:CPU's concurrency-optimised scheduler is turned off where this jaxlib knows the
+    flag (`_devices.use_sequential_scheduler`); TIPPEJAX_CPU_SCHEDULER=concurrent and a flag
+    the user set keep XLA's choice; a bad setting is refused."""
+    from tippejax import _devices
+
+    flag = _devices.SCHEDULER_FLAG
+    known = _devices._jaxlib_version() in _devices.SCHEDULER_JAXLIB
+    assert (f"{flag}=false" in _devices_run(TIPPEJAX_HOST_DEVICES="2")["flags"]) == known
+    assert flag not in _devices_run(TIPPEJAX_CPU_SCHEDULER="concurrent")["flags"]
+    user = _devices_run(XLA_FLAGS=f"{flag}=true")["flags"]
+    assert user.count(flag) == 1 and f"{flag}=true" in user
+    with pytest.raises(ValueError, match="TIPPEJAX_CPU_SCHEDULER must be"):
+        _devices.use_sequential_scheduler({"TIPPEJAX_CPU_SCHEDULER": "fast"})
 
 
 def test_every_core_bad_setting_and_late_import():

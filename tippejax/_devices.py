@@ -17,6 +17,11 @@ starts; importing tippejax puts it there, with `N = os.cpu_count()`, unless
 
 A single solve runs on the first device whatever their number (`benchmarks/peers.py` measures
 one top with one and with two host devices).
+
+Importing tippejax also turns off XLA:CPU's concurrency-optimised scheduler
+(`use_sequential_scheduler`; `TIPPEJAX_CPU_SCHEDULER=concurrent` keeps it): one top's solve and
+its derivatives ran up to 3x slower, and by how much changed from process to process, with
+their tiny operations spread over the cores.
 """
 
 from __future__ import annotations
@@ -70,6 +75,54 @@ def use_every_core(environ: MutableMapping[str, str] = os.environ) -> int | None
 
 
 use_every_core()
+
+
+SCHEDULER_ENV = "TIPPEJAX_CPU_SCHEDULER"
+SCHEDULER_FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler"
+SCHEDULER_JAXLIB = ((0, 10),)
+"""jaxlib versions (major, minor) whose XLA is known to take `SCHEDULER_FLAG`: XLA aborts the
+process on a flag it does not know, so it is set only for these."""
+
+
+def _jaxlib_version() -> tuple[int, int] | None:
+    import importlib.metadata
+
+    try:
+        major, minor = importlib.metadata.version("jaxlib").split(".")[:2]
+        return int(major), int(minor)
+    except (importlib.metadata.PackageNotFoundError, ValueError):  # pragma: no cover
+        return None
+
+
+def use_sequential_scheduler(environ: MutableMapping[str, str] = os.environ) -> bool:
+    """Add `--xla_cpu_enable_concurrency_optimized_scheduler=false` to `XLA_FLAGS`: XLA:CPU then
+    runs a program's operations in their order instead of spreading independent ones over the
+    cores. A solve of one top is thousands of tiny operations per step; spread over two
+    threads they cost more than on one, and the run time of the same compiled program moved
+    between processes (the standard top's 20 s run with 201 saves, `jax.jacfwd` in the seven
+    fields: 130 ms in 15 processes, 340 ms in 4; with the flag 113-115 ms in 10 of 10, and the
+    solve 30-32 ms against 33-43; `benchmarks/gradients.py`: its Jacobian 8.4x -> 3.7x the
+    solve). A batch sharded over the cores (one device per core, `use_every_core`) runs as
+    fast either way; one unsharded batch of 1000 full-model tops on one device ran 18%
+    slower with it (`TIPPEJAX_HOST_DEVICES=1`). Not set where `XLA_FLAGS` holds the flag
+    already (the user's choice), where `TIPPEJAX_CPU_SCHEDULER=concurrent` (XLA's default
+    scheduler), where JAX's backends already run, or for a jaxlib not in `SCHEDULER_JAXLIB`.
+
+    **Returns:** whether the flag was added."""
+    flags = environ.get("XLA_FLAGS", "")
+    choice = environ.get(SCHEDULER_ENV, "").strip().lower()
+    if choice not in ("", "sequential", "concurrent"):
+        raise ValueError(
+            f"{SCHEDULER_ENV} must be 'sequential' (tippejax's default) or 'concurrent' "
+            f"(XLA's), got {choice!r}.")
+    if (SCHEDULER_FLAG in flags or choice == "concurrent" or _backends_running()
+            or _jaxlib_version() not in SCHEDULER_JAXLIB):
+        return False
+    environ["XLA_FLAGS"] = f"{flags} {SCHEDULER_FLAG}=false".strip()
+    return True
+
+
+use_sequential_scheduler()
 
 
 def batch_sharding(size: int):
