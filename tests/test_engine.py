@@ -480,13 +480,25 @@ def test_sequential_cpu_scheduler_by_default_and_its_opt_outs():
     """XLA:CPU's concurrency-optimised scheduler is turned off where this jaxlib knows the
     flag (`_devices.use_sequential_scheduler`); TIPPEJAX_CPU_SCHEDULER=concurrent and a flag
     the user set keep XLA's choice; a bad setting is refused."""
+    import os
+    import subprocess
+    import sys
+
     from tippejax import _devices
+
+    def flags(**env_changes):  # XLA_FLAGS after importing tippejax in a new process
+        env = {k: v for k, v in os.environ.items()
+               if k not in ("XLA_FLAGS", "TIPPEJAX_CPU_SCHEDULER")}
+        env.update(env_changes)
+        script = "import os, tippejax; print(os.environ.get('XLA_FLAGS', ''))"
+        return subprocess.run([sys.executable, "-c", script], env=env, capture_output=True,
+                              text=True, check=True).stdout.strip().splitlines()[-1]
 
     flag = _devices.SCHEDULER_FLAG
     known = _devices._jaxlib_version() in _devices.SCHEDULER_JAXLIB
-    assert (f"{flag}=false" in _devices_run(TIPPEJAX_HOST_DEVICES="2")["flags"]) == known
-    assert flag not in _devices_run(TIPPEJAX_CPU_SCHEDULER="concurrent")["flags"]
-    user = _devices_run(XLA_FLAGS=f"{flag}=true")["flags"]
+    assert (f"{flag}=false" in flags()) == known
+    assert flag not in flags(TIPPEJAX_CPU_SCHEDULER="concurrent")
+    user = flags(XLA_FLAGS=f"{flag}=true")
     assert user.count(flag) == 1 and f"{flag}=true" in user
     with pytest.raises(ValueError, match="TIPPEJAX_CPU_SCHEDULER must be"):
         _devices.use_sequential_scheduler({"TIPPEJAX_CPU_SCHEDULER": "fast"})
