@@ -75,13 +75,8 @@ def worker(rounds: int) -> dict:
         plain_shared = jax.jit(jax.shard_map(
             plain_shared_solve, mesh=mesh, in_specs=(spec, PartitionSpec(), PartitionSpec()),
             out_specs=spec, check_vma=False))
-    plain_vmap = jax.vmap(lambda s, r, a: peers.plain_solve(s, r, a)[0], in_axes=(0, None, None))
-    if len(devices) == 1:
-        plain_vmap = jax.jit(plain_vmap)
-    else:  # each device its own shard's loop, as simulate_batch does (the stronger script)
-        plain_vmap = jax.jit(jax.shard_map(
-            plain_vmap, mesh=mesh, in_specs=(spec, PartitionSpec(), PartitionSpec()),
-            out_specs=spec, check_vma=False))
+    def plain_vmap(spins, rtol, atol):  # peers.py's: on several devices, each its shard's loop
+        return peers.plain_batch(spins, rtol, atol)[0]
 
     def put(x):
         x = jnp.asarray(x)

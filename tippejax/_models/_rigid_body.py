@@ -133,3 +133,11 @@ def rigid_body_dynamics_by_components(top: TippeTop, axis, omega, velocity):
                            o02 + normal_force * o12], axis=-1)
     slip_velocity = jnp.stack([vx, vy, jnp.zeros_like(vx)], axis=-1)
     return normal_force, omega_dot, slip_velocity, denominator
+
+
+def rigid_body_algebra(by_components: bool):
+    """`(rigid_body_dynamics, jnp.cross)`, or their forms written out by components
+    (`rigid_body_dynamics_by_components`, `cross`; see `AbstractLevel.by_components`)."""
+    if by_components:
+        return rigid_body_dynamics_by_components, cross
+    return rigid_body_dynamics, jnp.cross

@@ -19,7 +19,7 @@ from jaxtyping import Array, Float
 
 from .._state import State
 from .._top import TippeTop
-from ._rigid_body import cross, rigid_body_dynamics, rigid_body_dynamics_by_components
+from ._rigid_body import rigid_body_algebra, rigid_body_dynamics
 from .base import AbstractLevel, Conditions
 
 
@@ -52,7 +52,7 @@ def vector_conditions(top: TippeTop, axis, omega, velocity, *, by_components: bo
                       ) -> Conditions:
     """Event conditions of the vector form (full and SO(3) levels); `by_components`: see
     `AbstractLevel.by_components`."""
-    dynamics = rigid_body_dynamics_by_components if by_components else rigid_body_dynamics
+    dynamics, _ = rigid_body_algebra(by_components)
     normal_force, _, _, denominator = dynamics(top, axis, omega, velocity)
     one = jnp.ones_like(denominator)
     return Conditions(
@@ -161,8 +161,7 @@ class FullLevel(AbstractLevel):
         )
 
     def vector_field(self, t, y, top):
-        dynamics, cross_ = ((rigid_body_dynamics_by_components, cross) if self.by_components
-                            else (rigid_body_dynamics, jnp.cross))
+        dynamics, cross_ = rigid_body_algebra(self.by_components)
         normal_force, omega_dot, v_q, _ = dynamics(top, y.axis, y.omega, y.velocity)
         frame_dot, angle_dot = spin_frame_rates(y.axis, y.omega, y.frame)
         return FullLevelState(

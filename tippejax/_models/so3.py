@@ -17,7 +17,7 @@ from jaxtyping import Array, Float
 
 from .._state import State
 from .._top import TippeTop
-from ._rigid_body import cross, rigid_body_dynamics, rigid_body_dynamics_by_components
+from ._rigid_body import rigid_body_algebra, rigid_body_dynamics
 from .base import AbstractLevel
 from .full import body_of, spin_frame_rates, vector_conditions
 
@@ -81,8 +81,7 @@ class SO3Level(AbstractLevel):
 
     def vector_field(self, t, y, top):
         zero = jnp.zeros(2, y.axis.dtype)
-        dynamics, cross_ = ((rigid_body_dynamics_by_components, cross) if self.by_components
-                            else (rigid_body_dynamics, jnp.cross))
+        dynamics, cross_ = rigid_body_algebra(self.by_components)
         _, omega_dot, _, _ = dynamics(top, y.axis, y.omega, zero)
         frame_dot, angle_dot = spin_frame_rates(y.axis, y.omega, y.frame)
         return RigidState(
