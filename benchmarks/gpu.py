@@ -9,15 +9,18 @@ rtol 1e-8 (atol 1e-10) for every run. The runs, each on the default JAX device:
 - `tj.simulate_batch(..., steps="per_member")` (the default) and `steps="shared"`, at the SO(3)
   and full levels, events on.
 
-Each run is called once to compile (its time is the "first call") and then timed (two calls
-under 1e6 members, one at 1e6; a run is skipped once `--budget` seconds have passed, so that
-the script ends inside a device lease). Error: the largest over 256 evenly spaced members of
+Each run is called once to compile (its time is the "first call"; JAX's monitoring events give
+the part of it spent tracing, lowering and compiling) and then timed twice; at 1e6 members only
+the goal's rows (so3 and the plain script, shared steps) are called again, the others' time
+is their first call less its compilation, so that the script ends inside a device lease (a
+run is skipped once `--budget` seconds have passed). Error: the largest over 256 evenly spaced members of
 `peers.state_error` of the final state against the plain script at rtol 1e-12 on those
 members (SO(3) rows; the full model's rows are compared with the full model's other path).
 Throughput: `peers.flops_per_member_step()` (a lower bound on the arithmetic of one step of the
 plain script) x steps x members / time, against the card's float64 peak.
 
     python benchmarks/gpu.py --out gpu.json [--sizes 10000,1000000,100000] [--budget 420]
+                             [--rows 0,1]  # only these rows of ORDER (0,1: the goal's)
     python benchmarks/gpu.py --report gpu.json    # anywhere: RESULTS.md section from the JSON
 
 The first form needs a GPU (`--allow-cpu` runs it on the CPU, for a dry run at small sizes);
@@ -37,6 +40,10 @@ RTOL, ATOL = 1e-8, 1e-10
 REF_MEMBERS = 256
 ORDER = ("tippejax so3, shared", "plain diffrax, shared steps", "tippejax so3, per member",
          "plain diffrax, vmap", "tippejax full, shared", "tippejax full, per member")
+GOAL_ROWS = ("tippejax so3, shared", "plain diffrax, shared steps")
+COMPILE_EVENTS = ("/jax/core/compile/jaxpr_trace_duration",
+                  "/jax/core/compile/jaxpr_to_mlir_module_duration",
+                  "/jax/core/compile/backend_compile_duration")
 FP64_PEAK = {"H100": 34e12, "H200": 34e12}  # vector (non-tensor) float64, vendor datasheets
 
 
@@ -44,7 +51,7 @@ def _arg(name, default):
     return sys.argv[sys.argv.index(name) + 1] if name in sys.argv else default
 
 
-def measure(sizes, budget, out_path):
+def measure(sizes, budget, out_path, rows=None):
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -65,6 +72,10 @@ def measure(sizes, budget, out_path):
     except Exception as e:  # cost analysis is a nicety
         info["flops_per_member_step"] = None
         info["errors"].append(f"flops: {e!r}")
+    # JAX's own timings of tracing, lowering and compiling, summed over a first call
+    compiling = []
+    jax.monitoring.register_event_duration_secs_listener(
+        lambda event, secs, **_: compiling.append(secs) if event in COMPILE_EVENTS else None)
     top = tj.default_top()
     plain_vmap = jax.jit(jax.vmap(lambda s: peers.plain_solve(s, RTOL, ATOL)))
     plain_shared = jax.jit(lambda s: peers.plain_shared_solve(s, RTOL, ATOL))
@@ -101,20 +112,27 @@ def measure(sizes, budget, out_path):
             ref = np.asarray(reference(jnp.asarray(spins[idx])))
         finals = {}
         for name in ORDER:
+            if rows and name not in rows:
+                continue
             if time.perf_counter() - start > budget:
                 info["skipped"].append(f"{name}, N={n}")
                 print(f"skipped (budget): {name}, N={n}", flush=True)
                 continue
             fn = runs[name]
             try:
+                compiling.clear()
                 begin = time.perf_counter()
                 out = jax.block_until_ready(fn(spins))
                 first = time.perf_counter() - begin
+                compile_s = sum(compiling)
                 times = []
-                for _ in range(1 if n >= 10**6 else 2):
+                calls = 2 if n < 10**6 or name in GOAL_ROWS else 0
+                for _ in range(calls):
                     begin = time.perf_counter()
                     out = jax.block_until_ready(fn(spins))
                     times.append(time.perf_counter() - begin)
+                if not times:  # the first call less its tracing and compilation
+                    times = [first - compile_s]
             except Exception as e:
                 info["errors"].append(f"{name}, N={n}: {type(e).__name__}: {str(e)[:2000]}")
                 save()
@@ -127,7 +145,8 @@ def measure(sizes, budget, out_path):
             if len(out) > 2:  # only the members that ran to t1 (result code 0)
                 finals[name] = np.where(np.asarray(out[2].result._value)[:, None] == 0,
                                         final, np.nan)
-            row = dict(name=name, n=n, first=first, times=times,
+            row = dict(name=name, n=n, first=first, compile=compile_s, times=times,
+                       timed_calls=calls,
                        per_top_us=1e6 * statistics.median(times) / n,
                        steps_max=int(steps.max()), steps_median=float(np.median(steps)),
                        finite=int(np.isfinite(final).all(axis=1).sum()))
@@ -153,12 +172,17 @@ def measure(sizes, budget, out_path):
     return info
 
 
-def report(path):
+def report(paths):
+    """The section from the first JSON; the goal's rows of each further JSON (another card,
+    `--rows 0,1`) are added as lines."""
     sys.path.insert(0, HERE)
     from _common import table, write_section
 
-    with open(path) as f:
-        info = json.load(f)
+    infos = []
+    for path in paths.split(","):
+        with open(path) as f:
+            infos.append(json.load(f))
+    info = infos[0]
     peak = next((v for k, v in FP64_PEAK.items() if k in info["device"]), None)
     by = {(r["n"], r["name"]): r for r in info["rows"]}
     sizes = sorted({r["n"] for r in info["rows"]})
@@ -169,8 +193,9 @@ def report(path):
         f"diffrax {info['diffrax']}, equinox {info['equinox']}), {info['elapsed']:.0f} s; "
         "section written by `--report`. Scene of peers.py: standard top, theta0 0.1, N spins "
         "140-160 rad/s, 20 s, SO(3) equations, summary mode, float64, rtol 1e-8 (atol 1e-10) "
-        "for every run. Time: the median of the timed calls after a compiling call (2 calls "
-        "under 1e6 members, 1 at 1e6); error: largest over 256 evenly spaced members against "
+        "for every run. Time: the median of 2 timed calls after a compiling call (at 1e6 "
+        "members, rows other than the goal's: the first call less JAX's own tracing and "
+        "compiling time); first call s: with compilation (compile s: JAX's part of it); error: largest over 256 evenly spaced members against "
         "the plain script at rtol 1e-12 (SO(3) rows). GFLOP/s: a lower bound on the plain "
         "script's arithmetic per member-step ("
         + (f"{info['flops_per_member_step']:.0f} flop" if info["flops_per_member_step"]
@@ -180,13 +205,21 @@ def report(path):
         + ".",
         "",
     ]
-    goal = by.get((10**6, "tippejax so3, shared"))
-    if goal:
-        total = statistics.median(goal["times"])
-        lines += [f"Goal (1e6 tops x 20 s in float64 within 20 s on one H100): tippejax so3 "
-                  f"with `steps=\"shared\"` {total:.1f} s on {info['device']} "
-                  f"({'met' if total <= 20 else 'missed'}; first call with compilation "
-                  f"{goal['first']:.1f} s).", ""]
+    for other in infos:
+        rows_of = {(r["n"], r["name"]): r for r in other["rows"]}
+        goal = rows_of.get((10**6, "tippejax so3, shared"))
+        plain = rows_of.get((10**6, "plain diffrax, shared steps"))
+        if goal:
+            total = statistics.median(goal["times"])
+            card = "an H100" if "H100" in other["device"] else "another card than the goal's"
+            lines += [
+                f"Goal (1e6 tops x 20 s in float64 within 20 s on one H100): tippejax so3 with "
+                f"`steps=\"shared\"` {total:.1f} s on {other['device']} ("
+                + ("met" if total <= 20 else "missed") + f" on {card}; first call with "
+                f"compilation {goal['first']:.1f} s"
+                + (f"; the plain shared-step script {statistics.median(plain['times']):.1f} s, "
+                   f"{total / statistics.median(plain['times']):.2f}x" if plain else "")
+                + ").", ""]
     rows = []
     for n in sizes:
         plain = by.get((n, "plain diffrax, vmap"))
@@ -198,13 +231,17 @@ def report(path):
             rows.append([
                 f"{n:,}", name, f"{t:.2f}", f"{r['per_top_us']:.2f}",
                 f"{t / statistics.median(plain['times']):.2f}" if plain else "",
-                f"{r['first']:.1f}", f"{r['steps_max']}",
+                f"{r['first']:.1f}", f"{r.get('compile', float('nan')):.1f}",
+                f"{r['steps_max']}",
                 f"{r['error']:.1e}" if "error" in r else
                 (f"paths {r['full_paths_diff']:.1e}" if "full_paths_diff" in r else ""),
                 f"{r['gflops']:.0f}" if "gflops" in r else "",
-                f"{r['finite']}/{n}"])
+                f"{r['finite']}/{n}",
+                # RESULTS.contact_lost (code 2): the full model's R_n reaches 0 (fast spins)
+                str(r["results"].get("2", 0)) if "results" in r else ""])
     lines.append(table(["N", "run", "s (median)", "us per top", "x plain vmap",
-                        "first call s", "steps (max)", "error", "GFLOP/s", "finite"], rows))
+                        "first call s", "compile s", "steps (max)", "error", "GFLOP/s", "finite",
+                        "contact lost"], rows))
     for key in ("skipped", "errors"):
         if info[key]:
             lines += ["", f"{key.capitalize()}: " + "; ".join(info[key])]
@@ -224,7 +261,10 @@ def main():
     if jax.devices()[0].platform == "cpu" and "--allow-cpu" not in sys.argv:
         sys.exit("gpu.py: no GPU here (jax.devices() is CPU); --allow-cpu for a dry run.")
     sizes = [int(float(x)) for x in _arg("--sizes", "10000,1000000,100000").split(",")]
-    measure(sizes, float(_arg("--budget", "420")), _arg("--out", None))
+    rows = _arg("--rows", None)
+    if rows is not None:
+        rows = [ORDER[int(i)] for i in rows.split(",")]
+    measure(sizes, float(_arg("--budget", "420")), _arg("--out", None), rows)
 
 
 if __name__ == "__main__":
