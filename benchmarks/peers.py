@@ -114,13 +114,19 @@ def so3_field(t, y, p):
     return jnp.concatenate([jnp.cross(w, a), o0 + rn * o1])
 
 
-def plain_solve(spin, rtol, atol, ts=None):
+PI_CONTROLLER = dict(pcoeff=0.4, icoeff=0.3)
+"""The plain script's stronger form: the PI step-size controller tippejax uses (the first of
+diffrax's suggested coefficients for a PIDController), instead of diffrax's default I
+controller; `benchmarks/step_control.py` measures the difference on random tops."""
+
+
+def plain_solve(spin, rtol, atol, ts=None, controller=None):
     a = jnp.array([0.0, -jnp.sin(THETA0), jnp.cos(THETA0)])
     saveat = diffrax.SaveAt(t1=True) if ts is None else diffrax.SaveAt(ts=ts)
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(so3_field), diffrax.Dopri8(), 0.0, T1, None,
         jnp.concatenate([a, spin * a]), tuple(PARAMS), saveat=saveat, max_steps=100_000,
-        stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol),
+        stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol, **(controller or {})),
     )
     return sol.ys[-1], sol.stats["num_steps"]
 
@@ -147,36 +153,42 @@ def plain_shared_solve(spins, rtol, atol):
 
 
 _plain_vmap = jax.jit(jax.vmap(plain_solve, in_axes=(0, None, None, None)))
+_plain_vmap_pi = jax.jit(jax.vmap(functools.partial(plain_solve, controller=PI_CONTROLLER),
+                                  in_axes=(0, None, None, None)))
 
 
 @functools.cache
-def _plain_sharded(n_devices, with_saves):
+def _plain_sharded(n_devices, with_saves, pi=False):
     """The plain vmap script with each device running its own shard's loop (`jax.shard_map`,
     as `simulate_batch` does): the stronger script on several devices (jit on sharded inputs
     reduces the loop condition across the devices at every step: 1.40 against 1.20 ms per top
     on 2 devices, `shared_steps.py`)."""
     mesh = Mesh(np.array(jax.devices()[:n_devices]), ("batch",))
     whole = PartitionSpec()
+    solve = functools.partial(plain_solve, controller=PI_CONTROLLER if pi else None)
     if with_saves:
-        fn = jax.vmap(plain_solve, in_axes=(0, None, None, None))
+        fn = jax.vmap(solve, in_axes=(0, None, None, None))
         specs = (PartitionSpec("batch"), whole, whole, whole)
     else:
-        fn = jax.vmap(lambda s, r, a: plain_solve(s, r, a), in_axes=(0, None, None))
+        fn = jax.vmap(lambda s, r, a: solve(s, r, a), in_axes=(0, None, None))
         specs = (PartitionSpec("batch"), whole, whole)
     return jax.jit(jax.shard_map(fn, mesh=mesh, in_specs=specs,
                                  out_specs=PartitionSpec("batch"), check_vma=False))
 
 
-def plain_batch(spins, rtol, atol, ts=None):
-    """The plain script over a batch of spins: `jax.vmap`; on several devices, each its shard."""
+def plain_batch(spins, rtol, atol, ts=None, pi=False):
+    """The plain script over a batch of spins: `jax.vmap`; on several devices, each its shard.
+    `pi`: with `PI_CONTROLLER`."""
     n = len(jax.devices())
     if n > 1 and spins.shape[0] % n == 0:
         rtol, atol = jnp.asarray(rtol), jnp.asarray(atol)
         if ts is None:
-            return _plain_sharded(n, False)(spins, rtol, atol)
-        return _plain_sharded(n, True)(spins, rtol, atol, jnp.asarray(ts))
-    return _plain_vmap(spins, rtol, atol, ts)
+            return _plain_sharded(n, False, pi)(spins, rtol, atol)
+        return _plain_sharded(n, True, pi)(spins, rtol, atol, jnp.asarray(ts))
+    return (_plain_vmap_pi if pi else _plain_vmap)(spins, rtol, atol, ts)
 plain_single = jax.jit(plain_solve)
+plain_single_pi = jax.jit(functools.partial(plain_solve, controller=PI_CONTROLLER))
+PLAIN_PI = "plain diffrax, PI controller"
 
 
 # ----------------------------------------------------------------------------------------------
@@ -208,9 +220,11 @@ def single_runner(name, runner):
     """The single-top form of a batch runner: the JAX peers called on one top without `vmap`
     (a batch of one runs the same program vmapped, which XLA:CPU executes differently), with
     the outputs given a leading axis of one."""
-    if name == "plain diffrax":
+    if name in ("plain diffrax", PLAIN_PI):
+        single = plain_single if name == "plain diffrax" else plain_single_pi
+
         def run(spin, rtol):
-            final, steps = plain_single(jnp.asarray(spin[0]), rtol, rtol * 1e-2)
+            final, steps = single(jnp.asarray(spin[0]), rtol, rtol * 1e-2)
             return final[None], steps[None]
         return run
     if name.startswith("tippejax"):
@@ -299,6 +313,8 @@ def peer_runners():
         "numba DOP853 (CyRK)": lambda s, r, ts=None: nb_run(s, r, r * 1e-2, ts),
         "plain diffrax": lambda s, r, ts=None: plain_batch(
             s, r, r * 1e-2, None if ts is None else jnp.asarray(ts)),
+        PLAIN_PI: lambda s, r, ts=None: plain_batch(
+            s, r, r * 1e-2, None if ts is None else jnp.asarray(ts), pi=True),
     }
     for level in LEVEL_NAMES:
         runners[f"tippejax {level}"] = (
@@ -565,7 +581,8 @@ def main():
     flops = flops_per_member_step()
     print(f"batch 1 device done {time.perf_counter() - start:.0f} s")
     b2, ndev2 = in_subprocess(2, dict(batch=BATCH, rtols=rtols, repeats=REPEATS,
-                                      names=["plain diffrax", "tippejax so3", "tippejax full"]))
+                                      names=["plain diffrax", PLAIN_PI, "tippejax so3",
+                                             "tippejax full"]))
     print(f"batch 2 devices done {time.perf_counter() - start:.0f} s")
     big = {}
     if BIG:
@@ -686,6 +703,12 @@ def report(rows, eq, target, compile_s, ref_check, b1, nb1, b2, ndev2, big, core
          verdict(s2 <= 1.2)],
         [f"goal: batch {BATCH} at or below numba prange ({cores} threads)",
          f"{best_tj / nb_all:.2f}x", verdict(best_tj <= nb_all)],
+        [f"(batch {BATCH} summary against the plain script with tippejax's PI controller, "
+         f"1 and {ndev2} devices)",
+         f"{b1[('tippejax so3', False)]['wall'] / b1[(PLAIN_PI, False)]['wall']:.2f}x, "
+         f"{b2k[('tippejax so3', False)]['wall'] / b2k[(PLAIN_PI, False)]['wall']:.2f}x", ""],
+        ["(steps at equal error against the plain script with the PI controller)",
+         f"{so3['steps'] / eq[PLAIN_PI]['steps']:.2f}x", ""],
         ["single top <= 1.2x plain",
          f"{so3['wall'] / plain['wall']:.2f}x (CPU {so3['cpu'] / plain['cpu']:.2f}x)",
          verdict(so3["wall"] / plain["wall"] <= 1.2)],

@@ -60,6 +60,12 @@ FORWARD_MODE_PACK_WIDTH = 4
 forward mode (`adjoint=diffrax.ForwardMode()`): position and velocity, the axis, omega (and
 frame and spin angle) each a vector of their own (see `ravel_state`)."""
 
+STEP_CONTROL = dict(pcoeff=0.4, icoeff=0.3)
+"""The step-size controller's coefficients (`diffrax.PIDController`): a PI controller, the
+first of diffrax's suggestions for problems whose error estimate does not vary smoothly,
+instead of diffrax's default I controller (pcoeff 0, icoeff 1)."""
+
+
 
 SHARED_PACK_WIDTH = 4
 """Most components in one flat vector of a member's state in a batch with shared steps
@@ -213,7 +219,8 @@ def run_segment(
     y0_flat, unravel = ravel_state(y0, pack_width)
     field = FlatField(level, unravel, pack_width)
     watch = Watch(level, unravel, names)
-    controller = diffrax.PIDController(rtol=rtol, atol=atol, norm=field.error_norm)
+    controller = diffrax.PIDController(rtol=rtol, atol=atol, norm=field.error_norm,
+                                       **STEP_CONTROL)
     solver = _prepared_solver(solver, controller, adjoint)
     watched = WatchedSolver(
         solver,
@@ -420,7 +427,8 @@ def run_segment_shared(
     watch = Watch(level, unravel, names)
     axes = top_axes(top)
     shared_field = SharedField(field, axes)
-    controller = diffrax.PIDController(rtol=rtol, atol=atol, norm=shared_field.error_norm)
+    controller = diffrax.PIDController(rtol=rtol, atol=atol, norm=shared_field.error_norm,
+                                       **STEP_CONTROL)
     solver = _prepared_solver(solver, controller, adjoint)
     observed_idx = tuple(range(len(terminating), len(names)))
     terminating_idx = tuple(range(len(terminating)))
