@@ -205,6 +205,8 @@ def report(paths):
         + ".",
         "",
     ]
+    if info.get("note"):
+        lines += [info["note"], ""]
     for other in infos:
         rows_of = {(r["n"], r["name"]): r for r in other["rows"]}
         goal = rows_of.get((10**6, "tippejax so3, shared"))
