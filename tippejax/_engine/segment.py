@@ -66,7 +66,6 @@ first of diffrax's suggestions for problems whose error estimate does not vary s
 instead of diffrax's default I controller (pcoeff 0, icoeff 1)."""
 
 
-
 SHARED_PACK_WIDTH = 4
 """Most components in one flat vector of a member's state in a batch with shared steps
 (`run_segment_shared`; see `ravel_state`): SO(3) axis, omega (3 + 3), full position and
