@@ -24,12 +24,12 @@ def test_batch_equals_single_runs():
             single = tj.simulate(top, tj.initial_state(top, th, n), 1.0, saveat=TS)
             assert np.max(np.abs(np.asarray(batch.theta[i, j]) - np.asarray(single.theta))) < 1e-9
     # A second call with the same shapes reuses the compiled batch (no new trace).
-    from tippejax._batch import _batch_run
+    from tippejax._batch import _batch_run_cpu as run
 
-    before = _batch_run._cached._cache_size() if hasattr(_batch_run, "_cached") else None
+    before = run._cached._cache_size() if hasattr(run, "_cached") else None
     tj.simulate_batch(top, [0.2, 0.3], [40.0, 80.0], 1.0, saveat=TS)
     if before is not None:
-        assert _batch_run._cached._cache_size() == before
+        assert run._cached._cache_size() == before
 
 
 SCRIPT = r"""
@@ -44,8 +44,8 @@ plain = tj.simulate_batch(top, [0.1, 0.2, 0.3], [50.0, 100.0], 0.5, saveat=ts, s
 # condition into every while loop of the solve).
 from tippejax import _batch
 calls = []
-run = _batch._batch_run
-_batch._batch_run = lambda *args: calls.append(args) or run(*args)
+run = _batch._batch_run_cpu
+_batch._batch_run_cpu = lambda *args: calls.append(args) or run(*args)
 tj.simulate_batch(top, [0.1, 0.2, 0.3], [50.0, 100.0], 0.5, saveat=ts)
 hlo = run.lower(*calls[0]).compile().compiled.as_text()
 print(json.dumps(dict(devices=jax.device_count(),
@@ -83,6 +83,32 @@ def test_bucketed_batch_equals_unbucketed():
         assert diff < 1e-6, diff
         np.testing.assert_allclose(np.asarray(bucketed.spin[..., 0]),
                                    np.asarray(plain.spin[..., 0]), rtol=1e-12)
+
+
+def test_blocks_of_members_equal_single_runs(monkeypatch):
+    """A CPU device's shard runs in blocks of at most PER_MEMBER_BLOCK members (`lax.map`
+    over `vmap`, padded to equal blocks): with blocks of 2, a sweep of 2 tops x 3 spins (the
+    tops' fields split into the blocks with the launches) is every member's single run, the
+    padding cut off."""
+    from tippejax import _batch
+
+    monkeypatch.setattr(_batch, "PER_MEMBER_BLOCK", 2)
+    calls = []
+    run = _batch._batch_run_cpu
+    monkeypatch.setattr(_batch, "_batch_run_cpu", lambda *a: calls.append(a) or run(*a))
+    top = tj.default_top()
+    tops = top.replace(mu=[0.1, 0.6], A_over_C=[0.9, 1.2])
+    spins = [30.0, 60.0, 90.0]
+    batch = tj.simulate_batch(tops, 0.3, spins, 1.0, grid=("top", "spin"), saveat=TS)
+    assert [a[-1] for a in calls] == [2]  # blocks of 2 members
+    assert batch.theta.shape == (2, 3, TS.size)
+    assert np.all(batch.message() == "successful")
+    for i, (mu, ac) in enumerate([(0.1, 0.9), (0.6, 1.2)]):
+        one = top.replace(mu=mu, A_over_C=ac)
+        for j, n in enumerate(spins):
+            single = tj.simulate(one, tj.initial_state(one, 0.3, n), 1.0, saveat=TS)
+            assert np.max(np.abs(np.asarray(batch.theta[i, j]) - np.asarray(single.theta))) < 1e-9
+            assert int(batch.num_steps[i, j]) == int(single.num_steps)
 
 
 def test_sweep_of_tops_and_launch_rates_equals_single_runs():

@@ -26,11 +26,31 @@ LAUNCH = ("theta0", "spin", "theta_dot", "phi_dot", "phi", "psi", "vx", "vy")
 """The launch quantities `simulate_batch` sweeps (the arguments of `initial_state`)."""
 
 
-@eqx.filter_jit
-def _batch_run(top, launches, t1, kwargs, mesh=None):
+PER_MEMBER_BLOCK = 128
+"""Most members in one vmapped solve of a per-member batch on a CPU device: a device's shard
+of a larger batch runs as consecutive blocks of at most this many members (`jax.lax.map`
+over `jax.vmap`), compiled with `CPU_COMPILER_OPTIONS`. On the 2-core AMD EPYC of
+`benchmarks/RESULTS.md` (peers.py's scene, SO(3) level, 1000 tops, ms per top): one vmap of
+every member per device, LLVM's default optimisation 3.43 (1 device) and 1.35 (2 devices);
+blocks of 250 at level 1: 2.20 and 1.08; blocks of 100-300 at level 1 on 2 devices
+1.07-1.13, while neither change alone helped (blocks at the default level 3.68 / 1.84,
+level 1 without blocks 3.62 / 1.57). A block's loop also ends with its own slowest member
+rather than the shard's. `benchmarks/peers.py` measures it against the plain script."""
+
+CPU_COMPILER_OPTIONS = {"xla_backend_optimization_level": 1}
+"""XLA compile options of a per-member batch on CPU devices (see `PER_MEMBER_BLOCK`); only
+tippejax's own batch program gets them (`jax.jit`'s `compiler_options`), not the user's."""
+
+
+def _split_blocks(tree, blocks):
+    # (blocks * size, ...) -> (blocks, size, ...) for each leaf with a member axis.
+    return jax.tree_util.tree_map(lambda x: x.reshape(blocks, -1, *x.shape[1:]), tree)
+
+
+def _batch_run_impl(top, launches, t1, kwargs, mesh=None, block=None):
     # Module-level and jitted once per (shapes, static options): repeated calls reuse it.
     # `top` has either scalar fields (one top) or fields of the launches' length (a sweep).
-    def local(top, launches, t1):
+    def members(top, launches, t1):
         def one(top, launch):
             theta0, spin, theta_dot, phi_dot, phi, psi, vx, vy = launch
             y0 = initial_state(top, theta0, spin, theta_dot=theta_dot, phi_dot=phi_dot,
@@ -39,9 +59,25 @@ def _batch_run(top, launches, t1, kwargs, mesh=None):
 
         return jax.vmap(one, in_axes=(top_axes(top), 0))(top, launches)
 
+    def local(top, launches, t1):
+        n = launches[0].shape[0]
+        if block is None or n <= block:
+            return members(top, launches, t1)
+        blocks = n // block  # simulate_batch pads each shard to a multiple of `block`
+        per_member, shared = eqx.partition(top, lambda x: jnp.ndim(x) == 1)
+        out = jax.lax.map(
+            lambda xs: members(eqx.combine(xs[0], shared), xs[1], t1),
+            (_split_blocks(per_member, blocks), _split_blocks(launches, blocks)),
+        )
+        return jax.tree_util.tree_map(lambda x: x.reshape(n, *x.shape[2:]), out)
+
     if mesh is None:
         return local(top, launches, t1)
     return shard_over(local, mesh, "batch", (top, launches, t1), (True, True, False))
+
+
+_batch_run = eqx.filter_jit(_batch_run_impl)
+_batch_run_cpu = eqx.filter_jit(_batch_run_impl, compiler_options=CPU_COMPILER_OPTIONS)
 
 
 def _launch_state(top, launch):
@@ -146,7 +182,13 @@ def simulate_batch(
     All members run under one `jax.vmap` (one compilation per shape and options) with
     `throw=False`, so a failed member is flagged in `sol.result` (`sol.message()` reads it)
     without stopping the others. With `shard=True` and more than one device the batch is split
-    over all devices with `jax.sharding` (padded to a multiple of the device count).
+    over all devices with `jax.sharding` (padded to a multiple of the device count), each
+    device running its own members' loops (`jax.shard_map`). On CPU devices each device's
+    members run in blocks of at most `PER_MEMBER_BLOCK` (128), one after the other, and the
+    batch's program is compiled at LLVM optimisation level 1 (`CPU_COMPILER_OPTIONS`, for this
+    program only): 1.2-1.5x faster than one `vmap` over the shard at XLA's default level on
+    the machine of `benchmarks/RESULTS.md` (`benchmarks/peers.py`). Results agree with a
+    single run of each member to about `rtol` (the program's rounding differs).
 
     Under `vmap` every member takes as many solver steps as the slowest one. With
     `buckets > 1` the members are sorted by $|n|$ (their cost grows with spin x t1), split
@@ -297,6 +339,15 @@ def simulate_batch(
     order = np.argsort(np.abs(flat["spin"]), kind="stable") if buckets > 1 else np.arange(size)
     per = -(-size // buckets)
     per = -(-per // n_dev) * n_dev
+    block = None
+    cpu = devices[0].platform == "cpu"
+    if steps == "per_member" and cpu:
+        # Each device's shard in blocks of at most PER_MEMBER_BLOCK members, equal in size.
+        shard_size = per // n_dev
+        if shard_size > PER_MEMBER_BLOCK:
+            blocks = -(-shard_size // PER_MEMBER_BLOCK)
+            block = -(-shard_size // blocks)
+            per = block * blocks * n_dev
     order = np.concatenate([order, np.repeat(order[-1:], per * buckets - size)])
     sharding = mesh = None
     if n_dev > 1:
@@ -323,7 +374,8 @@ def simulate_batch(
             if steps == "shared":
                 parts.append(_shared_batch_run(member_tops, launches, arrays, static, mesh))
             else:
-                parts.append(_batch_run(member_tops, launches, t1, kwargs, mesh))
+                run = _batch_run_cpu if cpu else _batch_run
+                parts.append(run(member_tops, launches, t1, kwargs, mesh, block))
     if buckets == 1:
         sol = parts[0]
         back = None
