@@ -1,11 +1,12 @@
 """The batch target of issue 18 alone, measured with more rounds than `peers.py` affords.
 
 A batch of 1000 (the scene of `peers.py`: standard top, SO(3) equations, theta0 0.1, spins
-140-160 rad/s, 20 s, summary mode, rtol 1e-8 for both, where their errors are equal) on one JAX
-device: the plain diffrax script, `tj.simulate(model="so3")` and `tj.simulate(model="full")` in
-`jax.vmap`, timed in interleaved rounds after a compiling call. Prints the per-round ratios
-tippejax so3 / plain and their median (a paired ratio: both runs of a round see the same load),
-and the median full / so3.
+140-160 rad/s, 20 s, summary mode) at equal error on one JAX device (the rtols `EQUAL_ERROR`
+at which peers.py's ladder gives each the plain script's error at rtol 1e-8): the plain diffrax script (in `jax.vmap`, and in `simulate_batch`'s CPU layout: blocks
+at LLVM level 1), `tj.simulate(model="so3")` and `tj.simulate(model="full")` in `jax.vmap`,
+and `tj.simulate_batch` at both levels, timed in interleaved rounds after a compiling call.
+Prints the per-round ratios to the plain script and their medians (paired ratios: the runs
+of a round see the same load), and the medians of full / so3.
 
     python benchmarks/peers_batch.py [ROUNDS]     # default 15
 """
@@ -22,15 +23,24 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import peers  # noqa: E402  (one host device, float64, the scene)
 
+EQUAL_ERROR = dict(plain=1e-8, so3=2.45e-8, full=2.70e-8)
+"""rtol of each at the plain script's error at rtol 1e-8 (4.42e-8), from `peers.py --big`
+(benchmarks/RESULTS.md, 2026-11-27): tippejax's PI controller ends with a 2-3x smaller
+error than the plain script's I controller at the same rtol."""
+
 
 def main():
     spins = jnp.asarray(np.linspace(140.0, 160.0, 1000))
-    r = 1e-8
+    r, r3, rf = EQUAL_ERROR["plain"], EQUAL_ERROR["so3"], EQUAL_ERROR["full"]
     fns = {
         "plain": lambda: peers.plain_batch(spins, r, r * 1e-2, None),
-        "so3": lambda: peers.tj_batch(spins, jnp.asarray(r), jnp.asarray(r * 1e-2), None, "so3"),
-        "full": lambda: peers.tj_batch(spins, jnp.asarray(r), jnp.asarray(r * 1e-2), None,
-                                       "full"),
+        "plain in blocks": lambda: peers.plain_blocks(spins, r, r * 1e-2),
+        "so3 vmap": lambda: peers.tj_batch(spins, jnp.asarray(r3), jnp.asarray(r3 * 1e-2), None,
+                                           "so3"),
+        "full vmap": lambda: peers.tj_batch(spins, jnp.asarray(rf), jnp.asarray(rf * 1e-2), None,
+                                            "full"),
+        "so3 simulate_batch": lambda: peers.tj_simulate_batch(spins, r3),
+        "full simulate_batch": lambda: peers.tj_simulate_batch(spins, rf, level="full"),
     }
     for f in fns.values():
         jax.block_until_ready(f())
@@ -40,14 +50,21 @@ def main():
             start = time.perf_counter()
             jax.block_until_ready(f())
             times[k].append(time.perf_counter() - start)
-    ratios = [s / p for s, p in zip(times["so3"], times["plain"])]
     print("devices:", jax.devices())
-    print("per-round so3 / plain:", " ".join(f"{x:.3f}" for x in ratios))
-    print(f"median so3 / plain: {statistics.median(ratios):.3f} "
-          f"(quartiles {np.percentile(ratios, 25):.3f}-{np.percentile(ratios, 75):.3f}, "
-          f"{ROUNDS} rounds)")
-    print(f"median full / so3: "
-          f"{statistics.median(f / s for f, s in zip(times['full'], times['so3'])):.3f}")
+
+    def paired(a, b):
+        ratios = [x / y for x, y in zip(times[a], times[b])]
+        return (f"median {statistics.median(ratios):.3f} (quartiles "
+                f"{np.percentile(ratios, 25):.3f}-{np.percentile(ratios, 75):.3f})")
+
+    print("per-round so3 simulate_batch / plain:", " ".join(
+        f"{x / y:.3f}" for x, y in zip(times["so3 simulate_batch"], times["plain"])))
+    for a, b in (("so3 simulate_batch", "plain"), ("full simulate_batch", "plain"),
+                 ("so3 simulate_batch", "plain in blocks"), ("so3 vmap", "plain"),
+                 ("plain in blocks", "plain"), ("full simulate_batch", "so3 simulate_batch"),
+                 ("full vmap", "so3 vmap")):
+        print(f"{a} / {b}: {paired(a, b)}")
+    print(f"{ROUNDS} rounds")
 
 
 if __name__ == "__main__":

@@ -179,8 +179,8 @@ def simulate_batch(
       `simulate_batch(top.replace(mu=mus), 0.1, 100.0, t1=10.0, grid=())` has shape
       `mus.shape`.
 
-    All members run under one `jax.vmap` (one compilation per shape and options) with
-    `throw=False`, so a failed member is flagged in `sol.result` (`sol.message()` reads it)
+    All members run in one compiled program (`jax.vmap`; one compilation per shape and
+    options) with `throw=False`, so a failed member is flagged in `sol.result` (`sol.message()` reads it)
     without stopping the others. With `shard=True` and more than one device the batch is split
     over all devices with `jax.sharding` (padded to a multiple of the device count), each
     device running its own members' loops (`jax.shard_map`). On CPU devices each device's
