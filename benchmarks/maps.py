@@ -33,6 +33,7 @@ import time
 import equinox as eqx
 import jax
 import numpy as np
+from jax.sharding import Mesh
 
 import tippejax as tj
 from tippejax._maps import _run_chunk
@@ -59,7 +60,9 @@ def memory_per_launch(top, t1):
     sizes = {}
     for n in (256, 1024):
         x = np.full(n, 0.1)
-        compiled = _run_chunk.lower(fields, static, x, x + 100.0, np.float64(t1), options).compile()
+        mesh = Mesh(np.array(jax.devices()[:1]), ("launch",))
+        compiled = _run_chunk.lower(fields, static, x, x + 100.0, np.float64(t1), options,
+                                    mesh).compile()
         # equinox's Compiled wraps jax's (its `.compiled`), which has the memory analysis
         mem = getattr(compiled, "compiled", compiled).memory_analysis()
         sizes[n] = (mem.temp_size_in_bytes + mem.argument_size_in_bytes

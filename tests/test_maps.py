@@ -128,6 +128,29 @@ def test_tops_map_classifies_each_top_against_its_own_states():
     assert int(om.outcome[1, 0]) in (UPRIGHT, INTERMEDIATE)
 
 
+def test_map_in_blocks_is_each_launchs_single_run(monkeypatch):
+    """On CPU devices a map's launches run in blocks (`run_in_blocks`, as in simulate_batch):
+    with blocks of 2, a map of 3 x 2 tops (their fields split into the blocks) holds each
+    top's own single run, the padding cut off."""
+    from tippejax import _batch, _maps
+
+    monkeypatch.setattr(_batch, "PER_MEMBER_BLOCK", 2)
+    calls = []
+    run = _maps._run_chunk_cpu
+    monkeypatch.setattr(_maps, "_run_chunk_cpu", lambda *a: calls.append(a) or run(*a))
+    base = tj.default_top()
+    a, e = np.array([0.7, 1.0, 1.3]), np.array([0.2, 0.4])
+    om = tj.outcome_map_tops(base, a, e, theta0=0.1, spin=120.0, t1=2.0)
+    assert calls and {c[-1] for c in calls} == {2}
+    for i in range(a.size):
+        for j in range(e.size):
+            top = tj.TippeTop.from_ratios(a[i], e[j], m=base.m, R=base.R, mu=base.mu, C=base.C)
+            sol = tj.simulate(top, tj.initial_state(top, 0.1, 120.0), 2.0, summary=True,
+                              throw=False, rtol=om.rtol, atol=om.atol)
+            assert abs(float(om.theta_final[i, j]) - float(sol.theta[-1])) < 1e-8
+            assert float(om.t_final[i, j]) == pytest.approx(float(sol.t_final), abs=1e-12)
+
+
 @pytest.mark.parametrize(
     "kwargs, match",
     [

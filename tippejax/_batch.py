@@ -13,7 +13,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import ArrayLike
 
 from ._cache import cacheable
-from ._devices import shard_over
+from ._devices import run_in_blocks, shard_over
 from ._engine.segment import top_axes
 from ._engine.solver_choice import default_solver, is_traced
 from ._models.levels import LEVELS
@@ -42,9 +42,13 @@ CPU_COMPILER_OPTIONS = {"xla_backend_optimization_level": 1}
 tippejax's own batch program gets them (`jax.jit`'s `compiler_options`), not the user's."""
 
 
-def _split_blocks(tree, blocks):
-    # (blocks * size, ...) -> (blocks, size, ...) for each leaf with a member axis.
-    return jax.tree_util.tree_map(lambda x: x.reshape(blocks, -1, *x.shape[1:]), tree)
+def cpu_block(shard_size: int) -> int | None:
+    """The block size of a CPU device's shard of `shard_size` members: equal blocks of at most
+    `PER_MEMBER_BLOCK` (the shard is padded to a multiple of it), or None for one block."""
+    if shard_size <= PER_MEMBER_BLOCK:
+        return None
+    blocks = -(-shard_size // PER_MEMBER_BLOCK)
+    return -(-shard_size // blocks)
 
 
 def _batch_run_impl(top, launches, t1, kwargs, mesh=None, block=None):
@@ -60,16 +64,8 @@ def _batch_run_impl(top, launches, t1, kwargs, mesh=None, block=None):
         return jax.vmap(one, in_axes=(top_axes(top), 0))(top, launches)
 
     def local(top, launches, t1):
-        n = launches[0].shape[0]
-        if block is None or n <= block:
-            return members(top, launches, t1)
-        blocks = n // block  # simulate_batch pads each shard to a multiple of `block`
-        per_member, shared = eqx.partition(top, lambda x: jnp.ndim(x) == 1)
-        out = jax.lax.map(
-            lambda xs: members(eqx.combine(xs[0], shared), xs[1], t1),
-            (_split_blocks(per_member, blocks), _split_blocks(launches, blocks)),
-        )
-        return jax.tree_util.tree_map(lambda x: x.reshape(n, *x.shape[2:]), out)
+        # simulate_batch pads each shard to a multiple of `block`.
+        return run_in_blocks(members, block, (top, launches, t1))
 
     if mesh is None:
         return local(top, launches, t1)
@@ -343,11 +339,9 @@ def simulate_batch(
     cpu = devices[0].platform == "cpu"
     if steps == "per_member" and cpu:
         # Each device's shard in blocks of at most PER_MEMBER_BLOCK members, equal in size.
-        shard_size = per // n_dev
-        if shard_size > PER_MEMBER_BLOCK:
-            blocks = -(-shard_size // PER_MEMBER_BLOCK)
-            block = -(-shard_size // blocks)
-            per = block * blocks * n_dev
+        block = cpu_block(per // n_dev)
+        if block is not None:
+            per = -(-per // (block * n_dev)) * block * n_dev
     order = np.concatenate([order, np.repeat(order[-1:], per * buckets - size)])
     sharding = mesh = None
     if n_dev > 1:

@@ -166,3 +166,26 @@ def shard_over(fn, mesh, axis: str, args, members):
     # with the check on their "varying" types differ and the while loop is refused.
     return jax.shard_map(fn, mesh=mesh, in_specs=specs, out_specs=PartitionSpec(axis),
                          check_vma=False)(*args)
+
+
+def run_in_blocks(fn, block, args):
+    """`fn(*args)` for a batch whose members are independent, run as consecutive blocks of
+    `block` members (`jax.lax.map` over the blocks): as in `shard_over`, the array leaves of
+    `args` with at least one axis hold the members along their first (a multiple of `block`
+    long) and are split into the blocks; the others go whole to every block. The outputs are
+    the blocks' put back together along their first axis. `block` None, or no larger than the
+    batch, calls `fn(*args)` once. On a CPU device a vmapped solve runs faster in blocks of
+    about a hundred members (`tippejax._batch.PER_MEMBER_BLOCK`)."""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    split, whole = eqx.partition(args, lambda x: jnp.ndim(x) >= 1)
+    leaves = jax.tree_util.tree_leaves(split)
+    n = leaves[0].shape[0] if leaves else 0
+    if block is None or n <= block:
+        return fn(*args)
+    blocks = n // block
+    parts = jax.tree_util.tree_map(lambda x: x.reshape(blocks, block, *x.shape[1:]), split)
+    out = jax.lax.map(lambda part: fn(*eqx.combine(part, whole)), parts)
+    return jax.tree_util.tree_map(lambda x: x.reshape(n, *x.shape[2:]), out)
