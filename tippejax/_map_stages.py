@@ -74,6 +74,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from ._batch import CPU_COMPILER_OPTIONS
 from ._devices import shard_over
 from ._engine.chain import run_chain
 from ._engine.watch import EVENT_SAMPLES
@@ -132,13 +133,24 @@ off the normal force (`GyroscopicLevel(contact_margin=...)`). At 0.5 the Group I
 flow took over from); at 0.3 it misses none, on that grid and on the shifted one."""
 
 
-@eqx.filter_jit
-def _stage_batch(level, top, states, level_states, t0, t_stop, options, mesh):
+def _stage_batch_impl(level, top, states, level_states, t0, t_stop, options, mesh):
     """One compiled chunk of a stage: `level` from `(t0, state)` to `t_stop`, per member
     (starting from `level_states`, the level's own states, where given), each device its own
     shard (`shard_over`)."""
     return shard_over(functools.partial(_stage_runs, level, options), mesh, "launch",
                       (top, states, level_states, t0, t_stop), (False, True, True, True, True))
+
+
+_stage_batch_default = eqx.filter_jit(_stage_batch_impl)
+_stage_batch_cpu = eqx.filter_jit(_stage_batch_impl, compiler_options=CPU_COMPILER_OPTIONS)
+
+
+def _stage_batch(level, top, states, level_states, t0, t_stop, options, mesh):
+    """`_stage_batch_impl` compiled for the devices of `mesh`: at LLVM optimisation level 1 on
+    CPU devices (`CPU_COMPILER_OPTIONS`, as `simulate_batch`)."""
+    cpu = mesh.devices.flat[0].platform == "cpu"
+    run = _stage_batch_cpu if cpu else _stage_batch_default
+    return run(level, top, states, level_states, t0, t_stop, options, mesh)
 
 
 def _stage_runs(level, options, top, states, level_states, t0, t_stop):

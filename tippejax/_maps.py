@@ -27,7 +27,8 @@ level of model); each chunk is one array sharded over every device JAX sees
 (`jax.devices()`); on CPU devices each device's launches run in blocks of at most
 `PER_MEMBER_BLOCK` (128) at LLVM optimisation level 1, as in `simulate_batch` (a map of
 24 x 48 launches, full model, 10 s, 2 host devices: 1.42 -> 1.16 s). The staged maps of
-`model="auto"` (`_map_stages`) still run one vmap per device. Under
+`model="auto"` (`_map_stages`) run chunks of `STAGE_CHUNK` (64) launches, under a block,
+compiled at level 1 too (the same map, `auto`, 30 s: 0.94 -> 0.78 s). Under
 `jax.distributed.initialize` that is every device of every process: each process simulates
 only the launches on its own devices (`jax.make_array_from_callback`), and the results are
 gathered on every process. The same call runs on one CPU, on a GPU, on
