@@ -18,7 +18,7 @@ Scenes (standard top `tj.default_top()`, group IIb):
    (theta stays in [2.0, 2.30]).
 
 Then: first-call compile time per level (fresh processes), the cost of the event watch
-(`event_samples`, and a plain `diffrax.diffeqsolve` of the same field), event exactness, a
+(`event_pieces`, and a plain `diffrax.diffeqsolve` of the same field), event exactness, a
 long run against `max_steps`, and Tsit5/Dopri8/Kvaerno5 under stiff friction (the thresholds
 of `default_solver`). Writes its section of benchmarks/RESULTS.md and
 benchmarks/work_precision.png.
@@ -377,7 +377,7 @@ def plain_solve(top, y0, rtol, atol, ts, *, flat, watched=False, event=False):
 
     if watched:
         solver = WatchedSolver(solver, conditions(("singular", "contact", "upright")), (2,),
-                               samples=8)
+                               pieces=1)
     ev = None
     if event:
         cond = conditions(("singular", "contact"))
@@ -408,10 +408,10 @@ def watch_cost():
     rtol = 1e-8
     r_, a_ = jnp.asarray(rtol), jnp.asarray(rtol * 1e-2)
     fns = {}
-    for samples in (2, 4, 8, 16):
-        fns[f"tj.simulate, event_samples={samples}"] = functools.partial(
-            run_tj, top, y0, "full", diffrax.Dopri8(), rtol, event_samples=samples)
-    fns["tj.simulate summary=True (no save grid), event_samples=8"] = lambda: tj.simulate(
+    for pieces in (1, 2, 4):
+        fns[f"tj.simulate, event_pieces={pieces}"] = functools.partial(
+            run_tj, top, y0, "full", diffrax.Dopri8(), rtol, event_pieces=pieces)
+    fns["tj.simulate summary=True (no save grid), event_pieces=1"] = lambda: tj.simulate(
         top, y0, T1, rtol=rtol, atol=rtol * 1e-2, solver=diffrax.Dopri8(), summary=True,
         throw=False)
     # The same jitted call returning only the final theta, or only t_invert: what the located
@@ -687,7 +687,7 @@ def report(std, euler, compiles, watch, exact, stiff_res, elapsed):
     best = max(in_range, key=lambda r: r["ratio"])
     worst_compile = max(c["compile"] for c in compiles.values())
     plain = next(r for r in watch["rows"] if r["what"].startswith("plain diffeqsolve, flat"))
-    tj8 = next(r for r in watch["rows"] if r["what"] == "tj.simulate, event_samples=8")
+    tj8 = next(r for r in watch["rows"] if r["what"] == "tj.simulate, event_pieces=1")
     only = {w: next(r for r in watch["rows"] if r["what"].endswith(f"only {w}"))
             for w in ("theta", "t_invert")}
     watched = next(r for r in watch["rows"] if "WatchedSolver" in r["what"])
@@ -897,7 +897,7 @@ def report(std, euler, compiles, watch, exact, stiff_res, elapsed):
     lines += [
         "",
         "'first-call extra' is 0 where an earlier part of the script compiled the same function "
-        "(event_samples=8 is the function of the work-precision sweep).",
+        "(event_pieces=1 is the function of the work-precision sweep).",
         "",
         "### Events and max_steps",
         "",

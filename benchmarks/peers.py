@@ -414,7 +414,7 @@ def peer_runners():
 def engine_parts(rtol: float):
     """Runners for the profile: the SO(3) level's own field (axis and omega, no body vector) in
     a plain diffrax loop, without and with the event watch of the engine, as `tj.simulate`
-    wires them (same conditions, same `samples`)."""
+    wires them (same conditions, same `pieces`)."""
     import dataclasses
 
     from tippejax._engine.segment import FlatField, Watch, ravel_state
@@ -433,7 +433,7 @@ def engine_parts(rtol: float):
                 solver = diffrax.Dopri8()
                 if watched:
                     watch = Watch(level, unravel, ("singular", "contact", "upright"))
-                    solver = WatchedSolver(solver, watch, (2,), samples=8, terminating=(0, 1))
+                    solver = WatchedSolver(solver, watch, (2,), pieces=1, terminating=(0, 1))
                 sol = diffrax.diffeqsolve(
                     diffrax.ODETerm(field), solver, 0.0, T1, None, flat, TOP,
                     saveat=diffrax.SaveAt(t1=True), max_steps=100_000,

@@ -47,7 +47,7 @@ def run_level(level, top, y0, t1, ts=None):
     return _run(top, y0, ts, f(0.0), f(t1), f(1e-8), f(1e-10), level=level,
                 solver=diffrax.Dopri5(), guard_stiff=False, stop_on_contact=True,
                 max_steps=100_000, adjoint=diffrax.RecursiveCheckpointAdjoint(),
-                progress=False, samples=8)
+                progress=False, pieces=1)
 
 
 def grid(t1):
@@ -595,7 +595,7 @@ def test_stop_at_hand_over_and_the_carried_nutation(top):
     out = jax.jit(lambda y: run_chain(
         level, top, y0, 0.0, 10.0, None, stop_on_contact=True, solver=diffrax.Dopri5(),
         rtol=1e-8, atol=1e-10, max_steps=10_000, adjoint=diffrax.RecursiveCheckpointAdjoint(),
-        progress_meter=diffrax.NoProgressMeter(), samples=8, y0=y))(carried)
+        progress_meter=diffrax.NoProgressMeter(), pieces=1, y0=y))(carried)
     t_stop = float(out.t_final)
     assert bool(out.result == tj.RESULTS.no_gyroscopic_balance) and 1.0 < t_stop < switch
     theta = float(tj.euler_angles(out.state_end)[0])

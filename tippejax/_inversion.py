@@ -18,7 +18,7 @@ from jaxtyping import Array, Float
 
 from ._custom_types import RealScalarLike
 from ._engine.solver_choice import is_traced
-from ._engine.watch import EVENT_SAMPLES
+from ._engine.watch import EVENT_PIECES
 from ._simulate import MODELS, simulate
 from ._solution import RESULTS
 from ._state import State
@@ -39,14 +39,14 @@ def inversion_time(
     adjoint: diffrax.AbstractAdjoint | None = None,
     throw: bool = True,
     tolerance: float | None = None,
-    event_samples: int = EVENT_SAMPLES,
+    event_pieces: int = EVENT_PIECES,
 ) -> Float[Array, ""]:
     r"""The first upward crossing $t^*$ of $\theta = \pi/2$ after `t0` (nan if none by `t1`).
 
     $t^*$ is the first root of $a_Z(t) = \cos\theta(t) = 0$ where $\theta$ increases, located
     by a root find on the dense output of the solver step that holds it, so it does not depend
     on any save grid (a nutation that crosses $\pi/2$ and back inside one step is still seen:
-    `simulate`'s `event_samples`). A top launched beyond $\pi/2$ has no crossing unless
+    `simulate`'s `event_pieces`). A top launched beyond $\pi/2$ has no crossing unless
     it falls back and rises again.
 
     **Derivatives.** $t^*$ is differentiable with respect to every field of `top`
@@ -106,8 +106,8 @@ def inversion_time(
       solve's steps; `diffrax.ForwardMode()`: forward mode).
     - `throw`: raise where the solve failed before a crossing (see above).
     - `tolerance`: for `model="auto"`, the largest acceptable error in $\theta(t)$ (rad).
-    - `event_samples`: points per step at which the conditions are checked for a crossing
-      and back (see `simulate`).
+    - `event_pieces`: parts of each step on which the conditions' quintics are checked for a
+      crossing and back (see `simulate`).
 
     **Returns:** $t^*$ (s), a scalar of the top's dtype; nan if no crossing by `t1`.
     """
@@ -128,7 +128,7 @@ def inversion_time(
     sol = simulate(
         top, y0, t1, model=model, summary=True, t0=t0, rtol=rtol, atol=atol, solver=solver,
         max_steps=max_steps, adjoint=adjoint, throw=False, on_contact_loss="stop",
-        tolerance=tolerance, event_samples=event_samples,
+        tolerance=tolerance, event_pieces=event_pieces,
     )
     t_invert = sol.t_invert
     if not throw:

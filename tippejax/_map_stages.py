@@ -77,7 +77,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from ._batch import CPU_COMPILER_OPTIONS
 from ._devices import shard_over
 from ._engine.chain import run_chain
-from ._engine.watch import EVENT_SAMPLES
+from ._engine.watch import EVENT_PIECES
 from ._models.full import FullLevel, pole_linearisation
 from ._models.gyroscopic import (
     NUTATION_FLOOR,
@@ -161,7 +161,7 @@ def _stage_runs(level, options, top, states, level_states, t0, t_stop):
             level, top, state, start, stop, None, stop_on_contact=True, solver=solver,
             rtol=rtol, atol=atol, max_steps=max_steps,
             adjoint=diffrax.RecursiveCheckpointAdjoint(),
-            progress_meter=diffrax.NoProgressMeter(), samples=EVENT_SAMPLES, y0=y0,
+            progress_meter=diffrax.NoProgressMeter(), pieces=EVENT_PIECES, y0=y0,
         )
         return dict(
             state=out.state_end, t_final=out.t_final,

@@ -35,7 +35,7 @@ from ._engine.solver_choice import (
     friction_rate,
     is_traced,
 )
-from ._engine.watch import EVENT_SAMPLES
+from ._engine.watch import EVENT_PIECES
 from ._invariants import energy, jellet, normal_force, slip_velocity
 from ._models.levels import LEVELS
 from ._solution import RESULTS, Solution
@@ -87,12 +87,12 @@ def _observe(top, states: State, friction_model: str, valid, names=OBSERVED):
 
 @eqx.filter_jit
 def _run(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_on_contact,
-         max_steps, adjoint, progress, samples, names=OBSERVED, inversion=True, locate=True,
+         max_steps, adjoint, progress, pieces, names=OBSERVED, inversion=True, locate=True,
          pack_width=PACK_WIDTH, jacobian_pack_width=FORWARD_MODE_PACK_WIDTH):
     run = functools.partial(
         _run_core, level=level, solver=solver, guard_stiff=guard_stiff,
         stop_on_contact=stop_on_contact, max_steps=max_steps, progress=progress,
-        samples=samples, names=names, inversion=inversion, locate=locate)
+        pieces=pieces, names=names, inversion=inversion, locate=locate)
     if isinstance(adjoint, ForwardSensitivities):
         # (the default: derivatives from the forward-mode Jacobian, `sensitivity.py`)
         run = forward_sensitivities(
@@ -106,7 +106,7 @@ def _run(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_on
 
 
 def _run_core(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_on_contact,
-              max_steps, adjoint, progress, samples, names, inversion, locate, pack_width):
+              max_steps, adjoint, progress, pieces, names, inversion, locate, pack_width):
     too_stiff = jnp.array(False)
     if guard_stiff:
         # Traced top with the default (explicit) solver: a very stiff member would run into
@@ -117,7 +117,7 @@ def _run_core(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, st
     out = run_chain(
         level, top, y0, t0, t1, ts, stop_on_contact=stop_on_contact, solver=solver,
         rtol=rtol, atol=atol, max_steps=max_steps, adjoint=adjoint, progress_meter=meter,
-        samples=samples, inversion=inversion, locate=locate, pack_width=pack_width,
+        pieces=pieces, inversion=inversion, locate=locate, pack_width=pack_width,
     )
     result = RESULTS.where(too_stiff, RESULTS.stiff_under_trace, out.result)
     return _outputs(top, y0, ts, out, result, level=level, names=names)
@@ -274,12 +274,12 @@ def _check_saveat(saveat, t0, t1, dtype):
     return ts
 
 
-def _check_run_options(max_steps, event_samples, t0, t1, rtol, atol, summary, saveat, body):
+def _check_run_options(max_steps, event_pieces, t0, t1, rtol, atol, summary, saveat, body):
     """`simulate`'s checks of its options past the model, the top and the state."""
     if not (isinstance(max_steps, (int, np.integer)) and max_steps > 0):
         raise ValueError(f"max_steps must be a positive integer, got {max_steps!r}.")
-    if not (isinstance(event_samples, (int, np.integer)) and event_samples >= 2):
-        raise ValueError(f"event_samples must be an integer >= 2, got {event_samples!r}.")
+    if not (isinstance(event_pieces, (int, np.integer)) and event_pieces >= 1):
+        raise ValueError(f"event_pieces must be a positive integer, got {event_pieces!r}.")
     if _concrete(t0, t1) and not float(t1) > float(t0):
         raise ValueError(f"t1 must be greater than t0, got t0={t0}, t1={t1}.")
     _check_tolerances(rtol, atol)
@@ -337,7 +337,7 @@ def simulate(
     tolerance: float | None = None,
     summary: bool = False,
     adjoint: diffrax.AbstractAdjoint | None = None,
-    event_samples: int = EVENT_SAMPLES,
+    event_pieces: int = EVENT_PIECES,
     body: bool | None = None,
 ) -> Solution:
     r"""Integrate the motion of `top` from `y0` at `t0` to `t1` with the chosen level of model.
@@ -392,10 +392,13 @@ def simulate(
     - `on_contact_loss`: `"stop"` ends the run at $R_n = 0$ (a failure); `"continue"` goes on,
       flags `result = contact_lost` and does not raise for it.
     - `tolerance`: for `model="auto"`, the largest acceptable error in $\theta(t)$ (rad).
-    - `event_samples`: along each step every event condition is followed by a quintic (its
-      values and rates at the start, middle and end of the step), checked at this many points
-      for a condition that crosses zero and back inside the step (such steps are rejected and
-      shortened; `tippejax/_engine/watch.py`).
+    - `event_pieces`: along each step every event condition is followed by a quintic (its
+      values and rates at the start, middle and end of the step). A step is rejected and
+      shortened when the Bernstein coefficients of the quintic on this many equal parts of the
+      step change sign more than once, which bounds the quintic's crossings from above, so a
+      zero crossed and recrossed inside a step is never passed over
+      (`tippejax/_engine/watch.py`). More parts reject fewer steps needlessly and cost more
+      per step; the default, 1, is measured in `benchmarks/RESULTS.md` (watch.py).
     - `body`: whether to integrate the body vector `sol.states.body`, and with it the spin
       angle `sol.psi`. The full and SO(3) levels carry it as 4 more state components (10 for
       the SO(3) level against 6, 14 against 10 for the full level), which costs about a fifth
@@ -410,7 +413,7 @@ def simulate(
     if on_contact_loss not in ("stop", "continue"):
         raise ValueError(f"on_contact_loss must be 'stop' or 'continue', got {on_contact_loss!r}.")
     _check_top_and_state(top, y0)
-    _check_run_options(max_steps, event_samples, t0, t1, rtol, atol, summary, saveat, body)
+    _check_run_options(max_steps, event_pieces, t0, t1, rtol, atol, summary, saveat, body)
     dtype = jnp.result_type(top.m)
     if model == "auto":
         from ._auto import choose_model
@@ -437,7 +440,7 @@ def simulate(
             jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype),
             level=level, solver=solver, guard_stiff=guard_stiff,
             stop_on_contact=on_contact_loss == "stop", max_steps=int(max_steps),
-            adjoint=adjoint, progress=progress, samples=int(event_samples),
+            adjoint=adjoint, progress=progress, pieces=int(event_pieces),
             # (a slow-flow level's chain, which hands over to the full model, keeps the batch
             # layout: with one vector its single top ran 22 ms against 12 ms, peers.py scene)
             pack_width=PACK_WIDTH if LEVELS[model].slow_flow else pack_width_for(
@@ -471,13 +474,13 @@ SHARED_MODELS = ("full", "so3")
 levels that are one segment."""
 
 SHARED_OPTIONS = ("model", "saveat", "t0", "rtol", "atol", "solver", "max_steps",
-                  "on_contact_loss", "summary", "event_samples", "body")
+                  "on_contact_loss", "summary", "event_pieces", "body")
 """The options of `simulate` a batch with shared steps takes."""
 
 
 def shared_run_options(top: TippeTop, t1, *, model="full", saveat=None, t0=0.0, rtol=1e-8,
                        atol=1e-10, solver=None, max_steps=1_000_000, on_contact_loss="stop",
-                       summary=False, event_samples=EVENT_SAMPLES, body=None):
+                       summary=False, event_pieces=EVENT_PIECES, body=None):
     """`simulate`'s checks and defaults for a batch with shared steps (a concrete `top`, one
     or a batch). Returns the arrays of the run (`ts` None in summary mode, `t0`, `t1`,
     `rtol`, `atol`), its static options for `_run_shared`, and the number of save times."""
@@ -488,7 +491,7 @@ def shared_run_options(top: TippeTop, t1, *, model="full", saveat=None, t0=0.0, 
         )
     if on_contact_loss not in ("stop", "continue"):
         raise ValueError(f"on_contact_loss must be 'stop' or 'continue', got {on_contact_loss!r}.")
-    _check_run_options(max_steps, event_samples, t0, t1, rtol, atol, summary, saveat, body)
+    _check_run_options(max_steps, event_pieces, t0, t1, rtol, atol, summary, saveat, body)
     dtype = jnp.result_type(top.m)
     rtol, atol = _tolerances_for(dtype, rtol, atol)
     ts, n_save = _save_times(summary, saveat, t0, t1, dtype)
@@ -504,13 +507,13 @@ def shared_run_options(top: TippeTop, t1, *, model="full", saveat=None, t0=0.0, 
     arrays = dict(ts=ts, t0=jnp.asarray(t0, dtype), t1=jnp.asarray(t1, dtype),
                   rtol=jnp.asarray(rtol, dtype), atol=jnp.asarray(atol, dtype))
     static = dict(level=level, solver=solver, stop_on_contact=on_contact_loss == "stop",
-                  max_steps=int(max_steps), samples=int(event_samples))
+                  max_steps=int(max_steps), pieces=int(event_pieces))
     return arrays, static, n_save
 
 
 @eqx.filter_jit
 def _run_shared(tops, y0s, ts, t0, t1, rtol, atol, *, level, solver, stop_on_contact,
-                max_steps, samples, pack_width=SHARED_PACK_WIDTH):
+                max_steps, pieces, pack_width=SHARED_PACK_WIDTH):
     """`_run` for a batch whose members share their steps (`run_chain_shared`): `y0s` has a
     leading member axis, `tops` is one top or one per member. Returns `_run`'s outputs with
     the member axis leading, and each member's outcome and settled flag."""
@@ -520,7 +523,7 @@ def _run_shared(tops, y0s, ts, t0, t1, rtol, atol, *, level, solver, stop_on_con
         rtol=rtol, atol=atol, max_steps=max_steps,
         # Not differentiated: the plain while loop of forward mode.
         adjoint=diffrax.ForwardMode(), progress_meter=diffrax.NoProgressMeter(),
-        samples=samples, pack_width=pack_width,
+        pieces=pieces, pack_width=pack_width,
     )
     fields = jax.vmap(
         lambda top, y0, o: _outputs(top, y0, ts, o, o.result, level=level),
@@ -534,7 +537,7 @@ def _run_shared(tops, y0s, ts, t0, t1, rtol, atol, *, level, solver, stop_on_con
 
 
 def simulate_tilt(top: TippeTop, y0: State, ts, *, t0, t1, model: str, rtol, atol,
-                  solver=None, max_steps: int, adjoint, event_samples: int = EVENT_SAMPLES) -> dict:
+                  solver=None, max_steps: int, adjoint, event_pieces: int = EVENT_PIECES) -> dict:
     """The tilt and precession angle at the save times `ts`, and the contact-loss time, of the
     run `simulate(..., saveat=ts, on_contact_loss="continue", throw=False)` would make.
 
@@ -557,7 +560,7 @@ def simulate_tilt(top: TippeTop, y0: State, ts, *, t0, t1, model: str, rtol, ato
         jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype),
         level=dataclasses.replace(LEVELS[model], body=False), solver=solver,
         guard_stiff=guard_stiff, stop_on_contact=False, max_steps=int(max_steps),
-        adjoint=adjoint, progress=False, samples=int(event_samples), names=("theta", "phi"),
+        adjoint=adjoint, progress=False, pieces=int(event_pieces), names=("theta", "phi"),
         inversion=False, locate=False,
     )
     return {k: out[k] for k in ("ts", "theta", "phi", "t_contact_loss", "result")}

@@ -35,10 +35,9 @@ class RESULTS(eqxi.Enumeration):
     )
     contact_loss_missed = (
         "R_n was negative at a save time before any contact loss the solver located: a dip of "
-        "R_n below 0 too brief for the event watch (event_samples points a step) went unseen, "
-        "so the first loss of "
-        "contact is somewhere before that save time. Raise event_samples or tighten rtol; "
-        "values from there on are nan."
+        "R_n below 0 too brief for the event watch's quintic over one step to follow went "
+        "unseen, so the first loss of contact is somewhere before that save time. Tighten "
+        "rtol (shorter steps); values from there on are nan."
     )
     stiff_under_trace = (
         "This top's friction is very stiff (friction_rate > 5e5/s) and simulate ran under "

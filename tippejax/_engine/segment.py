@@ -201,7 +201,7 @@ def run_segment(
     max_steps: int,
     adjoint: diffrax.AbstractAdjoint,
     progress_meter: diffrax.AbstractProgressMeter,
-    samples: int,
+    pieces: int,
     locate: bool = True,
     pack_width: int = PACK_WIDTH,
 ) -> Segment:
@@ -225,7 +225,7 @@ def run_segment(
         solver,
         watch,
         tuple(range(len(terminating), len(names))),
-        samples=samples,
+        pieces=pieces,
         terminating=tuple(range(len(terminating))),
     )
     dtype = jnp.result_type(t0)
@@ -252,13 +252,13 @@ def run_segment(
     # The watch ends the solve on the step where a terminating condition fell through zero
     # (its result is `event_occurred`); the crossing is then located inside that step.
     stopped = ended_on_event(sol.result, sol.solver_state)
+    records = sol.solver_state.records()
     solver_result = diffrax.RESULTS.where(stopped, diffrax.RESULTS.event_occurred, sol.result)
     flat_last = jax.tree_util.tree_map(lambda x: x[-1], sol.ys[0])
     if terminating and not locate:
-        state = sol.solver_state
-        t_event, flat_event = state.last_t0, state.last_y0
+        t_event, flat_event = records.last_t0, records.last_y0
     if terminating and locate:
-        t_event, flat_event = locate_terminating(watched, terms, top, sol.solver_state, finder)
+        t_event, flat_event = locate_terminating(watched, terms, top, records, finder)
     if terminating:
         t_end = jnp.where(stopped, t_event.astype(sol.ts[0].dtype), sol.ts[0][-1])
         flat_end = jax.tree_util.tree_map(
@@ -276,12 +276,9 @@ def run_segment(
     observed_times = {}
     for i, name in enumerate(observed):
         if locate:
-            t_obs = locate_observed(
-                watched, terms, top, sol.solver_state, len(terminating) + i, finder
-            )
+            t_obs = locate_observed(watched, terms, top, records, len(terminating) + i, finder)
         else:
-            state = sol.solver_state
-            t_obs = jnp.where(state.found[i], state.step_t0[i], jnp.nan)
+            t_obs = jnp.where(records.found[i], records.step_t0[i], jnp.nan)
         observed_times[name] = jnp.where(t_obs <= t_end, t_obs, jnp.nan)
     return Segment(
         ys=jax.vmap(unravel)(sol.ys[1]) if ts is not None else None,
@@ -394,7 +391,7 @@ def run_segment_shared(
     max_steps: int,
     adjoint: diffrax.AbstractAdjoint,
     progress_meter: diffrax.AbstractProgressMeter,
-    samples: int,
+    pieces: int,
     locate: bool = True,
     pack_width: int = PACK_WIDTH,
 ) -> Segment:
@@ -432,7 +429,7 @@ def run_segment_shared(
     observed_idx = tuple(range(len(terminating), len(names)))
     terminating_idx = tuple(range(len(terminating)))
     watched = SharedWatchedSolver(
-        solver, SharedWatch(watch, axes), observed_idx, samples=samples,
+        solver, SharedWatch(watch, axes), observed_idx, pieces=pieces,
         terminating=terminating_idx, idle=idle,
     )
     dtype = jnp.result_type(t0)
@@ -468,7 +465,7 @@ def run_segment_shared(
     t_last = sol.ts[0][-1]
     flat_last = members_first(jax.tree_util.tree_map(lambda x: x[-1], sol.ys[0]))
     # Each member's events on its own step, taken again for that member alone.
-    single = WatchedSolver(solver, watch, observed_idx, samples=samples,
+    single = WatchedSolver(solver, watch, observed_idx, pieces=pieces,
                            terminating=terminating_idx)
     terms = diffrax.ODETerm(field)
     records = state.member_states()

@@ -13,23 +13,29 @@ $$c,\ \dot c = \nabla c\cdot\dot y \quad\text{at } s = 0, \tfrac12, 1,$$
 
 with $\dot y$ the vector field at the end (the first-same-as-last stage of an FSAL solver, so no
 extra evaluation), the dense output's derivative at the middle, and the previous step's end
-values at the start (carried). The quintic is checked at `samples - 1` interior points. If one
-condition changes sign more than once along them, the step is rejected (its error estimate is
-set to infinity, so the step-size controller shrinks it) until no step holds more than one
-crossing.
+values at the start (carried). A step is rejected (its error estimate is set to infinity, so
+the step-size controller shrinks it) when the Bernstein coefficients of a condition's quintic
+on the step (on `pieces` equal parts of it, `_bernstein_polygon`) change sign more than once:
+by the variation-diminishing property of the Bernstein basis they change sign at least as
+often as the quintic does, so no step is kept in which the quintic crosses zero and back.
 
 The quintic follows the condition to $O((h\nu)^6)$ of its swing over a step ($\nu$ the
-nutation frequency). It replaced a check of the conditions themselves at `samples - 1` points
-of the dense output (a dense-output evaluation and a condition evaluation each). On the first,
-brief dip of $R_n$ of the standard top at 200 rad/s (2 ms below zero, 0.8% of the swing of the
-contact condition), with exact data, over every placement of a step that holds the whole dip
-(`benchmarks/watch.py`): both checks at the default 8 points see it in every placement of
-steps up to half a nutation period (Dopri8 takes a third of one at rtol 1e-6); at 0.7 and 0.9
-period the quintic sees it in 87% and 75% of them, the old check in 80% and 60% (the quintic
-at 16 points: all). Per step the quintic costs one dense-output evaluation with its
-derivative and two evaluations of the conditions with theirs; in a batch of 1000 SO(3) tops the
-watch adds about a fifth of a plain solve's time at 8 points (16 points: about a quarter),
-where the old check added a third (`benchmarks/RESULTS.md`, peers.py).
+nutation frequency). The watch before checked its sign at `samples - 1` points of the step
+(default 8), and before that the conditions themselves at as many points of the dense output.
+On the first, brief dip of $R_n$ of the standard top at 200 rad/s (2 ms below zero, 0.8% of
+the swing of the contact condition), with exact data, over every placement of a step that
+holds the whole dip (`benchmarks/watch.py`): the 8-point quintic saw it in every placement of
+steps up to half a nutation period (Dopri8 takes a third of one at rtol 1e-6) and in 87% and
+75% of them at 0.7 and 0.9 period; the Bernstein coefficients see it in all. On 2304 random
+launches of 24 random tops (full and SO(3) levels, seed 0), the two agree on every result
+code and outcome, with 0.01% more steps; in one launch the 8-point check had passed over a
+brief first contact loss that the Bernstein check finds (3.5387 s, a solve at rtol 1e-12
+agreeing, against 3.5754 s; `tests/test_engine.py`). They cost less as well: six
+coefficients, the first and last the end values, against seven points; a batch of 1000 SO(3)
+tops in blocks of 125 (one CPU device, the engine's loop alone) ran the watch at 1.15x a plain
+solve's time per step, the 8-point quintic at 1.29x. Per step the watch costs one
+dense-output evaluation with its derivative and two evaluations of the conditions with
+theirs.
 
 Then
 
@@ -51,7 +57,9 @@ crossing; the crossing itself is found on the dense output).
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
+from fractions import Fraction
 from typing import Any
 
 import diffrax
@@ -62,10 +70,10 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, PyTree
 
-EVENT_SAMPLES = 8
-"""Points a step at which the watch checks each condition's quintic by default (`simulate`,
-`simulate_tilt`, `inversion_time` and the staged maps; `benchmarks/watch.py` measures what it
-finds)."""
+EVENT_PIECES = 1
+"""Parts of a step on which the watch checks each condition's quintic by its Bernstein
+coefficients, by default (`simulate`, `simulate_tilt`, `inversion_time` and the staged maps;
+`benchmarks/watch.py` measures what it finds and what it rejects)."""
 
 STOP = diffrax.RESULTS.internal_error
 """The result a step returns when a terminating condition fell in it (see `WatchedSolver`):
@@ -97,21 +105,127 @@ def event_root_finder(dtype) -> EventBisection:
     return EventBisection(rtol=tol, atol=tol, flip=True)
 
 
+def _hermite_to_power() -> list[list[Fraction]]:
+    r"""The exact matrix that maps the Hermite data of a condition over a step,
+    $(c_0, h\dot c_0, c_{1/2}, h\dot c_{1/2}, c_1, h\dot c_1)$, to the power coefficients
+    $a_0, \dots, a_5$ of its quintic interpolant $p(s) = \sum_j a_j s^j$, $s\in[0, 1]$: the
+    inverse of the Hermite conditions, by Gauss-Jordan elimination in rationals (so that the
+    weights that are zero are exactly zero)."""
+    half = Fraction(1, 2)
+    rows = []
+    for s in (Fraction(0), half, Fraction(1)):
+        rows.append([s**j for j in range(6)])
+        rows.append([j * s ** (j - 1) if j else Fraction(0) for j in range(6)])
+    n = 6
+    aug = [row + [Fraction(int(i == k)) for k in range(n)] for i, row in enumerate(rows)]
+    for col in range(n):
+        pivot = next(r for r in range(col, n) if aug[r][col] != 0)
+        aug[col], aug[pivot] = aug[pivot], aug[col]
+        aug[col] = [x / aug[col][col] for x in aug[col]]
+        for r in range(n):
+            if r != col and aug[r][col] != 0:
+                aug[r] = [x - aug[r][col] * y for x, y in zip(aug[r], aug[col])]
+    return [row[n:] for row in aug]
+
+
+def _matmul(a, b):
+    return [[sum(x * b[k][j] for k, x in enumerate(row)) for j in range(len(b[0]))] for row in a]
+
+
 def _quintic_samples(samples: int) -> np.ndarray:
-    r"""The matrix that maps the Hermite data of a condition over a step,
-    $(c_0, h\dot c_0, c_{1/2}, h\dot c_{1/2}, c_1, h\dot c_1)$, to the values of its quintic
-    interpolant at $s = k/$`samples`, $k = 1, \dots,$ `samples` $- 1$."""
-    powers = np.arange(6)
+    r"""The matrix that maps the Hermite data of a condition over a step (`_hermite_to_power`)
+    to the values of its quintic interpolant at $s = k/$`samples`, $k = 1, \dots,$
+    `samples` $- 1$ (the watch's check before the Bernstein polygon; `benchmarks/watch.py`
+    compares the two)."""
+    s = [[Fraction(k, samples) ** j for j in range(6)] for k in range(1, samples)]
+    return np.array(_matmul(s, _hermite_to_power()), dtype=float)
 
-    def value(s):
-        return s**powers
 
-    def slope(s):
-        return powers * s ** np.maximum(powers - 1, 0)
+def _bernstein_polygon(pieces: int) -> np.ndarray:
+    r"""The matrix that maps the Hermite data of a condition over a step (`_hermite_to_power`)
+    to the Bernstein coefficients of its quintic on each of `pieces` equal parts of the step,
+    in order, each part's last coefficient (its end value, the next part's first) once: shape
+    `(5 * pieces + 1, 6)`, exact in rationals before it is rounded to floats.
 
-    hermite = np.stack([value(0.0), slope(0.0), value(0.5), slope(0.5), value(1.0), slope(1.0)])
-    s = np.arange(1, samples)[:, None] / samples
-    return (s**powers) @ np.linalg.inv(hermite)
+    On part $k$, $s = (k + u)/P$, the quintic is $q(u) = \sum_i b_i \binom5i u^i(1-u)^{5-i}$
+    with $q(u) = \sum_i c_i u^i$, $c_i = \sum_{j\ge i} a_j \binom ji k^{j-i}/P^j$ and
+    $b_i = \sum_{l\le i} \binom il c_l / \binom5l$. By the variation-diminishing property of the
+    Bernstein basis (Descartes' rule of signs after $u = x/(1+x)$), the number of roots of the
+    quintic inside a part is at most the number of sign changes of that part's coefficients, so
+    the sign changes of the whole sequence bound the crossings in the step from above."""
+    to_bernstein = [[Fraction(math.comb(i, j), math.comb(5, j)) if j <= i else Fraction(0)
+                     for j in range(6)] for i in range(6)]
+    rows = []
+    for k in range(pieces):
+        shift = [[Fraction(math.comb(j, i) * k ** (j - i), pieces**j) if j >= i else Fraction(0)
+                  for j in range(6)] for i in range(6)]
+        part = _matmul(_matmul(to_bernstein, shift), _hermite_to_power())
+        rows.extend(part if k == pieces - 1 else part[:-1])
+    return np.array(rows, dtype=float)
+
+
+class EventRecords(eqx.Module):
+    """Where the events of a solve fell, as `locate_observed` and `locate_terminating` read
+    them: the first accepted step of each observed event (`found`, its times `step_t0`,
+    `step_t1` and the state it started from, `step_y0`, leading axis m) and the last accepted
+    step (`last_t0`, `last_t1`, `last_y0`: the step a terminating event fell in, when
+    `stopped`)."""
+
+    found: Bool[Array, " m"]
+    step_t0: Float[Array, " m"]
+    step_t1: Float[Array, " m"]
+    step_y0: PyTree
+    last_t0: Float[Array, ""]
+    last_t1: Float[Array, ""]
+    last_y0: PyTree
+    stopped: Bool[Array, ""]
+
+
+class _RecordLayout(eqx.Module):
+    """Where each part of `EventRecords` lies in `_WatchState.record` (static)."""
+
+    events: int  # m
+    treedef: Any
+    shapes: tuple[tuple[int, ...], ...]
+    dtypes: tuple[Any, ...]
+
+    @property
+    def size(self) -> int:  # components of one state
+        return sum(math.prod(shape) for shape in self.shapes)
+
+    def flat(self, y, dtype) -> Array:
+        return jnp.concatenate([jnp.ravel(x).astype(dtype) for x in jax.tree_util.tree_leaves(y)])
+
+    def unflat(self, vector) -> PyTree:
+        """`vector`'s last axis as a state; leading axes are kept."""
+        leaves, start = [], 0
+        lead = vector.shape[:-1]
+        for shape, dtype in zip(self.shapes, self.dtypes):
+            size = math.prod(shape)
+            leaves.append(vector[..., start:start + size].reshape(lead + shape).astype(dtype))
+            start += size
+        return jax.tree_util.tree_unflatten(self.treedef, leaves)
+
+    def pack(self, found, stopped, step_t0, step_t1, step_y0, last_t0, last_t1, last_y0,
+             dtype) -> Array:
+        m = self.events
+        return jnp.concatenate([
+            found.astype(dtype), stopped.astype(dtype)[None],
+            step_t0.astype(dtype), step_t1.astype(dtype),
+            jnp.reshape(step_y0, (m * self.size,)).astype(dtype),
+            last_t0.astype(dtype)[None], last_t1.astype(dtype)[None], last_y0.astype(dtype),
+        ])
+
+    def unpack(self, record) -> EventRecords:
+        m, n = self.events, self.size
+        at = np.cumsum([0, m, 1, m, m, m * n, 1, 1, n])
+        part = [record[..., a:b] for a, b in zip(at[:-1], at[1:])]
+        lead = record.shape[:-1]
+        return EventRecords(
+            found=part[0] > 0.5, stopped=part[1][..., 0] > 0.5, step_t0=part[2],
+            step_t1=part[3], step_y0=self.unflat(part[4].reshape(lead + (m, n))),
+            last_t0=part[5][..., 0], last_t1=part[6][..., 0], last_y0=self.unflat(part[7]),
+        )
 
 
 class _WatchState(eqx.Module):
@@ -123,14 +237,11 @@ class _WatchState(eqx.Module):
     # a single top's step on two threads, at twice the cost (47 against 25 ms for the standard
     # top's 20 s; `benchmarks/RESULTS.md`, peers.py).
     tally: Float[Array, " n+1"]
-    last_t0: Float[Array, ""]  # the last accepted step (where a terminating event is located)
-    last_t1: Float[Array, ""]
-    last_y0: PyTree  # the state at its start (the step is taken again to locate the event)
-    stopped: Bool[Array, ""]  # a terminating condition fell in the last step
-    found: Bool[Array, " m"]  # observed event m already recorded
-    step_t0: Float[Array, " m"]
-    step_t1: Float[Array, " m"]
-    step_y0: PyTree  # the state at the start of that step, leading axis m
+    # `EventRecords` packed in one vector (`_RecordLayout`), written by one select: as eight
+    # arrays of the loop's state, in a batch of 1000 SO(3) tops in blocks of 125 (one CPU
+    # device, the engine's loop alone) they cost 9% of a plain solve's time per step, packed 4%.
+    record: Float[Array, " k"]
+    layout: _RecordLayout = eqx.field(static=True)
 
     @property
     def previous_rate(self) -> Float[Array, " n"]:
@@ -139,6 +250,13 @@ class _WatchState(eqx.Module):
     @property
     def accepted(self) -> Float[Array, ""]:
         return self.tally[-1]
+
+    def records(self) -> EventRecords:
+        return self.layout.unpack(self.record)
+
+    @property
+    def stopped(self) -> Bool[Array, ""]:
+        return self.layout.unpack(self.record).stopped
 
 
 class WatchedSolver(diffrax.AbstractWrappedSolver):
@@ -150,7 +268,8 @@ class WatchedSolver(diffrax.AbstractWrappedSolver):
     - `solver`: any diffrax solver with an error estimate.
     - `watch`: `watch(y, args) -> Float[Array, "n"]`, the watched conditions of one state.
     - `observed`: indices (into `watch`'s output) of the observed, non-terminating events.
-    - `samples`: number of sub-intervals of each step on which signs are checked.
+    - `pieces`: number of equal parts of each step on whose Bernstein coefficients the
+      quintic of each condition is checked (`_bernstein_polygon`).
     - `terminating`: indices of the terminating events. A step in which one of them falls
       through zero ends the solve: the step returns `STOP`, a failure code that diffrax
       keeps as the solve's result (the step itself is kept, and it is the last), and sets
@@ -166,7 +285,7 @@ class WatchedSolver(diffrax.AbstractWrappedSolver):
     solver: diffrax.AbstractSolver
     watch: Callable[[PyTree, Any], Array]
     observed: tuple[int, ...] = eqx.field(static=True)
-    samples: int = eqx.field(static=True, default=8)
+    pieces: int = eqx.field(static=True, default=1)
     terminating: tuple[int, ...] = eqx.field(static=True, default=())
 
     @property
@@ -210,7 +329,6 @@ class WatchedSolver(diffrax.AbstractWrappedSolver):
         m = len(self.observed)
         dtype = jnp.result_type(t0, t1)
         t0 = jnp.asarray(t0, dtype)
-        stack = lambda x: jnp.broadcast_to(x, (m,) + jnp.shape(x))  # noqa: E731
         # Until an event is found its "step" is a dummy from y0, short enough that taking it
         # again after the solve is harmless (finite values and derivatives, which the masked
         # event time multiplies by zero), and long enough to be a step in this precision.
@@ -219,18 +337,21 @@ class WatchedSolver(diffrax.AbstractWrappedSolver):
         previous, previous_rate = self._watch_with_rate(
             y0, self.solver.func(terms, t0, y0, args), args
         )
+        leaves, treedef = jax.tree_util.tree_flatten(y0)
+        layout = _RecordLayout(m, treedef, tuple(jnp.shape(x) for x in leaves),
+                               tuple(jnp.result_type(x) for x in leaves))
+        record_dtype = jnp.result_type(dtype, *leaves)
+        y_flat = layout.flat(y0, record_dtype)
+        record = layout.pack(
+            jnp.zeros(m, bool), jnp.array(False), jnp.full(m, t0), jnp.full(m, dummy),
+            jnp.broadcast_to(y_flat, (m, y_flat.shape[0])), t0, dummy, y_flat, record_dtype,
+        )
         return _WatchState(
             inner=self.solver.init(terms, t0, t1, y0, args),
             previous=previous,
             tally=jnp.concatenate([previous_rate, jnp.zeros(1, previous_rate.dtype)]),
-            last_t0=t0,
-            last_t1=dummy,
-            last_y0=y0,
-            stopped=jnp.array(False),
-            found=jnp.zeros(m, bool),
-            step_t0=stack(t0),
-            step_t1=stack(dummy),
-            step_y0=jax.tree_util.tree_map(stack, y0),
+            record=record,
+            layout=layout,
         )
 
     def _watch_with_rate(self, y, y_dot, args):
@@ -276,7 +397,7 @@ class WatchedSolver(diffrax.AbstractWrappedSolver):
         )
         end, end_rate = values[1], rates[1]
         positive = _signs(previous, previous_rate, values[0], rates[0], end, end_rate, h,
-                          self.samples)
+                          self.pieces)
         return y1, y_error, dense_info, inner, result, end, end_rate, positive
 
     def step(self, terms, t0, t1, y0, args, solver_state: _WatchState, made_jump):
@@ -290,13 +411,9 @@ class WatchedSolver(diffrax.AbstractWrappedSolver):
             y_error = jax.tree_util.tree_map(lambda e: jnp.where(hidden, jnp.inf, e), y_error)
         observed = jnp.asarray(self.observed, int)
         fell = jnp.any(positive[:-1, observed] & ~positive[1:, observed], axis=0)
-        new = fell & ~solver_state.found
-        time_dtype = solver_state.step_t0.dtype
-        t0, t1 = jnp.asarray(t0, time_dtype), jnp.asarray(t1, time_dtype)
-        take = lambda a, b: jnp.where(  # noqa: E731
-            new.reshape(new.shape + (1,) * (jnp.ndim(a) - 1)), a, b
-        )
-        stack = lambda x: jnp.broadcast_to(x, new.shape + jnp.shape(x))  # noqa: E731
+        layout, record = solver_state.layout, solver_state.record
+        m, n = layout.events, layout.size
+        new = fell & ~(record[:m] > 0.5)
         stopped = jnp.array(False)
         if self.terminating:
             stops = jnp.asarray(self.terminating, int)
@@ -304,61 +421,57 @@ class WatchedSolver(diffrax.AbstractWrappedSolver):
                 result == diffrax.RESULTS.successful
             )
             result = diffrax.RESULTS.where(stopped, STOP, result)
-        # Where events fell is written only in the steps where one did (a conditional: in a
-        # run of one top, bookkeeping updated at every step made XLA:CPU run the step's small
-        # kernels on two threads, at twice the cost of a step).
-        def write(book):
-            found, step_t0, step_t1, step_y0, last_t0, last_t1, last_y0 = book
-            return (
-                found | new,
-                take(stack(t0), step_t0),
-                take(stack(t1), step_t1),
-                jax.tree_util.tree_map(lambda a, b: take(stack(a), b).astype(b.dtype), y0,
-                                       step_y0),
-                jnp.where(stopped, t0, last_t0),
-                jnp.where(stopped, t1, last_t1),
-                jax.tree_util.tree_map(lambda a, b: jnp.where(stopped, a.astype(b.dtype), b),
-                                       y0, last_y0),
-            )
+        # Where events fell: the first step of each observed event, and the step a terminating
+        # one fell in, written with one select over the packed record, in the steps where one
+        # fell (a conditional: in a run of one top, bookkeeping updated at every step made
+        # XLA:CPU run the step's small kernels on two threads, at twice the cost of a step;
+        # under `vmap` the conditional becomes that select).
+        dtype = record.dtype
+        t0, t1 = jnp.asarray(t0, dtype), jnp.asarray(t1, dtype)
 
-        book = (solver_state.found, solver_state.step_t0, solver_state.step_t1,
-                solver_state.step_y0, solver_state.last_t0, solver_state.last_t1,
-                solver_state.last_y0)
-        book = jax.lax.cond(jnp.any(new) | stopped, write, lambda b: b, book)
-        found, step_t0, step_t1, step_y0, last_t0, last_t1, last_y0 = book
+        def write(record):
+            y_flat = layout.flat(y0, dtype)
+            written = layout.pack(
+                jnp.ones(m, bool), stopped, jnp.full(m, t0), jnp.full(m, t1),
+                jnp.broadcast_to(y_flat, (m, n)), t0, t1, y_flat, dtype,
+            )
+            where = layout.pack(
+                new, jnp.array(True), new, new, jnp.broadcast_to(new[:, None], (m, n)),
+                stopped, stopped, jnp.full(n, stopped), bool,
+            )
+            return jnp.where(where, written, record)
+
+        record = jax.lax.cond(jnp.any(new) | stopped, write, lambda r: r, record)
         state = _WatchState(
             inner=inner,
             previous=end,
             tally=jnp.concatenate([end_rate, solver_state.tally[-1:] + 1]),
-            last_t0=last_t0,
-            last_t1=last_t1,
-            last_y0=last_y0,
-            stopped=stopped,
-            found=found,
-            step_t0=step_t0,
-            step_t1=step_t1,
-            step_y0=step_y0,
+            record=record,
+            layout=layout,
         )
         return y1, y_error, dense_info, state, result
 
 
-def _signs(previous, previous_rate, mid, mid_rate, end, end_rate, h, samples: int):
-    """Whether each condition is positive at the start of a step, at its `samples - 1` check
-    points (its quintic, see the module docstring) and at its end: shape
-    `(samples + 1,) + end.shape` (the conditions on the last axis, any leading axes before)."""
+def _signs(previous, previous_rate, mid, mid_rate, end, end_rate, h, pieces: int):
+    """Whether each Bernstein coefficient of each condition's quintic over the step is
+    positive (`_bernstein_polygon`, on `pieces` parts of the step): shape
+    `(5 * pieces + 1,) + end.shape` (the conditions on the last axis, any leading axes
+    before). The first row is the sign at the start of the step, the last at its end."""
     h = h.astype(end.dtype)
     data = (previous, h * previous_rate, mid, h * mid_rate, end, h * end_rate)
-    # The quintic at the check points: a sum of scaled rows, which XLA fuses (as a matrix
-    # product it ran as a small batched dot per member of a batch).
-    weights = _quintic_samples(samples).astype(np.dtype(end.dtype))
-    lead = (1,) * end.ndim
-    interior = sum(weights[:, j].reshape((-1,) + lead) * data[j][None] for j in range(6))
-    values = jnp.concatenate([previous[None], interior, end[None]])
-    return values > 0
+    weights = _bernstein_polygon(pieces).astype(np.dtype(end.dtype))
+    # Each coefficient a sum of scaled data, the zero weights left out (the end coefficients
+    # are the end values, the next ones two terms): XLA fuses these; as a matrix product
+    # they ran as a small batched dot per member of a batch.
+    rows = []
+    for row in weights:
+        terms = [w * x for w, x in zip(row, data) if w != 0.0]
+        rows.append(sum(terms[1:], terms[0]))
+    return jnp.stack(rows) > 0
 
 
 class _SharedWatchState(eqx.Module):
-    """`_WatchState` for a batch whose members share their steps: every field has a member
+    """The watch's state for a batch whose members share their steps: every field has a member
     axis but the inner solver's state and the count of accepted steps (the steps are
     common); the member axis leads in the times and flags, and is LAST in the states
     (`last_y0` leaves `(w, N)`, `step_y0` leaves `(w, N, m)`), as in the solve's state.
@@ -378,13 +491,13 @@ class _SharedWatchState(eqx.Module):
     step_t1: Float[Array, "N m"]
     step_y0: PyTree  # trailing axes (N, m): each member's own state only
 
-    def member_states(self) -> _WatchState:
-        """The per-member records as a `_WatchState` with a leading member axis, for
-        `jax.vmap` of `locate_observed` and `locate_terminating` (which read only these)."""
+    def member_states(self) -> EventRecords:
+        """The per-member records with a leading member axis, for `jax.vmap` of
+        `locate_observed` and `locate_terminating`."""
         lead = lambda x, k: jnp.moveaxis(x, tuple(range(x.ndim - k, x.ndim)),  # noqa: E731
                                          tuple(range(k)))
-        return _WatchState(
-            inner=None, previous=None, tally=None, last_t0=self.last_t0,
+        return EventRecords(
+            last_t0=self.last_t0,
             last_t1=self.last_t1,
             last_y0=jax.tree_util.tree_map(lambda x: lead(x, 1), self.last_y0),
             stopped=self.stopped, found=self.found, step_t0=self.step_t0,
@@ -449,7 +562,7 @@ class SharedWatchedSolver(WatchedSolver):
         )
 
     def step(self, terms, t0, t1, y0, args, solver_state: _SharedWatchState, made_jump):
-        # end, end_rate: (N, n); positive: (samples + 1, N, n)
+        # end, end_rate: (N, n); positive: (5 * pieces + 1, N, n)
         y1, y_error, dense_info, inner, result, end, end_rate, positive = self._watched_step(
             terms, t0, t1, y0, args, solver_state.inner, solver_state.previous,
             solver_state.previous_rate, made_jump,
@@ -527,7 +640,7 @@ class SharedWatchedSolver(WatchedSolver):
 
 
 def locate_observed(
-    solver: WatchedSolver, terms, args, state: _WatchState, index: int, root_finder
+    solver: WatchedSolver, terms, args, state: EventRecords, index: int, root_finder
 ) -> Float[Array, ""]:
     """Time of the first downward crossing of observed condition `index` (nan if none).
 
@@ -548,7 +661,7 @@ def locate_observed(
 
 
 def locate_terminating(
-    solver: WatchedSolver, terms, args, state: _WatchState, root_finder
+    solver: WatchedSolver, terms, args, state: EventRecords, root_finder
 ) -> tuple[Float[Array, ""], PyTree]:
     """Time and state of the first terminating crossing in the last step of a solve that
     ended on one: the root of the smallest terminating condition on that step's dense
