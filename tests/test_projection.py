@@ -334,7 +334,7 @@ def _t_invert(top, y0, projection):
                level=GyroscopicLevel(hand_over=False, projection=projection),
                solver=diffrax.Dopri5(), guard_stiff=False, stop_on_contact=True,
                max_steps=100_000, adjoint=diffrax.RecursiveCheckpointAdjoint(), progress=False,
-               samples=8)
+               pieces=1)
     return float(out["t_invert"])
 
 
