@@ -57,6 +57,7 @@ crossing; the crossing itself is found on the dense output).
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from fractions import Fraction
@@ -141,6 +142,7 @@ def _quintic_samples(samples: int) -> np.ndarray:
     return np.array(_matmul(s, _hermite_to_power()), dtype=float)
 
 
+@functools.cache
 def _bernstein_polygon(pieces: int) -> np.ndarray:
     r"""The matrix that maps the Hermite data of a condition over a step (`_hermite_to_power`)
     to the Bernstein coefficients of its quintic on each of `pieces` equal parts of the step,
