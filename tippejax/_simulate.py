@@ -395,10 +395,12 @@ def simulate(
     - `event_pieces`: along each step every event condition is followed by a quintic (its
       values and rates at the start, middle and end of the step). A step is rejected and
       shortened when the Bernstein coefficients of the quintic on this many equal parts of the
-      step change sign more than once, which bounds the quintic's crossings from above, so a
-      zero crossed and recrossed inside a step is never passed over
-      (`tippejax/_engine/watch.py`). More parts reject fewer steps needlessly and cost more
-      per step; the default, 1, is measured in `benchmarks/RESULTS.md` (watch.py).
+      step change sign more than once, which bounds the quintic's crossings from above: no
+      step is kept in which the quintic crosses zero and back (the quintic follows the
+      condition to about the solver's tolerance; a dip it does not follow is reported by
+      `RESULTS.contact_loss_missed` where a save time sees it; `tippejax/_engine/watch.py`).
+      More parts reject fewer steps needlessly and cost more per step; the default, 1, is
+      measured in `benchmarks/RESULTS.md` (watch.py).
     - `body`: whether to integrate the body vector `sol.states.body`, and with it the spin
       angle `sol.psi`. The full and SO(3) levels carry it as 4 more state components (10 for
       the SO(3) level against 6, 14 against 10 for the full level), which costs about a fifth
