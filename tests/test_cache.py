@@ -124,6 +124,42 @@ def test_cached_call_stores_only_what_another_process_could_reuse(tmp_path, monk
     assert len(os.listdir(tmp_path)) == 2  # a lambda's repr holds its address: not stored
 
 
+def test_cached_call_compiles_with_the_callers_options(tmp_path, monkeypatch):
+    """`compiler_options` reach XLA on every path of a top-level call (stored, loaded from
+    disk, and the plain jitted call where nothing is stored), are part of the entry's key, and
+    are left out under a trace, where JAX takes none: XLA rejects an option it does not know,
+    so an unknown one raising proves the options were passed."""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    import tippejax._cache as cache
+    from tippejax._engine.cpu import CPU_COMPILER_OPTIONS
+
+    monkeypatch.setattr(cache, "EXPORT_DIR", str(tmp_path))
+    monkeypatch.setattr(cache, "_LOADED", {})
+
+    @eqx.filter_jit
+    def cube(x, *, shift):
+        return x**3 + shift
+
+    x = jnp.array([1.0, -2.0, 3.0])
+    plain = cache.cached_call(cube, x, shift=1.0)
+    fast = cache.cached_call(cube, x, shift=1.0, compiler_options=CPU_COMPILER_OPTIONS)
+    assert jnp.allclose(fast, plain) and len(os.listdir(tmp_path)) == 2  # two entries
+    monkeypatch.setattr(cache, "_LOADED", {})  # a new process: loaded from disk
+    assert jnp.allclose(cache.cached_call(cube, x, shift=1.0,
+                                          compiler_options=CPU_COMPILER_OPTIONS), plain)
+    bad = {"not_an_xla_option": 1}
+    with pytest.raises(Exception, match="not_an_xla_option"):
+        cache.cached_call(cube, x, shift=2.0, compiler_options=bad)  # stored path
+    monkeypatch.setattr(cache, "EXPORT_DIR", None)
+    with pytest.raises(Exception, match="not_an_xla_option"):
+        cache.cached_call(cube, x, shift=3.0, compiler_options=bad)  # plain path
+    traced = jax.jit(lambda v: cache.cached_call(cube, v, shift=0.0, compiler_options=bad))(x)
+    assert jnp.allclose(traced, x**3)
+
+
 def test_compile_ahead_compiles_on_the_side_and_the_call_uses_it(tmp_path, monkeypatch):
     """`compile_ahead` stores the traced program and compiles it on a side thread without
     running it; the later call with arguments of the same shapes runs that compiled program

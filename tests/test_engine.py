@@ -391,6 +391,33 @@ def test_one_top_is_packed_in_one_vector_and_a_batch_in_narrow_ones(top):
                                np.asarray(one.states.omega[-1]), rtol=1e-7, atol=1e-7)
 
 
+def test_batches_compiled_with_the_cpu_options_trace_one_vector(top):
+    """tippejax's own CPU batch programs (`CpuProgram`) trace a vmapped state as one vector
+    (`CPU_BATCH_PACK_WIDTH`) and only while they trace; a user's `vmap` keeps `PACK_WIDTH`.
+    The layout changes the speed only: `simulate_batch` (a `CpuProgram`) and the user's
+    `vmap` of `simulate` end at the same state and inversion time."""
+    from tippejax._engine.cpu import CpuProgram
+    from tippejax._engine.segment import CPU_BATCH_PACK_WIDTH, PACK_WIDTH, pack_width_for
+
+    seen = []
+
+    def probe(x):
+        return jax.vmap(lambda v: seen.append(pack_width_for(v)) or v)(x)
+
+    CpuProgram(probe)(jnp.ones(2))
+    jax.vmap(lambda v: seen.append(pack_width_for(v)) or v)(jnp.ones(2))
+    assert seen == [CPU_BATCH_PACK_WIDTH, PACK_WIDTH]
+
+    spins = jnp.array([140.0, 160.0])
+    own = tj.simulate_batch(top, 0.1, spins, 6.0, grid=(), summary=True, model="full")
+    user = jax.vmap(lambda s: tj.simulate(top, tj.initial_state(top, 0.1, s), 6.0,
+                                          summary=True, model="full", throw=False))(spins)
+    assert np.all(np.isfinite(np.asarray(own.t_invert)))
+    np.testing.assert_allclose(np.asarray(own.t_invert), np.asarray(user.t_invert), rtol=1e-8)
+    np.testing.assert_allclose(np.asarray(own.states.omega[:, -1]),
+                               np.asarray(user.states.omega[:, -1]), rtol=1e-6, atol=1e-6)
+
+
 def test_body_vector_of_a_fast_top_against_a_plain_solve(top, inverting):
     """The SO(3) level's body vector (frame and spin angle) against a plain diffrax solve of
     db/dt = omega x b on the 9-component state (axis, omega, body) at tight tolerance: the

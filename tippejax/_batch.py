@@ -14,6 +14,7 @@ from jaxtyping import ArrayLike
 
 from ._cache import cacheable
 from ._devices import run_in_blocks, shard_over
+from ._engine.cpu import CpuProgram
 from ._engine.segment import top_axes
 from ._engine.solver_choice import default_solver, is_traced
 from ._models.levels import LEVELS
@@ -29,17 +30,13 @@ LAUNCH = ("theta0", "spin", "theta_dot", "phi_dot", "phi", "psi", "vx", "vy")
 PER_MEMBER_BLOCK = 128
 """Most members in one vmapped solve of a per-member batch on a CPU device: a device's shard
 of a larger batch runs as consecutive blocks of at most this many members (`jax.lax.map`
-over `jax.vmap`), compiled with `CPU_COMPILER_OPTIONS`. On the 2-core AMD EPYC of
+over `jax.vmap`), compiled with `tippejax._engine.cpu.CPU_COMPILER_OPTIONS`. On the 2-core AMD EPYC of
 `benchmarks/RESULTS.md` (peers.py's scene, SO(3) level, 1000 tops, ms per top): one vmap of
 every member per device, LLVM's default optimisation 3.43 (1 device) and 1.35 (2 devices);
 blocks of 250 at level 1: 2.20 and 1.08; blocks of 100-300 at level 1 on 2 devices
 1.07-1.13, while neither change alone helped (blocks at the default level 3.68 / 1.84,
 level 1 without blocks 3.62 / 1.57). A block's loop also ends with its own slowest member
 rather than the shard's. `benchmarks/peers.py` measures it against the plain script."""
-
-CPU_COMPILER_OPTIONS = {"xla_backend_optimization_level": 1}
-"""XLA compile options of a per-member batch on CPU devices (see `PER_MEMBER_BLOCK`); only
-tippejax's own batch program gets them (`jax.jit`'s `compiler_options`), not the user's."""
 
 
 def cpu_block(shard_size: int) -> int | None:
@@ -73,7 +70,7 @@ def _batch_run_impl(top, launches, t1, kwargs, mesh=None, block=None):
 
 
 _batch_run = eqx.filter_jit(_batch_run_impl)
-_batch_run_cpu = eqx.filter_jit(_batch_run_impl, compiler_options=CPU_COMPILER_OPTIONS)
+_batch_run_cpu = CpuProgram(_batch_run_impl)
 
 
 def _launch_state(top, launch):
@@ -181,10 +178,11 @@ def simulate_batch(
     over all devices with `jax.sharding` (padded to a multiple of the device count), each
     device running its own members' loops (`jax.shard_map`). On CPU devices each device's
     members run in blocks of at most `PER_MEMBER_BLOCK` (128), one after the other, and the
-    batch's program is compiled at LLVM optimisation level 1 (`CPU_COMPILER_OPTIONS`, for this
-    program only): 1.2-1.5x faster than one `vmap` over the shard at XLA's default level on
-    the machine of `benchmarks/RESULTS.md` (`benchmarks/peers.py`). Results agree with a
-    single run of each member to about `rtol` (the program's rounding differs).
+    batch's program is compiled with tippejax's CPU options (LLVM level 1, XLA's element-wise
+    loop emitter; `tippejax._engine.cpu`, for this program only): 2-2.6x faster than one
+    `vmap` over the shard with XLA's defaults on the machine of `benchmarks/RESULTS.md`
+    (`benchmarks/peers.py`). Results agree with a single run of each member to about `rtol`
+    (the program's rounding differs).
 
     Under `vmap` every member takes as many solver steps as the slowest one. With
     `buckets > 1` the members are sorted by $|n|$ (their cost grows with spin x t1), split

@@ -273,7 +273,27 @@ def to_device(x, dtype=None) -> jax.Array:
     return jax.device_put(x.astype(jax.dtypes.canonicalize_dtype(x.dtype), copy=False))
 
 
-def _entry(fn, args, static):
+def _concrete_call(args) -> bool:
+    return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(args))
+
+
+_WITH_OPTIONS: dict = {}  # (jitted function, options) -> the same function jitted with them
+
+
+def _plain_call(fn, args, static, compiler_options):
+    """`fn(*args, **static)` without the store: with `compiler_options` where the call is the
+    top-level one (JAX takes compile options only there), else as `fn` is."""
+    if not compiler_options or not _concrete_call(args):
+        return fn(*args, **static)
+    import equinox as eqx
+
+    ident = (fn, tuple(sorted(compiler_options.items())))
+    if ident not in _WITH_OPTIONS:
+        _WITH_OPTIONS[ident] = eqx.filter_jit(fn.__wrapped__, compiler_options=dict(compiler_options))
+    return _WITH_OPTIONS[ident](*args, **static)
+
+
+def _entry(fn, args, static, compiler_options=None):
     """The store's key of the call `fn(*args, **static)`, its array inputs and a function
     that puts inputs back into `args`; None where the store does not apply."""
     leaves, in_tree = jax.tree_util.tree_flatten(args)
@@ -289,7 +309,8 @@ def _entry(fn, args, static):
         return None
     fixed = {i: x for i, x in enumerate(leaves) if i not in set(dynamic)}
     name = getattr(fn, "__name__", None) or getattr(getattr(fn, "__wrapped__", None), "__name__", "fn")
-    key = _key(name.strip("_"), in_tree, inputs, static, fixed)
+    keyed = static if not compiler_options else {**static, "compiler_options": compiler_options}
+    key = _key(name.strip("_"), in_tree, inputs, keyed, fixed)
     if key is None:
         return None
 
@@ -308,30 +329,33 @@ def _entry(fn, args, static):
     return key, inputs, rebuild
 
 
-def _loaded(key, fn, rebuild, inputs, static):
+def _loaded(key, fn, rebuild, inputs, static, compiler_options=None):
     with _LOCKS.setdefault(key, threading.Lock()):
         if key not in _LOADED:
-            _LOADED[key] = _load(key) or _export(key, fn, rebuild, inputs, static)
+            _LOADED[key] = (_load(key, compiler_options)
+                            or _export(key, fn, rebuild, inputs, static, compiler_options))
         return _LOADED[key]
 
 
-def cached_call(fn, *args, **static):
+def cached_call(fn, *args, compiler_options=None, **static):
     """`fn(*args, **static)` for a jitted `fn`, through the on-disk store of traced programs
     (see the module docstring). `args` are pytrees; their arrays (jax or numpy) are the
     program's inputs and their other leaves (Python numbers, strings) are fixed in it, as
     `eqx.filter_jit` does. `static` are the options `fn` takes as static (hashable, with a
-    stable repr). Returns what `fn` returns."""
-    entry = _entry(fn, args, static)
+    stable repr). `compiler_options`: XLA options (`jax.jit`'s) of the program where this call
+    is the top-level one; ignored under a trace (the caller's `jit`, `vmap`, `grad`). Returns
+    what `fn` returns."""
+    entry = _entry(fn, args, static, compiler_options)
     if entry is None:
-        return fn(*args, **static)
+        return _plain_call(fn, args, static, compiler_options)
     key, inputs, rebuild = entry
-    call, out_tree = _loaded(key, fn, rebuild, inputs, static)
+    call, out_tree = _loaded(key, fn, rebuild, inputs, static, compiler_options)
     if call is not None:
         try:
             return jax.tree_util.tree_unflatten(out_tree, call(*inputs))
         except Exception:  # the stored program does not take these arguments: trace instead
             _LOADED[key] = (None, None)
-    return fn(*args, **static)
+    return _plain_call(fn, args, static, compiler_options)
 
 
 class _Ahead:
@@ -353,7 +377,7 @@ class _Ahead:
 _EXECUTOR = None
 
 
-def compile_ahead(fn, *args, **static) -> bool:
+def compile_ahead(fn, *args, compiler_options=None, **static) -> bool:
     """Trace `fn(*args, **static)` as `cached_call` would, and compile it on a side thread
     while the caller goes on (XLA's compiler releases the GIL: on two cores a program that a
     call will need later compiles while the caller traces or compiles another). A later
@@ -361,11 +385,11 @@ def compile_ahead(fn, *args, **static) -> bool:
     whether a compilation was started (not where the store does not apply, or the program
     is loaded already)."""
     global _EXECUTOR
-    entry = _entry(fn, args, static)
+    entry = _entry(fn, args, static, compiler_options)
     if entry is None:
         return False
     key, inputs, rebuild = entry
-    call, out_tree = _loaded(key, fn, rebuild, inputs, static)
+    call, out_tree = _loaded(key, fn, rebuild, inputs, static, compiler_options)
     if call is None or isinstance(call, _Ahead):
         return False
     lowered = call.lower(*inputs)
@@ -375,13 +399,13 @@ def compile_ahead(fn, *args, **static) -> bool:
     return True
 
 
-def _load(key: str):
+def _load(key: str, compiler_options=None):
     path = os.path.join(EXPORT_DIR, key)
     try:
         with open(path, "rb") as f:
             blob, tree = pickle.load(f)
         exported = jax.export.deserialize(bytearray(blob))
-        return jax.jit(exported.call), pickle.loads(tree)
+        return jax.jit(exported.call, compiler_options=compiler_options), pickle.loads(tree)
     except FileNotFoundError:
         return None
     except Exception:  # a damaged or stale entry: drop it and trace again
@@ -423,7 +447,7 @@ def _export_allowing_this_jaxlib(jitted, leaves):
     raise ValueError("too many custom calls without compatibility guarantees")
 
 
-def _export(key: str, fn, rebuild, leaves, static):
+def _export(key: str, fn, rebuild, leaves, static, compiler_options=None):
     box = {}
 
     def flat(*flat_args):
@@ -447,4 +471,4 @@ def _export(key: str, fn, rebuild, leaves, static):
         with os.fdopen(fd, "wb") as f:
             f.write(blob)
         os.replace(tmp, os.path.join(EXPORT_DIR, key))
-    return jax.jit(exported.call), box["tree"]
+    return jax.jit(exported.call, compiler_options=compiler_options), box["tree"]

@@ -74,9 +74,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from ._batch import CPU_COMPILER_OPTIONS
 from ._devices import shard_over
 from ._engine.chain import run_chain
+from ._engine.cpu import CpuProgram
 from ._engine.watch import EVENT_PIECES
 from ._models.full import FullLevel, pole_linearisation
 from ._models.gyroscopic import (
@@ -142,12 +142,12 @@ def _stage_batch_impl(level, top, states, level_states, t0, t_stop, options, mes
 
 
 _stage_batch_default = eqx.filter_jit(_stage_batch_impl)
-_stage_batch_cpu = eqx.filter_jit(_stage_batch_impl, compiler_options=CPU_COMPILER_OPTIONS)
+_stage_batch_cpu = CpuProgram(_stage_batch_impl)
 
 
 def _stage_batch(level, top, states, level_states, t0, t_stop, options, mesh):
-    """`_stage_batch_impl` compiled for the devices of `mesh`: at LLVM optimisation level 1 on
-    CPU devices (`CPU_COMPILER_OPTIONS`, as `simulate_batch`)."""
+    """`_stage_batch_impl` compiled for the devices of `mesh`: with tippejax's CPU options on
+    CPU devices (`tippejax._engine.cpu`, as `simulate_batch`)."""
     cpu = mesh.devices.flat[0].platform == "cpu"
     run = _stage_batch_cpu if cpu else _stage_batch_default
     return run(level, top, states, level_states, t0, t_stop, options, mesh)

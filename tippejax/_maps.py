@@ -51,8 +51,9 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._analysis.potential import effective_potential_d2_closed_form
 from ._analysis.steady_states import _branch_pieces, _find_root
-from ._batch import CPU_COMPILER_OPTIONS, cpu_block
+from ._batch import cpu_block
 from ._devices import run_in_blocks, shard_over
+from ._engine.cpu import CpuProgram
 from ._engine.solver_choice import default_solver
 from ._invariants import jellet
 from ._simulate import MODELS, simulate
@@ -202,7 +203,7 @@ def _run_chunk_impl(top_fields, top_static, thetas, spins, t1, options, mesh, bl
 
 
 _run_chunk = eqx.filter_jit(_run_chunk_impl)
-_run_chunk_cpu = eqx.filter_jit(_run_chunk_impl, compiler_options=CPU_COMPILER_OPTIONS)
+_run_chunk_cpu = CpuProgram(_run_chunk_impl)
 
 
 def _classified_runs(top_static, options, top_fields, thetas, spins, t1):

@@ -20,6 +20,7 @@ from jaxtyping import ArrayLike
 
 from ._cache import cacheable, cached_call
 from ._engine.chain import run_chain, run_chain_shared
+from ._engine.cpu import own_compiler_options
 from ._engine.segment import (
     FORWARD_MODE_PACK_WIDTH,
     PACK_WIDTH,
@@ -440,6 +441,7 @@ def simulate(
         out = cached_call(
             _run, top, y0, ts, jnp.asarray(t0, dtype), jnp.asarray(t1, dtype),
             jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype),
+            compiler_options=own_compiler_options(),
             level=level, solver=solver, guard_stiff=guard_stiff,
             stop_on_contact=on_contact_loss == "stop", max_steps=int(max_steps),
             adjoint=adjoint, progress=progress, pieces=int(event_pieces),
@@ -464,7 +466,8 @@ def simulate(
             name = f"{model}(->{fallback} where t_chart_switch is finite)"
     theta_end, jellet_launch = out.pop("theta_end"), out.pop("jellet_launch")
     with cacheable():
-        outcome, settled = cached_call(_outcome, top, jellet_launch, theta_end, out["result"])
+        outcome, settled = cached_call(_outcome, top, jellet_launch, theta_end, out["result"],
+                                        compiler_options=own_compiler_options())
     sol = Solution(model=name, outcome=outcome, settled=settled, **out)
     if throw:
         sol = _raise_if_failed(sol, on_contact_loss, top)

@@ -7,6 +7,8 @@ downward crossing of each observed condition (see `watch.py`).
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import dataclasses
 import math
 from collections.abc import Callable
@@ -49,7 +51,29 @@ class Watch(eqx.Module):
 
 
 PACK_WIDTH = 6
-"""Most components in one flat vector of a level state in a batch (see `ravel_state`)."""
+"""Most components in one flat vector of a level state in a batch (see `ravel_state`), where
+the batch's program is compiled with XLA's default options (a user's `jax.vmap`, a GPU)."""
+
+CPU_BATCH_PACK_WIDTH = 64
+"""Most components in one flat vector of a level state in a batch compiled with tippejax's
+CPU options (`tippejax._engine.cpu`): the whole state in one vector. With XLA:CPU's
+element-wise loop emitter the one vector is fastest: `simulate_batch`, peers.py's scene,
+1000 tops, ms per top, width 6 against 64: full level 1.32 -> 1.10 (2 devices), 2.72 -> 2.32
+(1 device); SO(3) level with 6 saves and the body vector (10 components) 1.56 -> 1.29 (2
+devices). (With XLA's default MLIR emitters it was the other way round: `PACK_WIDTH`.)"""
+
+_BATCH_WIDTH = contextvars.ContextVar("tippejax_batch_pack_width", default=PACK_WIDTH)
+
+
+@contextlib.contextmanager
+def batch_pack_width(width: int):
+    """Trace the batches inside the block with the state in vectors of at most `width`
+    (`pack_width_for`): for a program whose compile options favour another layout."""
+    token = _BATCH_WIDTH.set(int(width))
+    try:
+        yield
+    finally:
+        _BATCH_WIDTH.reset(token)
 
 ONE_TOP_PACK_WIDTH = 64
 """Most components in one flat vector of a level state in a run of one top: the whole state
@@ -77,7 +101,8 @@ full 1.62 (2 + 2 + 3 + 3)."""
 
 
 def pack_width_for(*trees, adjoint=None) -> int:
-    """`PACK_WIDTH` where any leaf of `trees` is batched by `jax.vmap` (seen at trace time);
+    """A batch's width (`PACK_WIDTH`, or the one `batch_pack_width` sets) where any leaf of
+    `trees` is batched by `jax.vmap` (seen at trace time);
     else `FORWARD_MODE_PACK_WIDTH` with `adjoint=diffrax.ForwardMode()`, else
     `ONE_TOP_PACK_WIDTH`. JAX has no public test for "inside vmap"; where its private
     tracer class is not found, the batch layout is used (only speed depends on the choice). A
@@ -85,10 +110,10 @@ def pack_width_for(*trees, adjoint=None) -> int:
     try:
         from jax._src.interpreters.batching import BatchTracer
     except ImportError:  # pragma: no cover
-        return PACK_WIDTH
+        return _BATCH_WIDTH.get()
     leaves = jax.tree_util.tree_leaves(trees)
     if any(isinstance(x, BatchTracer) for x in leaves):
-        return PACK_WIDTH
+        return _BATCH_WIDTH.get()
     if isinstance(adjoint, diffrax.ForwardMode):
         return FORWARD_MODE_PACK_WIDTH
     return ONE_TOP_PACK_WIDTH
@@ -203,7 +228,7 @@ def run_segment(
     progress_meter: diffrax.AbstractProgressMeter,
     pieces: int,
     locate: bool = True,
-    pack_width: int = PACK_WIDTH,
+    pack_width: int | None = None,
 ) -> Segment:
     """Integrate `level` from `(t0, y0)` to `t1` or the first terminating event.
 
@@ -213,7 +238,10 @@ def run_segment(
     started from. No step is taken again and no root is found, so the program is smaller to
     compile; for callers that need to know only which save times lie before an event (a
     fit's residuals). `pack_width`: the layout of the state in the solver (`ravel_state`;
-    `pack_width_for` picks it)."""
+    `pack_width_for` picks it; default: a batch's, `PACK_WIDTH` or the one `batch_pack_width`
+    sets)."""
+    if pack_width is None:
+        pack_width = _BATCH_WIDTH.get()
     names = terminating + observed
     y0_flat, unravel = ravel_state(y0, pack_width)
     field = FlatField(level, unravel, pack_width)
@@ -393,7 +421,7 @@ def run_segment_shared(
     progress_meter: diffrax.AbstractProgressMeter,
     pieces: int,
     locate: bool = True,
-    pack_width: int = PACK_WIDTH,
+    pack_width: int | None = None,
 ) -> Segment:
     """`run_segment` for a batch of members with shared steps: one `diffrax.diffeqsolve` whose
     state is every member's state (`y0`'s leaves have a leading member axis N; in the solve

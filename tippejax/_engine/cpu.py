@@ -1,0 +1,55 @@
+"""tippejax's own programs on CPU devices: their XLA compile options and their state layout.
+
+A batch of tiny ODE systems on XLA:CPU is bound by the hundreds of small fused loops each
+step runs, not by arithmetic (`benchmarks/RESULTS.md`, peers.py's profile), and how XLA
+compiles those loops matters more than anything in the loop. tippejax compiles the programs
+it owns, the ones it calls at the top level (`simulate` outside the user's `jit`, `vmap` or
+`grad`; `simulate_batch`, `outcome_map` and the inversion map's batches), with
+`CPU_COMPILER_OPTIONS`, and traces their batches with the state in one vector
+(`CPU_BATCH_PACK_WIDTH`). A user's own `jax.jit` keeps XLA's defaults: these are options of
+one program (`jax.jit`'s `compiler_options`), not process-wide flags.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+
+from .segment import CPU_BATCH_PACK_WIDTH, batch_pack_width
+
+CPU_COMPILER_OPTIONS = {"xla_backend_optimization_level": 1, "xla_cpu_use_fusion_emitters": False}
+"""XLA compile options of tippejax's own programs on CPU devices.
+
+- LLVM optimisation level 1 (see `tippejax._batch.PER_MEMBER_BLOCK`).
+- XLA:CPU's element-wise loop emitter instead of its MLIR fusion emitters
+  (`xla_cpu_use_fusion_emitters`): it compiles a step's many small fused loops to code that
+  runs them faster, and compiles faster. peers.py's scene (1000 SO(3) tops, 20 s), ms per
+  top, on the 2-core machine of `benchmarks/RESULTS.md`: `simulate_batch` 2.38 -> 1.76 on 1
+  device, 1.16 -> 0.92 on 2 (the plain diffrax script in the same blocks 1.80 -> 1.18 and
+  0.95 -> 0.63); the first `simulate` of a new process 3.5-3.9 -> 2.6-2.7 s. As a process-wide
+  flag (`XLA_FLAGS`) it would change the user's programs too, and not always for the better:
+  the plain script in one `jax.vmap` at XLA's default level ran 2.84 -> 3.68 ms per top.
+"""
+
+
+def own_compiler_options() -> dict | None:
+    """`CPU_COMPILER_OPTIONS` where JAX's default backend is a CPU, else None (XLA's)."""
+    return CPU_COMPILER_OPTIONS if jax.default_backend() == "cpu" else None
+
+
+class CpuProgram:
+    """`eqx.filter_jit(impl)` compiled with `CPU_COMPILER_OPTIONS` and traced with the batch
+    layout `CPU_BATCH_PACK_WIDTH`; a top-level call only (JAX takes compile options there)."""
+
+    def __init__(self, impl):
+        self.impl = impl
+        self.jitted = eqx.filter_jit(impl, compiler_options=CPU_COMPILER_OPTIONS)
+
+    def __call__(self, *args, **kwargs):
+        with batch_pack_width(CPU_BATCH_PACK_WIDTH):
+            return self.jitted(*args, **kwargs)
+
+    def lower(self, *args, **kwargs):
+        """The program lowered for these arguments (`eqx.filter_jit`'s `lower`)."""
+        with batch_pack_width(CPU_BATCH_PACK_WIDTH):
+            return self.jitted.lower(*args, **kwargs)
