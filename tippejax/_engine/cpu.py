@@ -12,6 +12,8 @@ one program (`jax.jit`'s `compiler_options`), not process-wide flags.
 
 from __future__ import annotations
 
+import contextlib
+
 import equinox as eqx
 import jax
 
@@ -35,6 +37,14 @@ CPU_COMPILER_OPTIONS = {"xla_backend_optimization_level": 1, "xla_cpu_use_fusion
 def own_compiler_options() -> dict | None:
     """`CPU_COMPILER_OPTIONS` where JAX's default backend is a CPU, else None (XLA's)."""
     return CPU_COMPILER_OPTIONS if jax.default_backend() == "cpu" else None
+
+
+def own_layout(compiler_options):
+    """The batch layout to trace a program compiled with `compiler_options` in: a context
+    (`batch_pack_width`), `CPU_BATCH_PACK_WIDTH` with tippejax's CPU options."""
+    if compiler_options is CPU_COMPILER_OPTIONS:
+        return batch_pack_width(CPU_BATCH_PACK_WIDTH)
+    return contextlib.nullcontext()
 
 
 class CpuProgram:
