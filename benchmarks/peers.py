@@ -12,7 +12,7 @@ Peers, each with the same SO(3) equations written once in its own language:
   a batch runs it in a `numba.prange` loop over the tops, on every core;
 - a plain diffrax script (`plain_solve`, ~25 lines): Dopri8, PIDController, `jax.vmap`, no events;
   in batches also the same script in `simulate_batch`'s CPU layout (blocks of at most 128
-  members under `lax.map`, compiled at LLVM optimisation level 1: `_plain_blocks`), the
+  members under `lax.map`, compiled with tippejax's CPU options: `_plain_blocks`), the
   strongest JAX script we know for this batch;
 - tippejax at each level (so3, full, routhian, gyroscopic), `tj.simulate` in `jax.vmap`, events
   on (inversion observed, contact loss and the R_n singularity terminating), default solver;
@@ -68,6 +68,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec  # noqa: E402
 
 import tippejax as tj  # noqa: E402
 from tippejax._devices import shard_over  # noqa: E402
+from tippejax._engine.cpu import CPU_COMPILER_OPTIONS  # noqa: E402
 
 HERE = pathlib.Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
@@ -206,8 +207,8 @@ def plain_batch(spins, rtol, atol, ts=None, pi=False):
 plain_single = jax.jit(plain_solve)
 plain_single_pi = jax.jit(functools.partial(plain_solve, controller=PI_CONTROLLER))
 PLAIN_PI = "plain diffrax, PI controller"
-PLAIN_BLOCKS = "plain diffrax, blocks of 125 at LLVM level 1"
-BLOCK_OPTIONS = {"xla_backend_optimization_level": 1}
+PLAIN_BLOCKS = "plain diffrax, blocks of 125, tippejax's CPU options"
+BLOCK_OPTIONS = CPU_COMPILER_OPTIONS  # LLVM level 1, XLA:CPU's element-wise loop emitter
 
 
 def _largest_divisor(n, most):
@@ -217,8 +218,9 @@ def _largest_divisor(n, most):
 @functools.cache
 def _plain_blocks(n_devices):
     """The plain script given `simulate_batch`'s CPU layout (`tippejax._batch.PER_MEMBER_BLOCK`):
-    each device's members in blocks of at most 128 (`lax.map` over `vmap`), compiled at LLVM
-    optimisation level 1: the strongest form of the script a user could write."""
+    each device's members in blocks of at most 128 (`lax.map` over `vmap`), compiled with
+    tippejax's CPU options (`tippejax._engine.cpu.CPU_COMPILER_OPTIONS`: LLVM level 1, XLA:CPU's
+    element-wise loop emitter): the strongest form of the script a user could write."""
     def local(spins, rtol, atol):
         n = spins.shape[0]
         block = _largest_divisor(n, 128)
@@ -284,7 +286,7 @@ SIMULATE_BATCH_FULL = "tippejax full, simulate_batch"
 def tj_simulate_batch(spins, rtol, ts=None, level="so3"):
     """The batch as a user runs it: `tj.simulate_batch` (checks in Python, padding, sharding
     with `jax.shard_map` over every device, on CPU devices blocks of at most 128 members
-    compiled at LLVM level 1, the whole `Solution` back)."""
+    compiled with tippejax's CPU options, the whole `Solution` back)."""
     kw = dict(summary=True) if ts is None else dict(saveat=np.asarray(ts))
     sol = tj.simulate_batch(TOP, THETA0, np.asarray(spins), T1, grid=(), model=level,
                             rtol=float(rtol), atol=float(rtol) * 1e-2, **kw)
@@ -797,7 +799,7 @@ def report(rows, eq, target, compile_s, ref_check, b1, nb1, b2, ndev2, big, core
          f"{s2:.2f}x (CPU {c2:.2f}x)", verdict(s2 <= 1.2)],
         [f"(the same, `tj.simulate` in the user's own `jax.vmap`, 1 and {ndev2} devices)",
          f"{v1:.2f}x, {v2:.2f}x", ""],
-        [f"(`tj.simulate_batch` against the plain script in blocks at LLVM level 1, 1 and "
+        [f"(`tj.simulate_batch` against the plain script in blocks with the same CPU options, 1 and "
          f"{ndev2} devices)",
          f"{ratio(b1, SIMULATE_BATCH, PLAIN_BLOCKS):.2f}x, "
          f"{ratio(b2k, SIMULATE_BATCH, PLAIN_BLOCKS):.2f}x", ""],

@@ -3,7 +3,7 @@
 A batch of 1000 (the scene of `peers.py`: standard top, SO(3) equations, theta0 0.1, spins
 140-160 rad/s, 20 s, summary mode) at equal error on one JAX device (the rtols `EQUAL_ERROR`
 at which peers.py's ladder gives each the plain script's error at rtol 1e-8): the plain diffrax script (in `jax.vmap`, and in `simulate_batch`'s CPU layout: blocks
-at LLVM level 1), `tj.simulate(model="so3")` and `tj.simulate(model="full")` in `jax.vmap`,
+with tippejax's CPU options), `tj.simulate(model="so3")` and `tj.simulate(model="full")` in `jax.vmap`,
 and `tj.simulate_batch` at both levels, timed in interleaved rounds after a compiling call.
 Prints the per-round ratios to the plain script and their medians (paired ratios: the runs
 of a round see the same load), and the medians of full / so3.
