@@ -321,6 +321,10 @@ def single_runner(name, runner):
 # ----------------------------------------------------------------------------------------------
 
 
+NUMBA_THREADS = None
+"""Threads of numba's prange loop (None: every core, `numba.config.NUMBA_NUM_THREADS`)."""
+
+
 def numba_parts():
     import numba
     from CyRK import nbsolve_ivp
@@ -366,6 +370,9 @@ def numba_parts():
 
     def run(spins, rtol, atol, ts=None):
         """(finals, steps); with `ts`, steps are unknown (nbsolve_ivp then reports ts)."""
+        # The thread count is set before every call: a prange loop that had run between JAX's
+        # calls without it ran 1.3-1.5 ms per top instead of 0.89 (numba_goal.py, 2026-11-28).
+        numba.set_num_threads(NUMBA_THREADS or numba.config.NUMBA_NUM_THREADS)
         finals, steps = batch(np.asarray(spins, float), THETA0, T1, rtol, atol, PARAMS,
                               empty if ts is None else np.asarray(ts, float))
         return finals, (steps if ts is None else None)
@@ -657,9 +664,10 @@ def main():
     b1.update(batch_times(runners, rtols, spins, ["plain diffrax", "tippejax so3",
                                                   "tippejax so3, body=False",
                                                   "numba DOP853 (CyRK)"], saves=(True,)))
-    numba.set_num_threads(1)
+    global NUMBA_THREADS
+    NUMBA_THREADS = 1
     nb1 = batch_times(runners, rtols, spins, ["numba DOP853 (CyRK)"])
-    numba.set_num_threads(cores)
+    NUMBA_THREADS = None
     single1 = single_top(runners, rtols)
     prof = profile(rtols, spins)
     flops = flops_per_member_step()
