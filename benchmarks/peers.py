@@ -835,7 +835,11 @@ def report(rows, eq, target, compile_s, ref_check, b1, nb1, b2, ndev2, big, core
             if k.startswith("tippejax")),
          verdict(all(v <= 2 for k, v in compile_s.items() if k.startswith("tippejax")))],
     ]
-    lines += ["### Targets (issue 18)", "", table(["target", "measured", "verdict"], trows), ""]
+    lines += ["### Targets (issue 18)", "", table(["target", "measured", "verdict"], trows), "",
+              "The numba goal's row compares with the prange loop as it ran in this process, "
+              "beside JAX's one CPU device, where 2 threads gained little over one; "
+              "`benchmarks/numba_goal.py` measures the goal in interleaved rounds with numba's "
+              "threads at their best (its section below), and is the verdict to quote.", ""]
 
     # Profile: what is left, and the arithmetic peak
     lines += ["### Profile: what is left", "",
