@@ -30,13 +30,15 @@ LAUNCH = ("theta0", "spin", "theta_dot", "phi_dot", "phi", "psi", "vx", "vy")
 PER_MEMBER_BLOCK = 128
 """Most members in one vmapped solve of a per-member batch on a CPU device: a device's shard
 of a larger batch runs as consecutive blocks of at most this many members (`jax.lax.map`
-over `jax.vmap`), compiled with `tippejax._engine.cpu.CPU_COMPILER_OPTIONS`. On the 2-core AMD EPYC of
-`benchmarks/RESULTS.md` (peers.py's scene, SO(3) level, 1000 tops, ms per top): one vmap of
-every member per device, LLVM's default optimisation 3.43 (1 device) and 1.35 (2 devices);
-blocks of 250 at level 1: 2.20 and 1.08; blocks of 100-300 at level 1 on 2 devices
+over `jax.vmap`), compiled with `tippejax._engine.cpu.CPU_COMPILER_OPTIONS`. On the 2-core
+AMD EPYC of `benchmarks/RESULTS.md` (peers.py's scene, SO(3) level, 1000 tops, ms per top):
+one vmap of every member per device, LLVM's default optimisation 3.43 (1 device) and 1.35 (2
+devices); blocks of 250 at level 1: 2.20 and 1.08; blocks of 100-300 at level 1 on 2 devices
 1.07-1.13, while neither change alone helped (blocks at the default level 3.68 / 1.84,
-level 1 without blocks 3.62 / 1.57). A block's loop also ends with its own slowest member
-rather than the shard's. `benchmarks/peers.py` measures it against the plain script."""
+level 1 without blocks 3.62 / 1.57). With XLA:CPU's element-wise emitter as well (the CPU
+options now), 2 devices: blocks of 64 1.80, 128 0.915, 250 0.90 (full level 2.23, 1.11,
+1.25). A block's loop also ends with its own slowest member rather than the shard's.
+`benchmarks/peers.py` measures it against the plain script."""
 
 
 def cpu_block(shard_size: int) -> int | None:
@@ -179,8 +181,8 @@ def simulate_batch(
     device running its own members' loops (`jax.shard_map`). On CPU devices each device's
     members run in blocks of at most `PER_MEMBER_BLOCK` (128), one after the other, and the
     batch's program is compiled with tippejax's CPU options (LLVM level 1, XLA's element-wise
-    loop emitter; `tippejax._engine.cpu`, for this program only): 2-2.6x faster than one
-    `vmap` over the shard with XLA's defaults on the machine of `benchmarks/RESULTS.md`
+    loop emitter; `tippejax._engine.cpu`, for this program only): 1.5-1.9x faster than
+    `simulate` in one `vmap` with XLA's defaults on the machine of `benchmarks/RESULTS.md`
     (`benchmarks/peers.py`). Results agree with a single run of each member to about `rtol`
     (the program's rounding differs).
 

@@ -289,7 +289,8 @@ def _plain_call(fn, args, static, compiler_options):
 
     ident = (fn, tuple(sorted(compiler_options.items())))
     if ident not in _WITH_OPTIONS:
-        _WITH_OPTIONS[ident] = eqx.filter_jit(fn.__wrapped__, compiler_options=dict(compiler_options))
+        _WITH_OPTIONS[ident] = eqx.filter_jit(fn.__wrapped__,
+                                              compiler_options=dict(compiler_options))
     return _WITH_OPTIONS[ident](*args, **static)
 
 

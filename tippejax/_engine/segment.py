@@ -421,7 +421,7 @@ def run_segment_shared(
     progress_meter: diffrax.AbstractProgressMeter,
     pieces: int,
     locate: bool = True,
-    pack_width: int | None = None,
+    pack_width: int = PACK_WIDTH,
 ) -> Segment:
     """`run_segment` for a batch of members with shared steps: one `diffrax.diffeqsolve` whose
     state is every member's state (`y0`'s leaves have a leading member axis N; in the solve
