@@ -1,0 +1,124 @@
+"""What the engine costs per step beyond the plain script, under tippejax's CPU options.
+
+peers.py's scene (standard top, SO(3) equations, theta0 0.1, spins 140-160 rad/s, 20 s,
+summary), a batch of 1000 on one JAX device, every run in `simulate_batch`'s CPU layout
+(blocks of 125 members, `jax.lax.map` over `jax.vmap`, compiled with
+`tippejax._engine.cpu.CPU_COMPILER_OPTIONS`):
+
+- the plain diffrax script (Dopri8, I controller, rtol 1e-8: the equal-error reference);
+- tippejax's SO(3) field (one flat vector) in a plain diffrax loop with tippejax's PI
+  controller and error norm, no events;
+- the same with the engine's event watch (`WatchedSolver`: the quintic of each condition over
+  a step, its Bernstein coefficients; no event location, no records read);
+- `tj.simulate_batch(model="so3", summary=True)`: the whole engine (event records and their
+  location, the summary's outputs, the checks in Python).
+
+tippejax's runs at rtol 2.45e-8 (the plain script's error at 1e-8, peers.py's ladder).
+Interleaved rounds; ratios paired per round against the plain script.
+
+    python benchmarks/engine_tax.py [ROUNDS]     # default 7; writes its RESULTS.md section
+"""
+
+import dataclasses
+import os
+import statistics
+import sys
+import time
+
+ROUNDS = int(sys.argv[1]) if len(sys.argv) > 1 else 7
+sys.argv = sys.argv[:1]  # peers reads its own flags from sys.argv
+
+import diffrax  # noqa: E402
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+import peers  # noqa: E402  (one host device, float64, the scene)
+from _common import machine_line, table, write_section  # noqa: E402
+
+import tippejax as tj  # noqa: E402
+from tippejax._engine.cpu import CPU_COMPILER_OPTIONS  # noqa: E402
+from tippejax._engine.segment import STEP_CONTROL, FlatField, Watch, ravel_state  # noqa: E402
+from tippejax._engine.watch import WatchedSolver  # noqa: E402
+from tippejax._models.levels import LEVELS  # noqa: E402
+
+BATCH, BLOCK = 1000, 125
+RTOL = 2.45e-8
+
+
+def engine_loop(watched: bool):
+    """The SO(3) field in a plain diffrax loop (with the watch where `watched`), in blocks."""
+    level = dataclasses.replace(LEVELS["so3"], body=False)
+
+    def one(spin):
+        y = level.from_state(peers.TOP, tj.initial_state(peers.TOP, peers.THETA0, spin))
+        flat, unravel = ravel_state(y, 64)
+        field = FlatField(level, unravel, 64)
+        solver = diffrax.Dopri8()
+        if watched:
+            watch = Watch(level, unravel, ("singular", "contact", "upright"))
+            solver = WatchedSolver(solver, watch, (2,), pieces=1, terminating=(0, 1))
+        sol = diffrax.diffeqsolve(
+            diffrax.ODETerm(field), solver, 0.0, peers.T1, None, flat, peers.TOP,
+            saveat=diffrax.SaveAt(t1=True), max_steps=100_000,
+            stepsize_controller=diffrax.PIDController(rtol=RTOL, atol=RTOL * 1e-2,
+                                                      norm=field.error_norm, **STEP_CONTROL))
+        return sol.ys[0][-1], sol.stats["num_steps"]
+
+    def blocks(spins):
+        out = jax.lax.map(jax.vmap(one), spins.reshape(BATCH // BLOCK, BLOCK))
+        return jax.tree_util.tree_map(lambda x: x.reshape(BATCH, *x.shape[2:]), out)
+
+    return jax.jit(blocks, compiler_options=CPU_COMPILER_OPTIONS)
+
+
+def main():
+    spins = jnp.asarray(np.linspace(140.0, 160.0, BATCH))
+    bare, watched = engine_loop(False), engine_loop(True)
+    fns = {
+        "plain diffrax script": lambda: peers.plain_blocks(spins, 1e-8, 1e-10),
+        "tippejax field, plain loop, no events": lambda: bare(spins),
+        "the same with the event watch": lambda: watched(spins),
+        "tj.simulate_batch (the whole engine)": lambda: peers.tj_simulate_batch(spins, RTOL),
+    }
+    steps = {}
+    for k, f in fns.items():
+        out = jax.block_until_ready(f())
+        steps[k] = float(np.median(np.asarray(out[1])))
+    load = os.getloadavg()[0]
+    wall = {k: [] for k in fns}
+    for _ in range(ROUNDS):
+        for k, f in fns.items():
+            t = time.perf_counter()
+            jax.block_until_ready(f())
+            wall[k].append(time.perf_counter() - t)
+    base = "plain diffrax script"
+    rows = []
+    for k in fns:
+        ratios = [a / b for a, b in zip(wall[k], wall[base])]
+        per_step = statistics.median(wall[k]) / (BATCH * steps[k]) * 1e6
+        rows.append([k, f"{steps[k]:.0f}", f"{statistics.median(wall[k]) / BATCH * 1e3:.3f}",
+                     f"{per_step:.3f}", f"{statistics.median(ratios):.3f}"])
+        print(rows[-1])
+    body = "\n".join([
+        "## engine_tax.py: the engine's cost per step beyond the plain script (CPU options)",
+        "",
+        f"`python benchmarks/engine_tax.py {ROUNDS}` (1-minute load average {load:.1f} at the "
+        f"start). {machine_line()}.",
+        "",
+        f"peers.py's scene, batch of {BATCH} on one JAX device, every run in blocks of {BLOCK} "
+        "compiled with tippejax's CPU options (LLVM level 1, XLA:CPU's element-wise loop "
+        f"emitter); tippejax's runs at rtol {RTOL:g} (equal error with the plain script at "
+        f"1e-8); {ROUNDS} interleaved rounds, medians:",
+        "",
+        table(["run", "steps (median)", "ms per top", "us per member-step",
+               "x plain script (paired)"], rows),
+        "",
+        "Read down the last column: what the field costs against the plain script's, then what "
+        "the event watch adds, then the rest of the engine (event records and location, the "
+        "summary's outputs, the checks in Python).",
+    ])
+    write_section("engine_tax.py", body)
+
+
+if __name__ == "__main__":
+    main()
