@@ -23,7 +23,6 @@ import dataclasses
 import os
 import statistics
 import sys
-import time
 
 ROUNDS = int(sys.argv[1]) if len(sys.argv) > 1 else 7
 sys.argv = sys.argv[:1]  # peers reads its own flags from sys.argv
@@ -33,7 +32,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import peers  # noqa: E402  (one host device, float64, the scene)
-from _common import machine_line, table, write_section  # noqa: E402
+from _common import interleaved, machine_line, table, write_section  # noqa: E402
 
 import tippejax as tj  # noqa: E402
 from tippejax._engine.cpu import CPU_COMPILER_OPTIONS  # noqa: E402
@@ -80,17 +79,10 @@ def main():
         "the same with the event watch": lambda: watched(spins),
         "tj.simulate_batch (the whole engine)": lambda: peers.tj_simulate_batch(spins, RTOL),
     }
-    steps = {}
-    for k, f in fns.items():
-        out = jax.block_until_ready(f())
-        steps[k] = float(np.median(np.asarray(out[1])))
     load = os.getloadavg()[0]
-    wall = {k: [] for k in fns}
-    for _ in range(ROUNDS):
-        for k, f in fns.items():
-            t = time.perf_counter()
-            jax.block_until_ready(f())
-            wall[k].append(time.perf_counter() - t)
+    timed = interleaved(fns, repeats=ROUNDS)
+    steps = {k: float(np.median(np.asarray(out[1]))) for k, (_, out) in timed.items()}
+    wall = {k: t.walls for k, (t, _) in timed.items()}
     base = "plain diffrax script"
     rows = []
     for k in fns:

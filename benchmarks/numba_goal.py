@@ -6,7 +6,7 @@ summary), a batch of 1000 (`BATCH`), each at its equal-error rtol from peers.py'
 (numba 1.73e-8, tippejax so3 2.45e-8: the plain script's error at rtol 1e-8). The process has
 2 host devices; `tj.simulate_batch(..., shard=False)` runs on one device, the default on both;
 numba's `prange` loop runs with `numba.set_num_threads(1)` and `(2)` (set before each call, so
-that neither inherits the other's threads). Reports wall and process CPU time per top, and the
+that neither inherits the other's threads: `peers.NUMBA_THREADS`). Reports wall and process CPU time per top, and the
 medians of the paired ratios (the runs of a round see the same load).
 
     python benchmarks/numba_goal.py [ROUNDS]     # default 9; writes its RESULTS.md section
@@ -21,10 +21,9 @@ ROUNDS = int(sys.argv[1]) if len(sys.argv) > 1 else 9
 sys.argv = sys.argv[:1]  # peers reads its own flags from sys.argv
 os.environ["TIPPEJAX_HOST_DEVICES"] = "2"
 
-import jax  # noqa: E402
 import numpy as np  # noqa: E402
 import peers  # noqa: E402
-from _common import machine_line, table, verdict, write_section  # noqa: E402
+from _common import interleaved, machine_line, table, verdict, write_section  # noqa: E402
 
 import tippejax as tj  # noqa: E402
 
@@ -43,24 +42,17 @@ def main():
         return sol.theta
 
     def compiled(threads):
-        numba.set_num_threads(threads)
+        peers.NUMBA_THREADS = threads  # (peers' runner sets numba's threads before each call)
         return nb_run(spins, RTOL["numba"], RTOL["numba"] * 1e-2)
 
     fns = {"numba, 1 thread": lambda: compiled(1), "simulate_batch, 1 device": lambda: batch(False),
            "numba, 2 threads (prange)": lambda: compiled(2),
            "simulate_batch, 2 devices": lambda: batch(True)}
-    for f in fns.values():
-        jax.block_until_ready(f())
-    wall = {k: [] for k in fns}
-    cpu = {k: [] for k in fns}
     start = time.perf_counter()
     load = os.getloadavg()[0]
-    for _ in range(ROUNDS):
-        for k, f in fns.items():
-            t, c = time.perf_counter(), time.process_time()
-            jax.block_until_ready(f())
-            wall[k].append((time.perf_counter() - t) / BATCH * 1e3)
-            cpu[k].append((time.process_time() - c) / BATCH * 1e3)
+    timed = interleaved(fns, repeats=ROUNDS)
+    wall = {k: [x / BATCH * 1e3 for x in t.walls] for k, (t, _) in timed.items()}
+    cpu = {k: [x / BATCH * 1e3 for x in t.cpus] for k, (t, _) in timed.items()}
     rows = [[k, f"{statistics.median(wall[k]):.3f}", f"{statistics.median(cpu[k]):.3f}"]
             for k in fns]
     pairs = []
@@ -75,8 +67,8 @@ def main():
     body = "\n".join([
         "## numba_goal.py: `simulate_batch` against compiled numba, per core and on 2 cores",
         "",
-        f"`python benchmarks/numba_goal.py {ROUNDS}` ({time.perf_counter() - start:.0f} s of "
-        f"rounds; 1-minute load average {load:.1f} at the start). {machine_line()}.",
+        f"`python benchmarks/numba_goal.py {ROUNDS}` ({time.perf_counter() - start:.0f} s, "
+        f"first calls included; 1-minute load average {load:.1f} at the start). {machine_line()}.",
         "",
         f"peers.py's scene, batch of {BATCH}, summary, each at its equal-error rtol (numba "
         f"{RTOL['numba']:g}, tippejax so3 {RTOL['so3']:g}); {ROUNDS} interleaved rounds in one "
