@@ -370,21 +370,32 @@ def simulate_batch(
             else:
                 run = _batch_run_cpu if cpu else _batch_run
                 parts.append(run(member_tops, launches, t1, kwargs, mesh, block))
+    if mesh is not None:
+        # Outputs sharded over several CPU devices come to the host before they are joined,
+        # cut and reordered: `jnp` on them compiles programs with cross-device collectives
+        # (all-gather), and XLA:CPU aborted the process in one of them ("Termination timeout
+        # for `all gather RendezvousKey...`: only 1 of them arrived") after 1-3 minutes of
+        # repeated 2-device batches with buckets, whatever the batch program's options.
+        parts = [jax.tree_util.tree_map(
+            lambda x: np.asarray(x) if isinstance(x, jax.Array) else x, p) for p in parts]
+    arrays_types = (jax.Array, np.ndarray)
     if buckets == 1:
         sol = parts[0]
         back = None
     else:
         sol = jax.tree_util.tree_map(
-            lambda *xs: jnp.concatenate(xs) if isinstance(xs[0], jax.Array) else xs[0], *parts
-        )
+            lambda *xs: (np.concatenate(xs) if isinstance(xs[0], np.ndarray)
+                         else jnp.concatenate(xs) if isinstance(xs[0], jax.Array) else xs[0]),
+            *parts)
         back = np.empty(size, dtype=int)
         back[order[:size]] = np.arange(size)
 
     def unflatten(x):
-        if not isinstance(x, jax.Array):
+        if not isinstance(x, arrays_types):
             return x
         x = x[:size] if back is None else x[back]
-        return x.reshape(shape + x.shape[1:])
+        x = x.reshape(shape + x.shape[1:])
+        return jax.device_put(x) if isinstance(x, np.ndarray) else x
 
     if steps == "shared":
         out = dict(sol)
