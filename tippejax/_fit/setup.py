@@ -282,7 +282,7 @@ def _own_call(fn, *args, ahead=False, **static):
     """`cached_call` (or with `ahead`, `compile_ahead`) of one of the fit's programs, traced
     for the persistent cache (`cacheable`) and compiled with tippejax's CPU options on a CPU
     (`tippejax._engine.cpu`; the one-record fit of compile_cache.py's case, 40 steps: first
-    call 13.5 -> 9.6 s, again 3.6 -> 3.1 s)."""
+    call 13.5 -> 8.4 s, again 3.6 -> 2.8 s)."""
     options = own_compiler_options()
     with cacheable(), own_layout(options):
         if ahead:
