@@ -30,7 +30,8 @@ of a first `fit`. `cached_call` keeps the traced programs as well: the first cal
 configuration exports the jitted function (`jax.export`) and stores the serialized program
 beside the XLA cache (`<cache>-exports`); a later process deserializes it and runs it, compiled
 from the XLA cache, without tracing. The entry's key holds everything the trace depended on:
-the static options' repr, the arguments' tree, shapes and dtypes, the platform, the versions of
+the static options' repr, the arguments' tree, shapes and dtypes, the platform (and whether the
+stages are written out, `TIPPEJAX_UNROLL_STAGES`), the versions of
 jax, jaxlib, equinox, diffrax, optimistix, lineax and optax, and a hash of tippejax's own
 source. Anything unusual falls back to the plain jitted call: traced arguments (under `jit`,
 `vmap` or `grad`), a static option whose repr is not stable (one that prints a memory address),
@@ -55,6 +56,8 @@ import threading
 
 import jax
 import numpy as np
+
+from ._engine.unrolled import unroll_stages
 
 _OFF = ("0", "false", "no", "off")
 MIN_COMPILE_TIME_SECS = 0.0
@@ -252,7 +255,8 @@ def _key(name: str, in_tree, leaves, static: dict, fixed: dict) -> str | None:
     if _VERSIONS is None:
         _VERSIONS = _versions()
     avals = ";".join(f"{x.dtype}{x.shape}{'w' if x.weak_type else ''}" for x in leaves)
-    flags = f"x64={jax.config.jax_enable_x64};platform={jax.default_backend()}"
+    flags = (f"x64={jax.config.jax_enable_x64};platform={jax.default_backend()};"
+             f"unroll={unroll_stages()}")
     blob = "\n".join([name, text, str(in_tree), avals, flags, _VERSIONS])
     return name + "-" + hashlib.sha256(blob.encode()).hexdigest()[:40]
 

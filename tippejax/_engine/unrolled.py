@@ -1,0 +1,171 @@
+"""An explicit Runge-Kutta step written out stage by stage.
+
+diffrax runs the stages of a Runge-Kutta step in a loop (`eqxi.while_loop` over the stage
+index): stage $i$ reads row $i$ of the tableau with a dynamic index and forms
+$y_i = y_0 + \\sum_{j<s} a_{ij} k_j$ over the whole buffer of $s$ stages, zeros included, and
+each stage is one trip of a loop. `UnrolledERK` takes the same tableau and writes the stages
+out in Python: the coefficients are constants, the zero ones are skipped, and the step is
+straight-line code that the compiler can fuse across stages. The maths is the tableau's: for
+stages $i = 1, \\dots, s-1$,
+
+$$k_0 = h f(t_0, y_0),\\qquad y_i = y_0 + \\sum_{j<i} a_{ij} k_j,\\qquad
+k_i = h f(t_0 + c_i h, y_i),$$
+
+$y_1 = y_0 + \\sum_j b_j k_j$, error estimate $\\sum_j (b_j - \\hat b_j) k_j$ (diffrax's
+`b_error`), dense output from the same $k_j$ with the base solver's interpolation. With a
+first-same-as-last tableau (Dopri8, Dopri5, Tsit5) the last stage is $f(t_1, y_1)$ and is kept
+as the next step's first stage, as diffrax does.
+
+The results equal the base solver's to rounding (`tests/test_unrolled.py`); what differs is the
+program: one copy of the vector field per stage instead of one inside a loop, so it compiles
+slower and, on a GPU, runs much faster. `benchmarks/gpu.py`, peers.py's scene (SO(3) tops,
+20 s, rtol 1e-8, Dopri8), NVIDIA H200, seconds per batch, stage loop -> stages written out:
+
+| | 1e4 tops | 1e6 tops |
+|---|---|---|
+| `simulate_batch(steps="shared")` | 1.41 -> 0.74 | 19.3 -> 8.8 |
+| `simulate_batch` (per member) | 1.02 -> 0.33 | |
+| plain diffrax script, shared steps | 0.71 -> 0.18 | 14.7 -> 8.9 |
+| plain diffrax script, `jax.vmap` | 0.80 -> 0.16 | |
+
+On a GPU every trip of the stage loop is a round of small kernels and, in a batch of few
+members, a wait for the loop's predicate; written out, the stages fuse into a few large
+kernels. Compilation took 9-11 s -> 17-22 s. On XLA:CPU the same program ran slower
+(`simulate_batch`, 512 tops, one device: 4.6 -> 7.1 ms per top) and compiled 2x slower, so
+tippejax writes the stages out on accelerators only (`unroll_stages`).
+"""
+
+from __future__ import annotations
+
+import os
+from typing import ClassVar
+
+import diffrax
+import equinox.internal as eqxi
+import jax
+import jax.numpy as jnp
+
+__all__ = ["UNROLL_STAGES", "UnrolledERK", "unroll_stages", "unrollable"]
+
+
+def _setting() -> str:
+    value = os.environ.get("TIPPEJAX_UNROLL_STAGES", "auto").strip().lower()
+    if value in ("", "auto"):
+        return "auto"
+    if value in ("1", "true", "yes", "on"):
+        return "on"
+    if value in ("0", "false", "no", "off"):
+        return "off"
+    raise ValueError(
+        f"TIPPEJAX_UNROLL_STAGES must be 'auto' (stages written out on accelerators only), "
+        f"'1' (always) or '0' (never), got {value!r}."
+    )
+
+
+UNROLL_STAGES = _setting()
+"""When tippejax runs an explicit Runge-Kutta solver with its stages written out
+(`UnrolledERK`): the environment variable `TIPPEJAX_UNROLL_STAGES` at import, `auto`
+(default: where JAX's default backend is not a CPU), `1` (always) or `0` (never: diffrax's
+stage loop, which compiles about twice as fast)."""
+
+
+def unroll_stages() -> bool:
+    """Whether tippejax's solves write the stages out here (`UNROLL_STAGES`)."""
+    if UNROLL_STAGES == "auto":
+        return jax.default_backend() != "cpu"
+    return UNROLL_STAGES == "on"
+
+
+def _combine(y0, coeffs, ks):
+    """$y_0 + \\sum_j c_j k_j$ over the nonzero static coefficients $c_j$."""
+    out = y0
+    for c, k in zip(coeffs, ks):
+        c = float(c)
+        if c != 0.0:
+            out = jax.tree_util.tree_map(lambda o, x, c=c: o + c * x, out, k)
+    return out
+
+
+def _sum(coeffs, ks, like):
+    """$\\sum_j c_j k_j$ over the nonzero static coefficients $c_j$ (zeros shaped as `like`
+    when every coefficient is zero)."""
+    out = None
+    for c, k in zip(coeffs, ks):
+        c = float(c)
+        if c != 0.0:
+            term = jax.tree_util.tree_map(lambda x, c=c: c * x, k)
+            out = term if out is None else jax.tree_util.tree_map(jnp.add, out, term)
+    return jax.tree_util.tree_map(jnp.zeros_like, like) if out is None else out
+
+
+def unrollable(solver) -> bool:
+    """Whether `UnrolledERK` can run `solver`'s tableau: an explicit Runge-Kutta solver of
+    diffrax with one first-same-as-last Butcher tableau (Dopri8, Dopri5, Tsit5, Bosh3...)."""
+    tableau = getattr(type(solver), "tableau", None)
+    return (
+        isinstance(solver, diffrax.AbstractERK)
+        and isinstance(tableau, diffrax.ButcherTableau)
+        and tableau.fsal
+        and tableau.ssal
+        and not tableau.implicit
+    )
+
+
+class UnrolledERK(diffrax.AbstractSolver):
+    """`base`'s step with its stages written out (see the module's docstring). `base`: an
+    explicit Runge-Kutta solver of diffrax for which `unrollable(base)` holds."""
+
+    base: diffrax.AbstractERK
+    term_structure: ClassVar = diffrax.AbstractTerm
+
+    def __check_init__(self):
+        if not unrollable(self.base):
+            raise ValueError(
+                "UnrolledERK takes an explicit Runge-Kutta solver of diffrax with a "
+                "first-same-as-last Butcher tableau (Dopri8, Dopri5, Tsit5, Bosh3), got "
+                f"{type(self.base).__name__}."
+            )
+
+    @property
+    def interpolation_cls(self):  # pyright: ignore
+        return self.base.interpolation_cls
+
+    def order(self, terms):
+        return self.base.order(terms)
+
+    def error_order(self, terms):
+        return self.base.error_order(terms)
+
+    def func(self, terms, t0, y0, args):
+        return terms.vf(t0, y0, args)
+
+    def init(self, terms, t0, t1, y0, args):
+        # the first stage of the first step: f(t0, y0)
+        return terms.vf(t0, y0, args)
+
+    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+        tableau = type(self.base).tableau
+        f0 = solver_state
+        if made_jump is not False:
+            # after a jump the kept last stage is stale: evaluate f(t0, y0) again, for the
+            # members that jumped (under vmap, `unvmap_any` keeps the others' cheap branch)
+            f0 = jax.lax.cond(
+                eqxi.unvmap_any(made_jump),
+                lambda: jax.tree_util.tree_map(
+                    lambda a, b: jnp.where(made_jump, a, b), terms.vf(t0, y0, args), f0),
+                lambda: f0,
+            )
+        control = terms.contr(t0, t1)
+        dt = t1 - t0
+        ks = [terms.prod(f0, control)]
+        y_stage, f_stage = y0, f0
+        for c, a_row in zip(tableau.c, tableau.a_lower):
+            y_stage = _combine(y0, a_row, ks)
+            t_stage = t1 if c == 1 else t0 + float(c) * dt
+            f_stage = terms.vf(t_stage, y_stage, args)
+            ks.append(terms.prod(f_stage, control))
+        y1 = y_stage  # ssal: the last stage is evaluated at y1
+        y_error = _sum(tableau.b_error, ks, y0)
+        k = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *ks)
+        dense_info = dict(y0=y0, y1=y1, k=k)
+        return y1, y_error, dense_info, f_stage, diffrax.RESULTS.successful
