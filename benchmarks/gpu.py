@@ -21,6 +21,7 @@ plain script) x steps x members / time, against the card's float64 peak.
 
     python benchmarks/gpu.py --out gpu.json [--sizes 10000,1000000,100000] [--budget 420]
                              [--rows 0,1]  # only these rows of ORDER (0,1: the goal's)
+                             [--timed 2]   # timed calls of the goal's rows at 1e6
     python benchmarks/gpu.py --report gpu.json    # anywhere: RESULTS.md section from the JSON
 
 The first form needs a GPU (`--allow-cpu` runs it on the CPU, for a dry run at small sizes);
@@ -38,8 +39,13 @@ import time
 HERE = os.path.dirname(os.path.abspath(__file__))
 RTOL, ATOL = 1e-8, 1e-10
 REF_MEMBERS = 256
-ORDER = ("tippejax so3, shared", "plain diffrax, shared steps", "tippejax so3, per member",
-         "plain diffrax, vmap", "tippejax full, shared", "tippejax full, per member")
+ORDER = ("tippejax so3, shared", "plain diffrax, shared steps",
+         "plain diffrax, shared steps, unrolled", "tippejax so3, per member",
+         "plain diffrax, vmap", "plain diffrax, vmap, unrolled", "tippejax full, shared",
+         "tippejax full, per member", "tippejax so3, shared, unrolled",
+         "tippejax so3, per member, unrolled")
+UNROLLED = " unrolled"
+"""Rows whose name ends so run Dopri8's stages written out (`tippejax._engine.unrolled`)."""
 GOAL_ROWS = ("tippejax so3, shared", "plain diffrax, shared steps")
 COMPILE_EVENTS = ("/jax/core/compile/jaxpr_trace_duration",
                   "/jax/core/compile/jaxpr_to_mlir_module_duration",
@@ -51,7 +57,7 @@ def _arg(name, default):
     return sys.argv[sys.argv.index(name) + 1] if name in sys.argv else default
 
 
-def measure(sizes, budget, out_path, rows=None):
+def measure(sizes, budget, out_path, rows=None, timed_1e6=2):
     import jax
     import jax.numpy as jnp
     import numpy as np
@@ -77,15 +83,20 @@ def measure(sizes, budget, out_path, rows=None):
     jax.monitoring.register_event_duration_secs_listener(
         lambda event, secs, **_: compiling.append(secs) if event in COMPILE_EVENTS else None)
     top = tj.default_top()
+    from tippejax._engine.unrolled import UnrolledERK
+
+    unrolled = UnrolledERK(__import__("diffrax").Dopri8())
     plain_vmap = jax.jit(jax.vmap(lambda s: peers.plain_solve(s, RTOL, ATOL)))
     plain_shared = jax.jit(lambda s: peers.plain_shared_solve(s, RTOL, ATOL))
+    plain_vmap_u = jax.jit(jax.vmap(lambda s: peers.plain_solve(s, RTOL, ATOL, solver=unrolled)))
+    plain_shared_u = jax.jit(lambda s: peers.plain_shared_solve(s, RTOL, ATOL, solver=unrolled))
     reference = jax.jit(jax.vmap(lambda s: peers.plain_solve(s, 1e-12, 1e-14)[0]))
 
-    def tj_run(model, steps):
+    def tj_run(model, steps, solver=None):
         def run(spins):
             sol = tj.simulate_batch(top, theta0=peers.THETA0, spin=spins, t1=peers.T1,
                                     model=model, summary=True, rtol=RTOL, atol=ATOL,
-                                    grid=("spin",), steps=steps)
+                                    grid=("spin",), steps=steps, solver=solver)
             final = jnp.concatenate([sol.states.axis[:, -1], sol.states.omega[:, -1]], axis=1)
             return final, sol.num_steps, sol
         return run
@@ -93,10 +104,14 @@ def measure(sizes, budget, out_path, rows=None):
     runs = {
         "plain diffrax, vmap": lambda s: plain_vmap(jnp.asarray(s)),
         "plain diffrax, shared steps": lambda s: plain_shared(jnp.asarray(s)),
+        "plain diffrax, vmap, unrolled": lambda s: plain_vmap_u(jnp.asarray(s)),
+        "plain diffrax, shared steps, unrolled": lambda s: plain_shared_u(jnp.asarray(s)),
     }
     for model in ("so3", "full"):
         for steps in ("per_member", "shared"):
             runs[f"tippejax {model}, {steps.replace('_', ' ')}"] = tj_run(model, steps)
+            runs[f"tippejax {model}, {steps.replace('_', ' ')}, unrolled"] = tj_run(
+                model, steps, unrolled)
 
     def save():
         info["elapsed"] = time.perf_counter() - start
@@ -126,7 +141,8 @@ def measure(sizes, budget, out_path, rows=None):
                 first = time.perf_counter() - begin
                 compile_s = sum(compiling)
                 times = []
-                calls = 2 if n < 10**6 or name in GOAL_ROWS else 0
+                goal = name.removesuffix("," + UNROLLED) in GOAL_ROWS
+                calls = 2 if n < 10**6 else (timed_1e6 if goal else 0)
                 for _ in range(calls):
                     begin = time.perf_counter()
                     out = jax.block_until_ready(fn(spins))
@@ -266,7 +282,8 @@ def main():
     rows = _arg("--rows", None)
     if rows is not None:
         rows = [ORDER[int(i)] for i in rows.split(",")]
-    measure(sizes, float(_arg("--budget", "420")), _arg("--out", None), rows)
+    measure(sizes, float(_arg("--budget", "420")), _arg("--out", None), rows,
+            int(_arg("--timed", "2")))
 
 
 if __name__ == "__main__":

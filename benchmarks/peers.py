@@ -129,11 +129,11 @@ diffrax's suggested coefficients for a PIDController), instead of diffrax's defa
 controller; `benchmarks/step_control.py` measures the difference on random tops."""
 
 
-def plain_solve(spin, rtol, atol, ts=None, controller=None):
+def plain_solve(spin, rtol, atol, ts=None, controller=None, solver=None):
     a = jnp.array([0.0, -jnp.sin(THETA0), jnp.cos(THETA0)])
     saveat = diffrax.SaveAt(t1=True) if ts is None else diffrax.SaveAt(ts=ts)
     sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(so3_field), diffrax.Dopri8(), 0.0, T1, None,
+        diffrax.ODETerm(so3_field), diffrax.Dopri8() if solver is None else solver, 0.0, T1, None,
         jnp.concatenate([a, spin * a]), tuple(PARAMS), saveat=saveat, max_steps=100_000,
         stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol, **(controller or {})),
     )
@@ -145,17 +145,17 @@ def member_norm(x):
     return jnp.max(jnp.sqrt(jnp.mean(x**2, axis=1)))
 
 
-def plain_shared_solve(spins, rtol, atol):
+def plain_shared_solve(spins, rtol, atol, solver=None):
     """The plain script with shared steps: ONE `diffeqsolve` whose state is the whole batch
     (N, 6), the vector field vmapped over the members and the controller's norm the largest
     member's RMS norm (every member's error controlled, all take the same steps). Returns the
-    final states and the number of steps."""
+    final states and the number of steps. `solver`: Dopri8 unless given."""
     axis = jnp.array([0.0, -jnp.sin(THETA0), jnp.cos(THETA0)])
     y0 = jnp.concatenate([jnp.broadcast_to(axis, (spins.shape[0], 3)),
                           spins[:, None] * axis], axis=1)
     field = jax.vmap(so3_field, in_axes=(None, 0, None))
     sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(field), diffrax.Dopri8(), 0.0, T1, None, y0, tuple(PARAMS),
+        diffrax.ODETerm(field), diffrax.Dopri8() if solver is None else solver, 0.0, T1, None, y0, tuple(PARAMS),
         saveat=diffrax.SaveAt(t1=True), max_steps=100_000,
         stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol, norm=member_norm))
     return sol.ys[-1], sol.stats["num_steps"]
