@@ -237,6 +237,7 @@ def report(paths):
                 f"compilation {goal['first']:.1f} s"
                 + (f"; the plain shared-step script {statistics.median(plain['times']):.1f} s, "
                    f"{total / statistics.median(plain['times']):.2f}x" if plain else "")
+                + (f"; {other['note']}" if other is not info and other.get("note") else "")
                 + ").", ""]
     rows = []
     for n in sizes:

@@ -374,7 +374,9 @@ def simulate(
       `atol` to `1e-7`.
     - `solver`: any diffrax solver with an error estimate; default `default_solver(top)`:
       Dopri8 (Dopri5 for the gyroscopic level), Tsit5 under strong friction, Kvaerno5 under
-      very stiff friction.
+      very stiff friction. On a GPU or other accelerator an explicit Runge-Kutta solver's
+      stages run written out, not in diffrax's stage loop: the same tableau, results equal
+      to rounding, a faster program that compiles slower (`TIPPEJAX_UNROLL_STAGES`).
     - `max_steps`: maximum number of steps per segment.
     - `adjoint`: how derivatives of the run are computed. Default (None): from the run's
       forward-mode Jacobian in the inputs that are differentiated (top fields, launch state,
