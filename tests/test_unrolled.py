@@ -82,9 +82,10 @@ def test_refuses_what_it_cannot_write_out(solver):
 
 
 SCRIPT = """
-import json, numpy as np, diffrax, tippejax as tj
+import json, jax, numpy as np, diffrax, tippejax as tj
 from tippejax._engine import segment
 from tippejax._engine.unrolled import UnrolledERK
+from test_unrolled import final_height_and_spin
 prepared = segment._prepared_solver(diffrax.Dopri8(), diffrax.PIDController(rtol=1e-8, atol=1e-8),
                                     diffrax.RecursiveCheckpointAdjoint())
 out = {"prepared": type(prepared).__name__}
@@ -95,12 +96,25 @@ for model, steps in (("so3", "shared"), ("full", "per_member")):
                       axis=np.asarray(sol.states.axis).tolist(),
                       omega=np.asarray(sol.states.omega).tolist(),
                       result=np.asarray(sol.result._value).tolist())
+grad = jax.grad(final_height_and_spin)(tj.default_top())
+out["grad"] = [float(grad.mu), float(grad.eps), float(grad.C)]
 print(json.dumps(out))
 """
 
 
+def final_height_and_spin(top):
+    """A scalar of a 3 s so3 run, to differentiate (the fit's path: forward-mode sensitivity)."""
+    import tippejax as tj
+
+    sol = tj.simulate(top, tj.initial_state(top, 0.1, 150.0), 3.0, model="so3", summary=True)
+    return sol.states.axis[-1, 2] + 1e-3 * sol.states.omega[-1, 2]
+
+
 def _run(setting):
-    env = dict(os.environ, TIPPEJAX_UNROLL_STAGES=setting, TIPPEJAX_HOST_DEVICES="1")
+    env = dict(os.environ, TIPPEJAX_UNROLL_STAGES=setting, TIPPEJAX_HOST_DEVICES="1",
+               PYTHONPATH=os.pathsep.join(
+                   [os.path.dirname(os.path.abspath(__file__))]
+                   + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]))
     return subprocess.run([sys.executable, "-c", SCRIPT], env=env, capture_output=True,
                           text=True)
 
@@ -108,7 +122,7 @@ def _run(setting):
 def test_stages_written_out_give_tippejax_the_stage_loops_results():
     """The accelerator path (`TIPPEJAX_UNROLL_STAGES=1`) run on the CPU: the same events,
     states and result codes as the CPU default's stage loop, per member and with shared
-    steps."""
+    steps, and the same gradient through `simulate`."""
     import tippejax as tj
 
     proc = _run("1")
@@ -124,6 +138,10 @@ def test_stages_written_out_give_tippejax_the_stage_loops_results():
         np.testing.assert_allclose(mine["t_invert"], sol.t_invert, rtol=1e-7, equal_nan=True)
         np.testing.assert_allclose(mine["axis"], sol.states.axis, rtol=1e-6, atol=1e-7)
         np.testing.assert_allclose(mine["omega"], sol.states.omega, rtol=1e-6, atol=1e-5)
+    grad = jax.grad(final_height_and_spin)(tj.default_top())
+    want = [float(grad.mu), float(grad.eps), float(grad.C)]
+    assert all(abs(w) > 0 for w in want)
+    np.testing.assert_allclose(got["grad"], want, rtol=1e-6)
 
 
 def test_a_bad_setting_is_refused_at_import():

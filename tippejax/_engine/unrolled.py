@@ -30,7 +30,7 @@ slower and, on a GPU, runs much faster. `benchmarks/gpu.py`, peers.py's scene (S
 
 On a GPU every trip of the stage loop is a round of small kernels and, in a batch of few
 members, a wait for the loop's predicate; written out, the stages fuse into a few large
-kernels. Compilation took 9-11 s -> 17-22 s. On XLA:CPU the same program ran slower
+kernels. Compilation on the GPU took 9-12 s -> 13-25 s per program. On XLA:CPU the same program ran slower
 (`simulate_batch`, 512 tops, one device: 4.6 -> 7.1 ms per top) and compiled 2x slower, so
 tippejax writes the stages out on accelerators only (`unroll_stages`).
 """
