@@ -14,6 +14,9 @@ summary), a batch of 1000 on one JAX device, every run in `simulate_batch`'s CPU
   location, the summary's outputs, the checks in Python).
 
 tippejax's runs at rtol 2.45e-8 (the plain script's error at 1e-8, peers.py's ladder).
+Each run also with Dopri8's stages written out (`tippejax._engine.unrolled.UnrolledERK`,
+tippejax's default on accelerators; on CPUs it keeps diffrax's stage loop), and the plain
+script written out with XLA:CPU's fusion emitters on (its fastest form found).
 Interleaved rounds; ratios paired per round against the plain script.
 
     python benchmarks/engine_tax.py [ROUNDS]     # default 7; writes its RESULTS.md section
@@ -37,6 +40,7 @@ from _common import interleaved, machine_line, table, write_section  # noqa: E40
 import tippejax as tj  # noqa: E402
 from tippejax._engine.cpu import CPU_COMPILER_OPTIONS  # noqa: E402
 from tippejax._engine.segment import STEP_CONTROL, FlatField, Watch, ravel_state  # noqa: E402
+from tippejax._engine.unrolled import UnrolledERK  # noqa: E402
 from tippejax._engine.watch import WatchedSolver  # noqa: E402
 from tippejax._models.levels import LEVELS  # noqa: E402
 
@@ -44,7 +48,24 @@ BATCH, BLOCK = 1000, 125
 RTOL = 2.45e-8
 
 
-def engine_loop(watched: bool):
+WRITTEN_OUT = ", stages written out"
+FUSION_OPTIONS = {"xla_backend_optimization_level": 1}  # XLA:CPU's fusion emitters left on
+
+
+def _blocks(one, options):
+    def blocks(spins):
+        out = jax.lax.map(jax.vmap(one), spins.reshape(BATCH // BLOCK, BLOCK))
+        return jax.tree_util.tree_map(lambda x: x.reshape(BATCH, *x.shape[2:]), out)
+
+    return jax.jit(blocks, compiler_options=options)
+
+
+def plain_blocks(solver, options=CPU_COMPILER_OPTIONS):
+    """peers.py's plain script in the same blocks, with `solver`."""
+    return _blocks(lambda s: peers.plain_solve(s, 1e-8, 1e-10, solver=solver), options)
+
+
+def engine_loop(watched: bool, unrolled: bool = False):
     """The SO(3) field in a plain diffrax loop (with the watch where `watched`), in blocks."""
     level = dataclasses.replace(LEVELS["so3"], body=False)
 
@@ -52,7 +73,7 @@ def engine_loop(watched: bool):
         y = level.from_state(peers.TOP, tj.initial_state(peers.TOP, peers.THETA0, spin))
         flat, unravel = ravel_state(y, 64)
         field = FlatField(level, unravel, 64)
-        solver = diffrax.Dopri8()
+        solver = UnrolledERK(diffrax.Dopri8()) if unrolled else diffrax.Dopri8()
         if watched:
             watch = Watch(level, unravel, ("singular", "contact", "upright"))
             solver = WatchedSolver(solver, watch, (2,), pieces=1, terminating=(0, 1))
@@ -63,22 +84,34 @@ def engine_loop(watched: bool):
                                                       norm=field.error_norm, **STEP_CONTROL))
         return sol.ys[0][-1], sol.stats["num_steps"]
 
-    def blocks(spins):
-        out = jax.lax.map(jax.vmap(one), spins.reshape(BATCH // BLOCK, BLOCK))
-        return jax.tree_util.tree_map(lambda x: x.reshape(BATCH, *x.shape[2:]), out)
+    return _blocks(one, CPU_COMPILER_OPTIONS)
 
-    return jax.jit(blocks, compiler_options=CPU_COMPILER_OPTIONS)
+
+def tj_simulate_batch(spins, solver=None):
+    """`peers.tj_simulate_batch` at `RTOL`, with `solver` (tippejax's default where None)."""
+    sol = tj.simulate_batch(peers.TOP, peers.THETA0, np.asarray(spins), peers.T1, grid=(),
+                            model="so3", rtol=RTOL, atol=RTOL * 1e-2, summary=True,
+                            solver=solver)
+    return sol.states.omega, sol.num_steps
 
 
 def main():
     spins = jnp.asarray(np.linspace(140.0, 160.0, BATCH))
-    bare, watched = engine_loop(False), engine_loop(True)
-    fns = {
-        "plain diffrax script": lambda: peers.plain_blocks(spins, 1e-8, 1e-10),
-        "tippejax field, plain loop, no events": lambda: bare(spins),
-        "the same with the event watch": lambda: watched(spins),
-        "tj.simulate_batch (the whole engine)": lambda: peers.tj_simulate_batch(spins, RTOL),
-    }
+    written = UnrolledERK(diffrax.Dopri8())
+    fns = {}
+    for suffix, unrolled in (("", False), (WRITTEN_OUT, True)):
+        plain = plain_blocks(written if unrolled else diffrax.Dopri8())
+        bare, watched = engine_loop(False, unrolled), engine_loop(True, unrolled)
+        kw = dict(solver=written) if unrolled else {}
+        fns.update({
+            "plain diffrax script" + suffix: lambda plain=plain: plain(spins),
+            "tippejax field, plain loop, no events" + suffix: lambda bare=bare: bare(spins),
+            "the same with the event watch" + suffix: lambda watched=watched: watched(spins),
+            "tj.simulate_batch (the whole engine)" + suffix:
+                lambda kw=kw: tj_simulate_batch(spins, **kw),
+        })
+    fused = plain_blocks(written, FUSION_OPTIONS)
+    fns["plain diffrax script" + WRITTEN_OUT + ", fusion emitters on"] = lambda: fused(spins)
     load = os.getloadavg()[0]
     timed = interleaved(fns, repeats=ROUNDS)
     steps = {k: float(np.median(np.asarray(out[1]))) for k, (_, out) in timed.items()}
@@ -107,7 +140,7 @@ def main():
         "",
         "Read down the last column: what the field costs against the plain script's, then what "
         "the event watch adds, then the rest of the engine (event records and location, the "
-        "summary's outputs, the checks in Python).",
+        "summary's outputs, the checks in Python); then the same with the stages written out.",
     ])
     write_section("engine_tax.py", body)
 
