@@ -165,6 +165,12 @@ def interleaved(fns: dict, repeats: int = 5):
 # ----------------------------------------------------------------------------------------------
 
 
+def paired_ratios(walls, base_walls) -> list[float]:
+    """Round-by-round ratios of two runs' times from `interleaved` (each round's pair shares
+    the machine's load of that moment)."""
+    return [a / b for a, b in zip(walls, base_walls)]
+
+
 def _fresh_results() -> str:
     parts = [
         "# Benchmark results: engine, batches, gradients",

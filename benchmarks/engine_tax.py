@@ -35,7 +35,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import peers  # noqa: E402  (one host device, float64, the scene)
-from _common import interleaved, machine_line, table, write_section  # noqa: E402
+from _common import interleaved, machine_line, paired_ratios, table, write_section  # noqa: E402
 
 import tippejax as tj  # noqa: E402
 from tippejax._engine.cpu import CPU_COMPILER_OPTIONS  # noqa: E402
@@ -119,7 +119,7 @@ def main():
     base = "plain diffrax script"
     rows = []
     for k in fns:
-        ratios = [a / b for a, b in zip(wall[k], wall[base])]
+        ratios = paired_ratios(wall[k], wall[base])
         per_step = statistics.median(wall[k]) / (BATCH * steps[k]) * 1e6
         rows.append([k, f"{steps[k]:.0f}", f"{statistics.median(wall[k]) / BATCH * 1e3:.3f}",
                      f"{per_step:.3f}", f"{statistics.median(ratios):.3f}"])

@@ -23,7 +23,7 @@ os.environ["TIPPEJAX_HOST_DEVICES"] = "2"
 
 import numpy as np  # noqa: E402
 import peers  # noqa: E402
-from _common import interleaved, machine_line, table, verdict, write_section  # noqa: E402
+from _common import interleaved, machine_line, paired_ratios, table, verdict, write_section  # noqa: E402
 
 import tippejax as tj  # noqa: E402
 
@@ -58,7 +58,7 @@ def main():
     pairs = []
     for a, b, what in (("simulate_batch, 1 device", "numba, 1 thread", "one core"),
                        ("simulate_batch, 2 devices", "numba, 2 threads (prange)", "2 cores")):
-        ratios = [x / y for x, y in zip(wall[a], wall[b])]
+        ratios = paired_ratios(wall[a], wall[b])
         med = statistics.median(ratios)
         pairs.append([f"{a} / {b} ({what})", f"{med:.3f}",
                       f"{np.percentile(ratios, 25):.3f}-{np.percentile(ratios, 75):.3f}",

@@ -22,6 +22,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import peers  # noqa: E402  (one host device, float64, the scene)
+from _common import paired_ratios  # noqa: E402
 
 EQUAL_ERROR = dict(plain=1e-8, so3=2.45e-8, full=2.70e-8)
 """rtol of each at the plain script's error at rtol 1e-8 (4.42e-8), from `peers.py --big`
@@ -53,7 +54,7 @@ def main():
     print("devices:", jax.devices())
 
     def paired(a, b):
-        ratios = [x / y for x, y in zip(times[a], times[b])]
+        ratios = paired_ratios(times[a], times[b])
         return (f"median {statistics.median(ratios):.3f} (quartiles "
                 f"{np.percentile(ratios, 25):.3f}-{np.percentile(ratios, 75):.3f})")
 
