@@ -1,7 +1,17 @@
 import gc
+import os
 
-import jax
-import pytest
+# Under pytest-xdist (the README's test command runs `-n auto`) every worker keeps its own
+# persistent compilation cache: JAX writes an entry in place, and a worker could read another's
+# entry half written. Set before any test module imports tippejax, which turns the cache on.
+_worker = os.environ.get("PYTEST_XDIST_WORKER")
+if _worker and not (os.environ.get("TIPPEJAX_COMPILATION_CACHE")
+                    or os.environ.get("JAX_COMPILATION_CACHE_DIR")):
+    _base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    os.environ["TIPPEJAX_COMPILATION_CACHE"] = os.path.join(_base, "tippejax", f"jax-{_worker}")
+
+import jax  # noqa: E402
+import pytest  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
