@@ -33,3 +33,18 @@ def _free_compiled_code_between_modules():
     yield
     jax.clear_caches()
     gc.collect()
+
+
+LONGEST_FIRST = ("test_fit.py", "test_shared_steps.py", "test_unrolled.py", "test_engine.py",
+                 "test_maps.py", "test_grad.py", "test_projection.py", "test_cache.py",
+                 "test_simulate.py", "test_batch.py", "test_gyroscopic.py", "test_inversion.py")
+"""The test files that take longest (a serial run's `--durations` on a 2-core machine, longest
+first). They are collected first, so that pytest-xdist, which hands out whole files in
+collection order (`--dist loadfile`), starts them first and fills in with the short files:
+otherwise a long file handed out late keeps one worker busy while the others idle."""
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    # sorted() is stable: the tests of a file keep their order.
+    items[:] = sorted(items, key=lambda item: rank.get(item.path.name, len(rank)))

@@ -487,8 +487,14 @@ print(json.dumps(dict(devices=jax.device_count(), flags=os.environ.get("XLA_FLAG
     diff=float(np.max(np.abs(np.asarray(sharded.theta) - np.asarray(plain.theta)))))))
 """
 
+COUNT_SCRIPT = r"""
+import json, os
+import tippejax as tj, jax
+print(json.dumps(dict(devices=jax.device_count(), flags=os.environ.get("XLA_FLAGS", ""))))
+"""
 
-def _devices_run(**env_changes):
+
+def _devices_run(script=COUNT_SCRIPT, **env_changes):
     import json
     import os
     import subprocess
@@ -497,7 +503,7 @@ def _devices_run(**env_changes):
     env = {k: v for k, v in os.environ.items()
            if k not in ("XLA_FLAGS", "TIPPEJAX_HOST_DEVICES", "TIPPEJAX_CPU_SCHEDULER")}
     env.update(env_changes)
-    out = subprocess.run([sys.executable, "-c", DEVICES_SCRIPT], env=env, capture_output=True,
+    out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True,
                          text=True, check=True).stdout
     return json.loads(out.strip().splitlines()[-1])
 
@@ -508,7 +514,7 @@ def test_every_core_is_a_device_by_default():
     same results; TIPPEJAX_HOST_DEVICES=1 keeps one device; a flag the user set is kept."""
     import os
 
-    two = _devices_run(TIPPEJAX_HOST_DEVICES="2")
+    two = _devices_run(DEVICES_SCRIPT, TIPPEJAX_HOST_DEVICES="2")
     assert two["devices"] == 2 and two["diff"] < 1e-12
     assert "--xla_force_host_platform_device_count=2" in two["flags"]
     assert _devices_run(TIPPEJAX_HOST_DEVICES="1")["devices"] == 1
