@@ -1,17 +1,13 @@
 import gc
-import os
 
-# Under pytest-xdist (the README's test command runs `-n auto`) every worker keeps its own
-# persistent compilation cache: JAX writes an entry in place, and a worker could read another's
-# entry half written. Set before any test module imports tippejax, which turns the cache on.
-_worker = os.environ.get("PYTEST_XDIST_WORKER")
-if _worker and not (os.environ.get("TIPPEJAX_COMPILATION_CACHE")
-                    or os.environ.get("JAX_COMPILATION_CACHE_DIR")):
-    _base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    os.environ["TIPPEJAX_COMPILATION_CACHE"] = os.path.join(_base, "tippejax", f"jax-{_worker}")
+import jax
+import pytest
 
-import jax  # noqa: E402
-import pytest  # noqa: E402
+# Under pytest-xdist (the README's test command runs `-n auto`) the workers share the persistent
+# compilation cache, so that a program one worker compiled is loaded by the others. JAX writes
+# an entry in place; a worker that reads an entry another is still writing gets a truncated
+# compressed stream, which JAX reports as a warning and compiles again (`_cache_read`), and
+# tippejax's export cache writes through a temporary file.
 
 jax.config.update("jax_enable_x64", True)
 
