@@ -39,15 +39,6 @@ SHARED_1, SHARED_2 = "simulate_batch shared steps, 1 device", "simulate_batch sh
 NUMBA_1, NUMBA_2 = "numba, 1 thread", "numba, 2 threads (prange)"
 
 
-def reference(spins):
-    """The final states of the plain script at `REFERENCE_RTOL`, member by member."""
-    import jax
-
-    run = jax.jit(jax.vmap(peers.plain_solve, in_axes=(0, None, None)))
-    finals, _ = run(spins, REFERENCE_RTOL, REFERENCE_RTOL * 1e-2)
-    return np.asarray(finals)
-
-
 def main():
     nb_run, numba = peers.numba_parts()
     spins = np.linspace(140.0, 160.0, BATCH)
@@ -67,7 +58,7 @@ def main():
            PER_MEMBER_2: lambda: batch(True), SHARED_2: lambda: batch(True, "shared")}
     start = time.perf_counter()
     load = os.getloadavg()[0]
-    ref = reference(spins)
+    ref = peers.plain_reference(spins, REFERENCE_RTOL)
     errors = {k: max(peers.state_error(f, r) for f, r in zip(np.asarray(fn()), ref))
               for k, fn in fns.items()}
     print({k: f"{e:.2e}" for k, e in errors.items()})

@@ -106,8 +106,7 @@ def worker(rounds: int) -> dict:
     for model in ("so3", "full"):
         for steps in ("per_member", "shared"):
             runs[f"tippejax {model}, {steps.replace('_', ' ')}"] = tj_run(model, steps)
-    reference = np.asarray(jax.jit(jax.vmap(
-        lambda s: peers.plain_solve(s, 1e-12, 1e-14)[0]))(jnp.asarray(spins)))
+    reference = peers.plain_reference(spins, 1e-12)
     # The full model's own reference: the per-member path at rtol 1e-12.
     ref_full = tj.simulate_batch(top, theta0=peers.THETA0, spin=spins, t1=peers.T1,
                                  model="full", summary=True, rtol=1e-12, atol=1e-14,
