@@ -347,7 +347,7 @@ def test_ravel_state_round_trip_and_leaves():
 def test_one_top_is_packed_in_one_vector_and_a_batch_in_narrow_ones(top):
     """A run of one top carries its state in one vector, a vmapped batch in vectors of at most
     `PACK_WIDTH`, one top differentiated in forward mode in vectors of at most
-    `FORWARD_MODE_PACK_WIDTH` (only the speed depends on it, `ravel_state`): the layout is
+    `FORWARD_MODE_PACK_WIDTH` (one vector as well; only the speed depends on it, `ravel_state`): the layout is
     picked inside and outside `vmap` as documented, and the full model's end state and
     inversion time of one top are the same either way (the same arithmetic, to rounding; the
     derivatives in both modes are checked against each other and against finite differences
@@ -378,7 +378,7 @@ def test_one_top_is_packed_in_one_vector_and_a_batch_in_narrow_ones(top):
     jax.jacfwd(lambda x: seen.append(pack_width_for(x, adjoint=forward)) or x)(jnp.ones(2))
     assert seen[2:] == [PACK_WIDTH, FORWARD_MODE_PACK_WIDTH]
     flat, _ = ravel_state(z, FORWARD_MODE_PACK_WIDTH)
-    assert [x.shape for x in flat] == [(4,), (3,), (3,), (4,)]
+    assert [x.shape for x in flat] == [(14,)]
 
     y0 = tj.initial_state(top, 0.1, 150.0)
     one = tj.simulate(top, y0, 6.0, summary=True, model="full")

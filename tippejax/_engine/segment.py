@@ -80,10 +80,10 @@ ONE_TOP_PACK_WIDTH = 64
 """Most components in one flat vector of a level state in a run of one top: the whole state
 in one vector (see `ravel_state`)."""
 
-FORWARD_MODE_PACK_WIDTH = 4
+FORWARD_MODE_PACK_WIDTH = ONE_TOP_PACK_WIDTH
 """Most components in one flat vector of a level state in a run of one top differentiated in
-forward mode (`adjoint=diffrax.ForwardMode()`): position and velocity, the axis, omega (and
-frame and spin angle) each a vector of their own (see `ravel_state`)."""
+forward mode (`adjoint=diffrax.ForwardMode()`, and the Jacobian of `simulate`'s default
+adjoint): the whole state in one vector, as undifferentiated (see `ravel_state`)."""
 
 STEP_CONTROL = dict(pcoeff=0.4, icoeff=0.3)
 """The step-size controller's coefficients (`diffrax.PIDController`): a PI controller, the
@@ -146,15 +146,18 @@ def ravel_state(y: PyTree, width: int = PACK_WIDTH):
     then the full model from the hand-over) is the exception: one top ran 12 ms with the batch
     layout and 22 ms with one vector, so `simulate` keeps the batch layout for it.
 
-    Differentiated in forward mode, one top wants narrower vectors again: each vector then
-    carries a batch of tangents (seven for `jax.jacfwd` over a top's fields), and the chains run
-    on two threads whatever the layout. `jax.jacfwd` of the standard top's t_invert over the
-    seven fields (`benchmarks/gradients.py`'s scene, full model): one 10-vector 121 ms, 4 + 6
-    107 ms, 4 + 3 + 3 95 ms, 2 + 2 + 3 + 3 137 ms, against a forward solve of 26 ms; 201 saved
-    theta 206 ms with one vector, 130 ms with 4 + 3 + 3; SO(3), 3 + 3 against one 6-vector:
-    78 against 84 ms, and 97 against 129 ms with the saves. A vmapped batch keeps
-    `PACK_WIDTH` (64 tops: 2.7 s with it, 4.6 s with 4 + 3 + 3). Reverse mode (`jax.grad`)
-    keeps one vector (180 ms; 4 + 3 + 3 212 ms, 4 + 6 274 ms).
+    Differentiated in forward mode (each vector then carries a batch of tangents, seven for
+    the derivatives in a top's fields), one top keeps one vector too. `jax.grad` of
+    `benchmarks/gradients.py`'s scene (the standard top's 20 s run, the seven fields, default
+    adjoint: the Jacobian by forward mode) on the 2-core Intel Xeon of `benchmarks/RESULTS.md`,
+    the Jacobian's state as one vector against 4 + 3 + 3 (SO(3): 3 + 3), medians of 11
+    interleaved calls in one process, process CPU time: sum(theta) over 256 saves, full model
+    174 against 344 ms (wall 174 against 240 ms; the narrow vectors ran on two threads, one
+    vector on one), SO(3) 123 against 294 ms; t_invert (summary) full 279 against 273 ms,
+    SO(3) 294 against 313 ms (a forward solve 33-55 ms); compiling the gradient 7.7-8.1 against
+    8.1-11.1 s. (An earlier engine on a 2-core AMD EPYC, timed by wall clock, had found
+    4 + 3 + 3 faster: 95 against 121 ms for t_invert, 130 against 206 ms for 201 saves.) A
+    vmapped batch keeps `PACK_WIDTH` (64 tops: 2.7 s with it, 4.6 s with 4 + 3 + 3).
     """
     leaves, treedef = jax.tree_util.tree_flatten(y)
     dtype = jnp.result_type(*leaves)
