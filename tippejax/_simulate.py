@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike
 
-from ._cache import cacheable, cached_call
+from ._cache import cacheable, cached_call, to_device
 from ._engine.chain import run_chain, run_chain_shared
 from ._engine.cpu import own_compiler_options
 from ._engine.segment import (
@@ -89,7 +89,9 @@ def _observe(top, states: State, friction_model: str, valid, names=OBSERVED):
 @eqx.filter_jit
 def _run(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_on_contact,
          max_steps, adjoint, progress, pieces, names=OBSERVED, inversion=True, locate=True,
-         pack_width=PACK_WIDTH, jacobian_pack_width=FORWARD_MODE_PACK_WIDTH):
+         pack_width=PACK_WIDTH, jacobian_pack_width=FORWARD_MODE_PACK_WIDTH, outcome=False):
+    """The run of one top (`run_chain`) and its observed fields (`_outputs`); with
+    `outcome=True` also `sol.outcome` and `sol.settled` (`_classify`), in the same program."""
     run = functools.partial(
         _run_core, level=level, solver=solver, guard_stiff=guard_stiff,
         stop_on_contact=stop_on_contact, max_steps=max_steps, progress=progress,
@@ -103,7 +105,12 @@ def _run(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_on
                               pack_width=jacobian_pack_width))
     else:
         run = functools.partial(run, adjoint=adjoint, pack_width=pack_width)
-    return run(top, y0, ts, t0, t1, rtol, atol)
+    out = run(top, y0, ts, t0, t1, rtol, atol)
+    if outcome:
+        # (integer outputs: their inputs' derivatives are not traced)
+        out["outcome"], out["settled"] = _classify(
+            *jax.lax.stop_gradient((top, out["jellet_launch"], out["theta_end"])), out["result"])
+    return out
 
 
 def _run_core(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_on_contact,
@@ -191,8 +198,7 @@ SETTLE_TOL = 0.1
 """Tilt distance (rad) within which a run's end counts as `settled` on its outcome."""
 
 
-@eqx.filter_jit
-def _outcome(top, J, theta_end, result):
+def _classify(top, J, theta_end, result):
     """`sol.outcome`, `sol.settled`: the end state classified as `outcome_map` does."""
     from ._maps import classify_end  # (_maps imports simulate)
 
@@ -200,8 +206,17 @@ def _outcome(top, J, theta_end, result):
     return outcome, settled
 
 
+
 def _concrete(*xs) -> bool:
     return not any(is_traced(x) for x in jax.tree_util.tree_leaves(xs))
+
+
+def _as_dtype(x, dtype):
+    """`x` as an array of `dtype`: a jax array or tracer of that dtype as it is, a host value
+    put on the device without a program (`to_device`), else converted by `jnp.asarray`."""
+    if isinstance(x, jax.Array) or is_traced(x):
+        return x if jnp.result_type(x) == dtype else jnp.asarray(x, dtype)
+    return to_device(x, dtype)
 
 
 def _check_top_and_state(top: TippeTop, y0: State):
@@ -233,14 +248,16 @@ _STATE_MESSAGE = (
 )
 
 
-def _state_defect(y0: State):
+def _state_defect(y0: State, xp=jnp):
+    """How far `y0`'s axis and body vectors are from unit vectors perpendicular to each other
+    (inf if a field is not finite); `xp=np` for a concrete state (no device programs)."""
     a, b = y0.axis, y0.body
-    defect = jnp.maximum(jnp.abs(jnp.sum(a * a) - 1), jnp.abs(jnp.sum(b * b) - 1))
-    defect = jnp.maximum(defect, jnp.abs(jnp.sum(a * b)))
-    finite = jnp.all(
-        jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(y0)])
+    defect = xp.maximum(xp.abs(xp.sum(a * a) - 1), xp.abs(xp.sum(b * b) - 1))
+    defect = xp.maximum(defect, xp.abs(xp.sum(a * b)))
+    finite = xp.all(
+        xp.stack([xp.all(xp.isfinite(x)) for x in jax.tree_util.tree_leaves(y0)])
     )
-    return jnp.where(finite, defect, jnp.inf)
+    return xp.where(finite, defect, xp.inf)
 
 
 def _check_tolerances(rtol, atol):
@@ -253,10 +270,13 @@ def _check_tolerances(rtol, atol):
 
 
 def _check_saveat(saveat, t0, t1, dtype):
-    ts = jnp.asarray(saveat, dtype=dtype)
+    """`saveat` checked, as a numpy array where it and the times are concrete (no device
+    program), else as a traced array that raises at run time if it is out of order."""
+    concrete = _concrete(saveat, t0, t1)
+    ts = np.asarray(saveat, dtype=dtype) if concrete else jnp.asarray(saveat, dtype=dtype)
     if ts.ndim != 1 or ts.shape[0] < 1:
         raise ValueError(f"saveat must be a 1-d array of save times, got shape {ts.shape}.")
-    if _concrete(ts, t0, t1):
+    if concrete:
         arr = np.asarray(ts, dtype=float)
         if not np.all(np.isfinite(arr)):
             raise ValueError("saveat must hold finite times.")
@@ -306,7 +326,10 @@ def _save_times(summary, saveat, t0, t1, dtype):
     if summary:
         ts = None
     elif saveat is None:
-        ts = jnp.linspace(t0, t1, 1001, dtype=dtype)
+        if _concrete(t0, t1):  # (numpy: no device program for a default grid)
+            ts = np.linspace(np.asarray(t0, dtype), np.asarray(t1, dtype), 1001, dtype=dtype)
+        else:
+            ts = jnp.linspace(t0, t1, 1001, dtype=dtype)
     else:
         ts = _check_saveat(saveat, t0, t1, dtype)
     # Save grids are padded to a bucket length (the next power of two, at least 16) with
@@ -315,8 +338,11 @@ def _save_times(summary, saveat, t0, t1, dtype):
     n_save = None if ts is None else int(ts.shape[0])
     if ts is not None:
         bucket = save_bucket(n_save)
+        xp = np if isinstance(ts, np.ndarray) else jnp
         if bucket > n_save:
-            ts = jnp.concatenate([ts, jnp.broadcast_to(ts[-1:], (bucket - n_save,))])
+            ts = xp.concatenate([ts, xp.broadcast_to(ts[-1:], (bucket - n_save,))])
+        if xp is np:
+            ts = to_device(ts, dtype)
     return ts, n_save
 
 
@@ -426,12 +452,13 @@ def simulate(
         model = choose_model(top, y0, tolerance=tolerance)
     rtol, atol = _tolerances_for(dtype, rtol, atol)
     ts, n_save = _save_times(summary, saveat, t0, t1, dtype)
-    y0 = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), y0)
-    defect = _state_defect(y0)
-    if _concrete(defect):
+    y0 = jax.tree_util.tree_map(lambda x: _as_dtype(x, dtype), y0)
+    if _concrete(y0):  # (checked in numpy: no device program)
+        defect = _state_defect(jax.tree_util.tree_map(np.asarray, y0), xp=np)
         if not float(defect) < _STATE_TOL:
             raise ValueError(_STATE_MESSAGE)
     else:
+        defect = _state_defect(y0)
         y0 = eqx.error_if(y0, ~(defect < _STATE_TOL), _STATE_MESSAGE)
     guard_stiff = solver is None and not _concrete(top)
     if solver is None:
@@ -441,8 +468,7 @@ def simulate(
     level = dataclasses.replace(LEVELS[model], body=not summary if body is None else bool(body))
     with cacheable():
         out = cached_call(
-            _run, top, y0, ts, jnp.asarray(t0, dtype), jnp.asarray(t1, dtype),
-            jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype),
+            _run, top, y0, ts, *(_as_dtype(x, dtype) for x in (t0, t1, rtol, atol)),
             compiler_options=own_compiler_options(),
             level=level, solver=solver, guard_stiff=guard_stiff,
             stop_on_contact=on_contact_loss == "stop", max_steps=int(max_steps),
@@ -453,6 +479,7 @@ def simulate(
                 top, y0, t0, t1, rtol, atol, ts, adjoint=adjoint),
             jacobian_pack_width=PACK_WIDTH if LEVELS[model].slow_flow else pack_width_for(
                 top, y0, t0, t1, rtol, atol, ts, adjoint=diffrax.ForwardMode()),
+            outcome=True,
         )
     if n_save is not None and out["ts"].shape[0] != n_save:
         for key in _SAVED:
@@ -466,11 +493,8 @@ def simulate(
                 name = f"{model}->{fallback}"
         else:
             name = f"{model}(->{fallback} where t_chart_switch is finite)"
-    theta_end, jellet_launch = out.pop("theta_end"), out.pop("jellet_launch")
-    with cacheable():
-        outcome, settled = cached_call(_outcome, top, jellet_launch, theta_end, out["result"],
-                                        compiler_options=own_compiler_options())
-    sol = Solution(model=name, outcome=outcome, settled=settled, **out)
+    del out["theta_end"], out["jellet_launch"]
+    sol = Solution(model=name, **out)
     if throw:
         sol = _raise_if_failed(sol, on_contact_loss, top)
     return sol
@@ -537,7 +561,7 @@ def _run_shared(tops, y0s, ts, t0, t1, rtol, atol, *, level, solver, stop_on_con
         in_axes=(axes, 0, 0),
     )(tops, y0s, out)
     theta_end, jellet_launch = fields.pop("theta_end"), fields.pop("jellet_launch")
-    outcome, settled = jax.vmap(_outcome, in_axes=(axes, 0, 0, 0))(
+    outcome, settled = jax.vmap(_classify, in_axes=(axes, 0, 0, 0))(
         tops, jellet_launch, theta_end, fields["result"]
     )
     return dict(fields, outcome=outcome, settled=settled)
@@ -597,15 +621,18 @@ def _max_steps_hint(top: TippeTop) -> str:
 
 
 def _raise_if_failed(sol: Solution, on_contact_loss: str, top: TippeTop | None = None) -> Solution:
-    failed = sol.result != RESULTS.successful
+    allowed = [RESULTS.successful]
     if on_contact_loss == "continue":
-        failed = failed & (sol.result != RESULTS.contact_lost)
-    if _concrete(failed):
-        if bool(np.any(np.asarray(failed))):
-            first = np.argmax(np.asarray(failed).ravel())
-            item = jax.tree_util.tree_map(lambda x: jnp.ravel(x)[first], sol.result)
+        allowed.append(RESULTS.contact_lost)
+    if _concrete(sol.result):  # (read on the host: no device program)
+        codes = np.ravel(np.asarray(sol.result._value))
+        failed = ~np.isin(codes, [int(r._value) for r in allowed])
+        if bool(np.any(failed)):
+            first = int(np.argmax(failed))
+            item = jax.tree_util.tree_map(lambda x: np.ravel(np.asarray(x))[first], sol.result)
             message = RESULTS.message(item)
-            if bool(item == RESULTS.max_steps_reached) and top is not None and _concrete(top):
+            if (codes[first] == int(RESULTS.max_steps_reached._value) and top is not None
+                    and _concrete(top)):
                 message = "The maximum number of solver steps was reached before t1." + (
                     _max_steps_hint(top)
                 )
@@ -614,6 +641,9 @@ def _raise_if_failed(sol: Solution, on_contact_loss: str, top: TippeTop | None =
                 "(pass throw=False to get the flagged solution instead)."
             )
         return sol
+    failed = sol.result != allowed[0]
+    for code in allowed[1:]:
+        failed = failed & (sol.result != code)
     return sol.result.error_if(sol, failed)
 
 
