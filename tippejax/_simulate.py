@@ -409,8 +409,8 @@ def simulate(
       times), for `jax.grad`/`jax.vjp` and `jax.jacfwd`/`jax.jvp` alike
       (`tippejax/_engine/sensitivity.py`): its cost grows with the number of differentiated
       scalars (a run of one top has at most ~25), not with the outputs; for the seven fields
-      of the standard top's 20 s run about 4x the solve in either mode
-      (`benchmarks/RESULTS.md`, gradients.py), against 6-9x for reverse mode through the
+      of the standard top's 20 s run 3.4-5.5x the solve in either mode on a 2-core CPU
+      (`benchmarks/RESULTS.md`, gradients.py), against 5.4-8.1x for reverse mode through the
       solve's steps. Or a diffrax adjoint: `diffrax.RecursiveCheckpointAdjoint()` (reverse
       mode through the steps; no forward mode) or `diffrax.ForwardMode()` (forward mode
       only).
