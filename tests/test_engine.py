@@ -347,11 +347,11 @@ def test_ravel_state_round_trip_and_leaves():
 def test_one_top_is_packed_in_one_vector_and_a_batch_in_narrow_ones(top):
     """A run of one top carries its state in one vector, a vmapped batch in vectors of at most
     `PACK_WIDTH`, one top differentiated in forward mode in vectors of at most
-    `FORWARD_MODE_PACK_WIDTH` (one vector as well; only the speed depends on it, `ravel_state`): the layout is
-    picked inside and outside `vmap` as documented, and the full model's end state and
-    inversion time of one top are the same either way (the same arithmetic, to rounding; the
-    derivatives in both modes are checked against each other and against finite differences
-    in `test_grad.py`)."""
+    `FORWARD_MODE_PACK_WIDTH` (one vector as well; only the speed depends on it,
+    `ravel_state`): the layout is picked inside and outside `vmap` as documented, and the full
+    model's end state and inversion time of one top are the same either way (the same
+    arithmetic, to rounding; the derivatives in both modes are checked against each other and
+    against finite differences in `test_grad.py`)."""
     from tippejax._engine.segment import (
         FORWARD_MODE_PACK_WIDTH,
         ONE_TOP_PACK_WIDTH,

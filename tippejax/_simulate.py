@@ -206,7 +206,6 @@ def _classify(top, J, theta_end, result):
     return outcome, settled
 
 
-
 def _concrete(*xs) -> bool:
     return not any(is_traced(x) for x in jax.tree_util.tree_leaves(xs))
 

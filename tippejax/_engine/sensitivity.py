@@ -15,8 +15,9 @@ Reverse mode through the solve itself (`diffrax.RecursiveCheckpointAdjoint`) ins
 solve's ~3000 steps backwards through every Runge-Kutta stage, the event watch and the
 step-size controller; for the seven fields of the standard top's 20 s run that cost 5.4-8.1x
 the solve against 3.4-5.5x for $J$ (`benchmarks/gradients.py`, a 2-core CPU), and more the
-more small operations a step holds. It remains the better choice for many differentiated inputs, which
-a single run of a top does not have (a batch of tops is `jax.vmap` of single runs).
+more small operations a step holds. It remains the better choice for many differentiated
+inputs, which a single run of a top does not have (a batch of tops is `jax.vmap` of single
+runs).
 
 `forward_sensitivities(primal, forward)` wraps a function of arrays in `jax.custom_jvp`: its
 value is `primal(*args)` (any solve, not differentiated), its derivative rule builds $J$
