@@ -163,14 +163,15 @@ def plain_shared_solve(spins, rtol, atol, solver=None):
 
 _plain_vmap = jax.jit(jax.vmap(plain_solve, in_axes=(0, None, None, None)))
 
+_plain_vmap_pi = jax.jit(jax.vmap(functools.partial(plain_solve, controller=PI_CONTROLLER),
+                                  in_axes=(0, None, None, None)))
+
 
 def plain_reference(spins, rtol=1e-12):
     """The final states (N, 6) of the plain script at `rtol` (atol rtol/100), member by member:
     the reference of a batch's errors (`state_error`)."""
     finals, _ = _plain_vmap(jnp.asarray(spins), jnp.asarray(rtol), jnp.asarray(rtol * 1e-2), None)
     return np.asarray(finals)
-_plain_vmap_pi = jax.jit(jax.vmap(functools.partial(plain_solve, controller=PI_CONTROLLER),
-                                  in_axes=(0, None, None, None)))
 
 
 def batch_mesh(size):
