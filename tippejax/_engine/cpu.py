@@ -8,6 +8,18 @@ it owns, the ones it calls at the top level (`simulate` outside the user's `jit`
 `CPU_COMPILER_OPTIONS`, and traces their batches with the state in one vector
 (`CPU_BATCH_PACK_WIDTH`). A user's own `jax.jit` keeps XLA's defaults: these are options of
 one program (`jax.jit`'s `compiler_options`), not process-wide flags.
+
+The largest single kernel of such a batch is not the vector field. `perf record` on one
+pinned core running `simulate_batch` (500 SO(3) tops, peers.py's scene, Intel Xeon,
+2026-11-28) put about 45% of the samples in one loop: the copy that transposes the stage
+buffer (members x 14 stages x 6) before each stage's combination $\\sum_j a_{ij} k_j$, which
+diffrax forms with `jnp.tensordot` over the stage axis, under `jax.vmap` the buffer's middle
+axis; under these options it is scalar moves with an index division per element. It is
+diffrax's loop and the plain script pays it too. Two ways round it were slower: the
+combination written as a product and a sum over the stage axis (XLA:CPU hands both to
+YNNPACK; the plain script in blocks 1.90 -> 2.65 s per call) and the stages written out
+(`UnrolledERK`, 1.7x the plain script in blocks against 1.2-1.3x with the loop, also with
+optimisation barriers between the stages).
 """
 
 from __future__ import annotations
