@@ -1,6 +1,7 @@
-"""`UnrolledERK`: a Runge-Kutta step with its stages written out equals diffrax's stage loop
-(the independent route: diffrax's own implementation of the same tableau), and tippejax's
-solves with it (the accelerator default) equal the CPU default's."""
+"""`UnrolledERK` (a Runge-Kutta step with its stages written out, the accelerator default) and
+`StageLoopERK` (tippejax's stage loop, the CPU default): a step of each equals diffrax's stage
+loop (the independent route: diffrax's own implementation of the same tableau), and
+tippejax's solves with either equal the same solves with diffrax's loop."""
 
 import json
 import os
@@ -13,7 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from tippejax._engine.unrolled import UnrolledERK, unrollable
+from tippejax._engine import segment
+from tippejax._engine.unrolled import StageLoopERK, UnrolledERK, unrollable
 
 SOLVERS = [diffrax.Dopri8, diffrax.Dopri5, diffrax.Tsit5]
 
@@ -31,11 +33,15 @@ Y0 = {"x": jnp.array([0.7, -0.4]), "v": jnp.array(1.3)}
 ARGS = (0.5, -1.1)
 
 
+WRAPPERS = [UnrolledERK, StageLoopERK]
+
+
+@pytest.mark.parametrize("wrapper", WRAPPERS)
 @pytest.mark.parametrize("solver_cls", SOLVERS)
-def test_a_step_equals_the_stage_loop(solver_cls):
+def test_a_step_equals_the_stage_loop(solver_cls, wrapper):
     term = diffrax.ODETerm(_field)
     base = solver_cls()
-    unrolled = UnrolledERK(base)
+    unrolled = wrapper(base)
     t0, t1 = 0.3, 0.55
     state = base.init(term, t0, t1, Y0, ARGS)
     want = base.step(term, t0, t1, Y0, ARGS, state, False)
@@ -54,7 +60,8 @@ def test_a_step_equals_the_stage_loop(solver_cls):
                                rtol=1e-12)
 
 
-def test_a_solve_with_jumps_equals_the_stage_loop():
+@pytest.mark.parametrize("wrapper", WRAPPERS)
+def test_a_solve_with_jumps_equals_the_stage_loop(wrapper):
     # jump_ts makes diffrax pass a traced `made_jump`: the kept last stage is recomputed
     def solve(solver, a):
         return diffrax.diffeqsolve(
@@ -66,19 +73,20 @@ def test_a_solve_with_jumps_equals_the_stage_loop():
 
     args = jnp.array([0.5, 0.9])
     want = jax.vmap(lambda a: solve(diffrax.Dopri5(), a))(args)
-    got = jax.vmap(lambda a: solve(UnrolledERK(diffrax.Dopri5()), a))(args)
+    got = jax.vmap(lambda a: solve(wrapper(diffrax.Dopri5()), a))(args)
     np.testing.assert_array_equal(got.stats["num_steps"], want.stats["num_steps"])
     np.testing.assert_allclose(got.ys["x"], want.ys["x"], rtol=1e-10, atol=1e-12)
     # a wrong stage after a jump would be an O(1) error in the first step after it
-    wrong = solve(UnrolledERK(diffrax.Dopri5()), 0.5)
+    wrong = solve(wrapper(diffrax.Dopri5()), 0.5)
     assert np.max(np.abs(wrong.ys["x"] - want.ys["x"][0])) < 1e-9
 
 
+@pytest.mark.parametrize("wrapper", WRAPPERS)
 @pytest.mark.parametrize("solver", [diffrax.Kvaerno5(), diffrax.Euler(), diffrax.Heun()])
-def test_refuses_what_it_cannot_write_out(solver):
+def test_refuses_what_it_cannot_write_out(solver, wrapper):
     assert not unrollable(solver)
     with pytest.raises(ValueError, match="first-same-as-last"):
-        UnrolledERK(solver)
+        wrapper(solver)
 
 
 SCRIPT = """
@@ -111,9 +119,9 @@ def final_height_and_spin(top):
     return sol.states.axis[-1, 2] + 1e-3 * sol.states.omega[-1, 2]
 
 
-def _run(setting, *parts):
+def _run(setting, *parts, prepared="UnrolledERK"):
     """SCRIPT in a new process with `TIPPEJAX_UNROLL_STAGES=setting`; `parts`: "solves",
-    "grad"."""
+    "grad"; `prepared`: the solver class the process must run Dopri8 as."""
     env = dict(os.environ, TIPPEJAX_UNROLL_STAGES=setting, TIPPEJAX_HOST_DEVICES="1",
                PYTHONPATH=os.pathsep.join(
                    [os.path.dirname(os.path.abspath(__file__))]
@@ -122,17 +130,14 @@ def _run(setting, *parts):
                           text=True)
     assert proc.returncode == 0, proc.stderr[-3000:]
     got = json.loads(proc.stdout.strip().splitlines()[-1])
-    assert got["prepared"] == "UnrolledERK"
+    assert got["prepared"] == prepared
     return got
 
 
-def test_stages_written_out_give_tippejax_the_stage_loops_results():
-    """The accelerator path (`TIPPEJAX_UNROLL_STAGES=1`) run on the CPU: the same events,
-    states and result codes as the CPU default's stage loop, per member and with shared
-    steps."""
+def _assert_same_solves(got):
+    """`got` (SCRIPT's "solves") against the same batches run here."""
     import tippejax as tj
 
-    got = _run("1", "solves")
     for model, steps in (("so3", "shared"), ("full", "per_member")):
         sol = tj.simulate_batch(tj.default_top(), theta0=0.1, spin=[120.0, 150.0, 185.0],
                                 t1=12.0, model=model, steps=steps, saveat=[1.0, 5.0])
@@ -142,6 +147,28 @@ def test_stages_written_out_give_tippejax_the_stage_loops_results():
         np.testing.assert_allclose(mine["t_invert"], sol.t_invert, rtol=1e-7, equal_nan=True)
         np.testing.assert_allclose(mine["axis"], sol.states.axis, rtol=1e-6, atol=1e-7)
         np.testing.assert_allclose(mine["omega"], sol.states.omega, rtol=1e-6, atol=1e-5)
+
+
+def test_the_cpu_default_is_tippejaxs_stage_loop():
+    prepared = segment._prepared_solver(
+        diffrax.Dopri8(), diffrax.PIDController(rtol=1e-8, atol=1e-8),
+        diffrax.RecursiveCheckpointAdjoint())
+    if os.environ.get("TIPPEJAX_UNROLL_STAGES", "auto") in ("", "auto"):
+        assert isinstance(prepared, StageLoopERK)
+
+
+def test_stages_written_out_give_tippejax_the_stage_loops_results():
+    """The accelerator path (`TIPPEJAX_UNROLL_STAGES=1`) run on the CPU: the same events,
+    states and result codes as the CPU default's stage loop, per member and with shared
+    steps."""
+    _assert_same_solves(_run("1", "solves"))
+
+
+def test_tippejaxs_stage_loop_gives_diffraxs_results():
+    """The CPU default (`StageLoopERK`) against diffrax's own stage loop
+    (`TIPPEJAX_UNROLL_STAGES=diffrax`, the independent route): the same events, states and
+    result codes, per member and with shared steps."""
+    _assert_same_solves(_run("diffrax", "solves", prepared="Dopri8"))
 
 
 @pytest.mark.slow

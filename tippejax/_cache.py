@@ -57,7 +57,7 @@ import threading
 import jax
 import numpy as np
 
-from ._engine.unrolled import unroll_stages
+from ._engine.unrolled import UNROLL_STAGES, unroll_stages
 
 _OFF = ("0", "false", "no", "off")
 MIN_COMPILE_TIME_SECS = 0.0
@@ -256,7 +256,7 @@ def _key(name: str, in_tree, leaves, static: dict, fixed: dict) -> str | None:
         _VERSIONS = _versions()
     avals = ";".join(f"{x.dtype}{x.shape}{'w' if x.weak_type else ''}" for x in leaves)
     flags = (f"x64={jax.config.jax_enable_x64};platform={jax.default_backend()};"
-             f"unroll={unroll_stages()}")
+             f"unroll={unroll_stages()};stages={UNROLL_STAGES}")
     blob = "\n".join([name, text, str(in_tree), avals, flags, _VERSIONS])
     return name + "-" + hashlib.sha256(blob.encode()).hexdigest()[:40]
 

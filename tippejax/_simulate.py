@@ -399,9 +399,11 @@ def simulate(
       `atol` to `1e-7`.
     - `solver`: any diffrax solver with an error estimate; default `default_solver(top)`:
       Dopri8 (Dopri5 for the gyroscopic level), Tsit5 under strong friction, Kvaerno5 under
-      very stiff friction. On a GPU or other accelerator an explicit Runge-Kutta solver's
-      stages run written out, not in diffrax's stage loop: the same tableau, results equal
-      to rounding, a faster program that compiles slower (`TIPPEJAX_UNROLL_STAGES`).
+      very stiff friction. An explicit Runge-Kutta solver's stages do not run in
+      diffrax's stage loop: on a GPU or other accelerator they are written out (a faster
+      program that compiles slower), on a CPU they run in tippejax's own loop, which forms
+      each stage without copying the others (about 2x faster in a batch). The same
+      tableau, results equal to rounding (`TIPPEJAX_UNROLL_STAGES`).
     - `max_steps`: maximum number of steps per segment.
     - `adjoint`: how derivatives of the run are computed. Default (None): from the run's
       forward-mode Jacobian in the inputs that are differentiated (top fields, launch state,

@@ -19,7 +19,10 @@ diffrax's loop and the plain script pays it too. Two ways round it were slower: 
 combination written as a product and a sum over the stage axis (XLA:CPU hands both to
 YNNPACK; the plain script in blocks 1.90 -> 2.65 s per call) and the stages written out
 (`UnrolledERK`, 1.7x the plain script in blocks against 1.2-1.3x with the loop, also with
-optimisation barriers between the stages).
+optimisation barriers between the stages). The combination written as a sum of the
+buffer's slices, in a stage loop of tippejax's own (`StageLoopERK`, the CPU default),
+fuses into one loop with no copy and halves the batch's time
+(`tippejax._engine.unrolled`).
 """
 
 from __future__ import annotations

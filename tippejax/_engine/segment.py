@@ -21,7 +21,7 @@ from diffrax._root_finder import use_stepsize_tol  # diffrax exports no public n
 from jaxtyping import Array, Bool, Float, PyTree
 
 from .._models.base import AbstractLevel
-from .unrolled import UnrolledERK, unroll_stages, unrollable
+from .unrolled import StageLoopERK, UnrolledERK, own_stage_loop, unroll_stages, unrollable
 from .watch import (
     STOP,
     SharedWatchedSolver,
@@ -328,7 +328,8 @@ def run_segment(
 def _prepared_solver(solver, controller, adjoint):
     """`solver` as a segment runs it: an implicit solver's root finder given the controller's
     tolerances, the stage loop of a Runge-Kutta solver chosen for the adjoint, and an explicit
-    one's stages written out where `unroll_stages()` (accelerators, by default)."""
+    one's stages written out where `unroll_stages()` (accelerators, by default), else run
+    in tippejax's own stage loop (`StageLoopERK`)."""
     if isinstance(solver, diffrax.AbstractImplicitSolver):
         # diffrax gives an implicit solver's root finder the controller's tolerances; it
         # cannot see through the wrapper below, so do it here.
@@ -349,10 +350,14 @@ def _prepared_solver(solver, controller, adjoint):
         # solve), which makes every step ~3x dearer; forward mode has its own adjoint instead.
         kind = "lax" if isinstance(adjoint, diffrax.ForwardMode) else "checkpointed"
         solver = eqx.tree_at(lambda s: s.scan_kind, solver, kind, is_leaf=lambda x: x is None)
-    if unroll_stages() and unrollable(solver):
-        # On accelerators the stages are written out: same tableau, faster program
-        # (`tippejax._engine.unrolled`).
-        solver = UnrolledERK(solver)
+    if unrollable(solver):
+        # Same tableau, faster program (`tippejax._engine.unrolled`): on accelerators the
+        # stages written out, on CPUs a stage loop without diffrax's transposed copy of the
+        # stages.
+        if unroll_stages():
+            solver = UnrolledERK(solver)
+        elif own_stage_loop():
+            solver = StageLoopERK(solver)
     return solver
 
 

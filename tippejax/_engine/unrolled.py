@@ -36,6 +36,15 @@ options, the same program ran slower and compiled about 2x slower: `benchmarks/e
 tippejax's field in a plain loop 3.14 -> 3.42, with the event watch 3.44 -> 4.09,
 `simulate_batch` 3.78 -> 5.84. So tippejax writes the stages out on accelerators only
 (`unroll_stages`).
+
+On CPUs it runs the stages in its own loop, `StageLoopERK`: diffrax's loop, but each stage's
+$\\sum_j a_{ij} k_j$ a sum over the slices of the stage buffer instead of `jnp.tensordot`,
+which under `jax.vmap` XLA:CPU computed through a transposed copy of the whole buffer at
+every stage. `simulate_batch` of 500 SO(3) tops (peers.py's scene) on one pinned core of
+the Intel Xeon of `benchmarks/RESULTS.md`, seconds, diffrax's loop -> `StageLoopERK`, two
+processes each: 1.93, 1.82 -> 0.99, 0.92 (against the plain script in blocks with the same
+options, paired in the same processes: 1.20x, 1.17x -> 0.65x, 0.66x); full level 1.67 ->
+1.07 (1.08x -> 0.66x).
 """
 
 from __future__ import annotations
@@ -47,8 +56,12 @@ import diffrax
 import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-__all__ = ["UNROLL_STAGES", "UnrolledERK", "unroll_stages", "unrollable"]
+__all__ = [
+    "UNROLL_STAGES", "StageLoopERK", "UnrolledERK", "own_stage_loop", "unroll_stages",
+    "unrollable",
+]
 
 
 def _setting() -> str:
@@ -59,17 +72,22 @@ def _setting() -> str:
         return "on"
     if value in ("0", "false", "no", "off"):
         return "off"
+    if value == "diffrax":
+        return "diffrax"
     raise ValueError(
         f"TIPPEJAX_UNROLL_STAGES must be 'auto' (stages written out on accelerators only), "
-        f"'1' (always) or '0' (never), got {value!r}."
+        f"'1' (always), '0' (never: tippejax's stage loop) or 'diffrax' (never: diffrax's "
+        f"own stage loop), got {value!r}."
     )
 
 
 UNROLL_STAGES = _setting()
-"""When tippejax runs an explicit Runge-Kutta solver with its stages written out
-(`UnrolledERK`): the environment variable `TIPPEJAX_UNROLL_STAGES` at import, `auto`
-(default: where JAX's default backend is not a CPU), `1` (always) or `0` (never: diffrax's
-stage loop, which compiles about twice as fast)."""
+"""How tippejax runs the stages of an explicit Runge-Kutta solver with a first-same-as-last
+tableau: the environment variable `TIPPEJAX_UNROLL_STAGES` at import, `auto` (default:
+written out, `UnrolledERK`, where JAX's default backend is not a CPU, else in a loop,
+`StageLoopERK`), `1` (always written out), `0` (always `StageLoopERK`, which compiles about
+twice as fast as the stages written out) or `diffrax` (diffrax's own stage loop: the same
+steps to rounding, slower on a CPU)."""
 
 
 def unroll_stages() -> bool:
@@ -77,6 +95,11 @@ def unroll_stages() -> bool:
     if UNROLL_STAGES == "auto":
         return jax.default_backend() != "cpu"
     return UNROLL_STAGES == "on"
+
+
+def own_stage_loop() -> bool:
+    """Whether tippejax's solves run the stages in `StageLoopERK` here (`UNROLL_STAGES`)."""
+    return UNROLL_STAGES != "diffrax" and not unroll_stages()
 
 
 def _combine(y0, coeffs, ks):
@@ -172,3 +195,97 @@ class UnrolledERK(diffrax.AbstractSolver):
         k = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *ks)
         dense_info = dict(y0=y0, y1=y1, k=k)
         return y1, y_error, dense_info, f_stage, diffrax.RESULTS.successful
+
+
+def _refresh_first_stage(terms, t0, y0, args, f0, made_jump):
+    """The kept last stage of the previous step as this step's first, evaluated again at
+    `(t0, y0)` for the members that jumped (under vmap, `unvmap_any` keeps the others' cheap
+    branch)."""
+    if made_jump is False:
+        return f0
+    return jax.lax.cond(
+        eqxi.unvmap_any(made_jump),
+        lambda: jax.tree_util.tree_map(
+            lambda a, b: jnp.where(made_jump, a, b), terms.vf(t0, y0, args), f0),
+        lambda: f0,
+    )
+
+
+class StageLoopERK(diffrax.AbstractSolver):
+    r"""`base`'s step with the stages in a loop, as diffrax runs them, but each stage's
+    combination written as a sum over the stage buffer's slices.
+
+    diffrax forms $y_i = y_0 + \sum_j a_{ij} k_j$ with `jnp.tensordot` over the stage axis of
+    its buffer of stages. Under `jax.vmap` that axis is the buffer's middle one (members x
+    stages x state), and XLA:CPU transposes the whole buffer into a copy before every stage's
+    product: in a batch of SO(3) tops that copy took about 45% of the run
+    (`tippejax._engine.cpu`). Here the stage index is a loop counter as in diffrax, the row
+    $a_{i\cdot}$ is read with it, and $y_i = y_0 + \sum_{j} a_{ij} k_j$ is a sum over the $s$
+    slices $k_j$ of the buffer (zeros included, as in diffrax), which XLA fuses into one loop
+    over the state with no copy. The end of the step is written out with the tableau's
+    static coefficients: $y_1$ is the last stage's point (first-same-as-last tableaux), the
+    error estimate $\sum_j (b_j - \hat b_j) k_j$ skips the zero coefficients, the dense
+    output is the base solver's interpolation of the same buffer. The results equal the base
+    solver's to rounding (`tests/test_unrolled.py`). `base`: as for `UnrolledERK`."""
+
+    base: diffrax.AbstractERK
+    term_structure: ClassVar = diffrax.AbstractTerm
+
+    def __check_init__(self):
+        if not unrollable(self.base):
+            raise ValueError(
+                "StageLoopERK takes an explicit Runge-Kutta solver of diffrax with a "
+                "first-same-as-last Butcher tableau (Dopri8, Dopri5, Tsit5, Bosh3), got "
+                f"{type(self.base).__name__}."
+            )
+
+    @property
+    def interpolation_cls(self):  # pyright: ignore
+        return self.base.interpolation_cls
+
+    def order(self, terms):
+        return self.base.order(terms)
+
+    def error_order(self, terms):
+        return self.base.error_order(terms)
+
+    def func(self, terms, t0, y0, args):
+        return terms.vf(t0, y0, args)
+
+    def init(self, terms, t0, t1, y0, args):
+        return terms.vf(t0, y0, args)
+
+    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+        tableau = type(self.base).tableau
+        stages = len(tableau.c) + 1
+        rows = np.zeros((stages - 1, stages))
+        for i, row in enumerate(tableau.a_lower):
+            rows[i, : len(row)] = row
+        f0 = _refresh_first_stage(terms, t0, y0, args, solver_state, made_jump)
+        control = terms.contr(t0, t1)
+        dt = t1 - t0
+        k0 = terms.prod(f0, control)
+        ks = jax.tree_util.tree_map(
+            lambda k: jnp.zeros((stages,) + k.shape, k.dtype).at[0].set(k), k0)
+
+        def stage(i, carry):
+            ks, _, _ = carry
+
+            def point(y, k):
+                a = jnp.asarray(rows, k.dtype)[i]
+                return y + sum(a[j] * k[j] for j in range(stages))
+
+            y_stage = jax.tree_util.tree_map(point, y0, ks)
+            c = jnp.asarray(tableau.c, jnp.result_type(t0))[i]
+            # t1 itself where c = 1, as diffrax and `UnrolledERK` take it
+            t_stage = jnp.where(c == 1, t1, t0 + c * dt)
+            f_stage = terms.vf(t_stage, y_stage, args)
+            k_stage = terms.prod(f_stage, control)
+            ks = jax.tree_util.tree_map(lambda kk, k: kk.at[i + 1].set(k), ks, k_stage)
+            return ks, y_stage, f_stage
+
+        ks, y1, f1 = jax.lax.fori_loop(0, stages - 1, stage, (ks, y0, f0))
+        slices = [jax.tree_util.tree_map(lambda k, j=j: k[j], ks) for j in range(stages)]
+        y_error = _sum(tableau.b_error, slices, y0)
+        dense_info = dict(y0=y0, y1=y1, k=ks)
+        return y1, y_error, dense_info, f1, diffrax.RESULTS.successful

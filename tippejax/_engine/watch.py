@@ -71,6 +71,8 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, PyTree
 
+from .unrolled import StageLoopERK, UnrolledERK
+
 EVENT_PIECES = 1
 """Parts of a step on which the watch checks each condition's quintic by its Bernstein
 coefficients, by default (`simulate`, `simulate_tilt`, `inversion_time` and the staged maps;
@@ -367,7 +369,10 @@ class WatchedSolver(diffrax.AbstractWrappedSolver):
     def _end_rate(self, terms, t1, y1, args, inner):
         """The vector field at the end of the step: the first-same-as-last stage an FSAL
         solver (Dopri5, Dopri8, Tsit5, Kvaerno5) keeps in its state for the next step, else
-        evaluated."""
+        evaluated. tippejax's own Runge-Kutta steps (`UnrolledERK`, `StageLoopERK`) keep that
+        stage as their whole state."""
+        if isinstance(self.solver, (UnrolledERK, StageLoopERK)):
+            return inner
         if (
             isinstance(inner, tuple)
             and len(inner) == 2
