@@ -268,23 +268,34 @@ class StageLoopERK(diffrax.AbstractSolver):
         ks = jax.tree_util.tree_map(
             lambda k: jnp.zeros((stages,) + k.shape, k.dtype).at[0].set(k), k0)
 
-        def stage(i, carry):
-            ks, _, _ = carry
+        def stage(carry):
+            i, ks, _, _ = carry
+            # Reading the buffer whole is safe under autodiff as in diffrax's loop: stage i
+            # reads only the slots written before it, each written once.
+            # (mapped over `y0`'s structure: inside the loop each leaf of `ks` is a buffer)
+            unsafe_ks = jax.tree_util.tree_map(lambda _, x: x[...], y0, ks)
 
             def point(y, k):
                 a = jnp.asarray(rows, k.dtype)[i]
                 return y + sum(a[j] * k[j] for j in range(stages))
 
-            y_stage = jax.tree_util.tree_map(point, y0, ks)
+            y_stage = jax.tree_util.tree_map(point, y0, unsafe_ks)
             c = jnp.asarray(tableau.c, jnp.result_type(t0))[i]
             # t1 itself where c = 1, as diffrax and `UnrolledERK` take it
             t_stage = jnp.where(c == 1, t1, t0 + c * dt)
             f_stage = terms.vf(t_stage, y_stage, args)
             k_stage = terms.prod(f_stage, control)
-            ks = jax.tree_util.tree_map(lambda kk, k: kk.at[i + 1].set(k), ks, k_stage)
-            return ks, y_stage, f_stage
+            ks = jax.tree_util.tree_map(lambda _, kk, k: kk.at[i + 1].set(k), y0, ks, k_stage)
+            return i + 1, ks, y_stage, f_stage
 
-        ks, y1, f1 = jax.lax.fori_loop(0, stages - 1, stage, (ks, y0, f0))
+        # diffrax's loop (`eqxi.while_loop` with the stage buffer as a buffer): reverse mode
+        # through it keeps no copy of the buffer per stage; `kind` as `_prepared_solver` set
+        # it for the adjoint ("lax" for forward mode).
+        kind = getattr(self.base, "scan_kind", None) or "checkpointed"
+        _, ks, y1, f1 = eqxi.while_loop(
+            lambda carry: carry[0] < stages - 1, stage, (jnp.asarray(0), ks, y0, f0),
+            max_steps=stages - 1, buffers=lambda carry: carry[1], kind=kind,
+            checkpoints=stages - 1, base=stages - 1)
         slices = [jax.tree_util.tree_map(lambda k, j=j: k[j], ks) for j in range(stages)]
         y_error = _sum(tableau.b_error, slices, y0)
         dense_info = dict(y0=y0, y1=y1, k=ks)
