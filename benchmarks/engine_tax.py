@@ -15,8 +15,11 @@ summary), a batch of 1000 on one JAX device, every run in `simulate_batch`'s CPU
 
 tippejax's runs at rtol 2.45e-8 (the plain script's error at 1e-8, peers.py's ladder).
 Each run also with Dopri8's stages written out (`tippejax._engine.unrolled.UnrolledERK`,
-tippejax's default on accelerators; on CPUs it keeps diffrax's stage loop), and the plain
-script written out with XLA:CPU's fusion emitters on (its fastest form found).
+tippejax's default on accelerators), and the plain script written out with XLA:CPU's
+fusion emitters on (its fastest form found). The field rows run diffrax's stage loop;
+`simulate_batch` runs tippejax's CPU default, `StageLoopERK` (the same loop without the
+transposed copy of the stage buffer at every stage), so the step from the watch row to the
+whole engine is that change less the rest of the engine.
 Interleaved rounds; ratios paired per round against the plain script.
 
     python benchmarks/engine_tax.py [ROUNDS]     # default 7; writes its RESULTS.md section
@@ -139,8 +142,10 @@ def main():
                "x plain script (paired)"], rows),
         "",
         "Read down the last column: what the field costs against the plain script's, then what "
-        "the event watch adds, then the rest of the engine (event records and location, the "
-        "summary's outputs, the checks in Python); then the same with the stages written out.",
+        "the event watch adds, then the whole engine (event records and location, the "
+        "summary's outputs, the checks in Python), which on a CPU runs its stages in "
+        "tippejax's own loop (`StageLoopERK`) where the rows above run diffrax's; then the same "
+        "with the stages written out.",
     ])
     write_section("engine_tax.py", body)
 
