@@ -59,8 +59,8 @@ import jax.numpy as jnp
 import numpy as np
 
 __all__ = [
-    "UNROLL_STAGES", "StageLoopERK", "UnrolledERK", "own_stage_loop", "unroll_stages",
-    "unrollable",
+    "UNROLL_STAGES", "AbstractTableauSolver", "StageLoopERK", "UnrolledERK", "own_stage_loop",
+    "unroll_stages", "unrollable",
 ]
 
 
@@ -137,9 +137,25 @@ def unrollable(solver) -> bool:
     )
 
 
-class UnrolledERK(diffrax.AbstractSolver):
-    """`base`'s step with its stages written out (see the module's docstring). `base`: an
-    explicit Runge-Kutta solver of diffrax for which `unrollable(base)` holds."""
+def _refresh_first_stage(terms, t0, y0, args, f0, made_jump):
+    """The kept last stage of the previous step as this step's first, evaluated again at
+    `(t0, y0)` for the members that jumped (under vmap, `unvmap_any` keeps the others' cheap
+    branch)."""
+    if made_jump is False:
+        return f0
+    return jax.lax.cond(
+        eqxi.unvmap_any(made_jump),
+        lambda: jax.tree_util.tree_map(
+            lambda a, b: jnp.where(made_jump, a, b), terms.vf(t0, y0, args), f0),
+        lambda: f0,
+    )
+
+
+class AbstractTableauSolver(diffrax.AbstractSolver):
+    """What `UnrolledERK` and `StageLoopERK` share: `base`, an explicit Runge-Kutta solver of
+    diffrax with one first-same-as-last tableau (`unrollable(base)`), whose order, error order
+    and interpolation they keep; their state between steps is the last stage $f(t_1, y_1)$,
+    the next step's first. Subclasses write `step`."""
 
     base: diffrax.AbstractERK
     term_structure: ClassVar = diffrax.AbstractTerm
@@ -147,8 +163,8 @@ class UnrolledERK(diffrax.AbstractSolver):
     def __check_init__(self):
         if not unrollable(self.base):
             raise ValueError(
-                "UnrolledERK takes an explicit Runge-Kutta solver of diffrax with a "
-                "first-same-as-last Butcher tableau (Dopri8, Dopri5, Tsit5, Bosh3), got "
+                f"{type(self).__name__} takes an explicit Runge-Kutta solver of diffrax with "
+                "a first-same-as-last Butcher tableau (Dopri8, Dopri5, Tsit5, Bosh3), got "
                 f"{type(self.base).__name__}."
             )
 
@@ -169,18 +185,15 @@ class UnrolledERK(diffrax.AbstractSolver):
         # the first stage of the first step: f(t0, y0)
         return terms.vf(t0, y0, args)
 
+
+class UnrolledERK(AbstractTableauSolver):
+    """`base`'s step with its stages written out (see the module's docstring). `base`: an
+    explicit Runge-Kutta solver of diffrax for which `unrollable(base)` holds."""
+
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         tableau = type(self.base).tableau
-        f0 = solver_state
-        if made_jump is not False:
-            # after a jump the kept last stage is stale: evaluate f(t0, y0) again, for the
-            # members that jumped (under vmap, `unvmap_any` keeps the others' cheap branch)
-            f0 = jax.lax.cond(
-                eqxi.unvmap_any(made_jump),
-                lambda: jax.tree_util.tree_map(
-                    lambda a, b: jnp.where(made_jump, a, b), terms.vf(t0, y0, args), f0),
-                lambda: f0,
-            )
+        # after a jump the kept last stage is stale
+        f0 = _refresh_first_stage(terms, t0, y0, args, solver_state, made_jump)
         control = terms.contr(t0, t1)
         dt = t1 - t0
         ks = [terms.prod(f0, control)]
@@ -197,21 +210,7 @@ class UnrolledERK(diffrax.AbstractSolver):
         return y1, y_error, dense_info, f_stage, diffrax.RESULTS.successful
 
 
-def _refresh_first_stage(terms, t0, y0, args, f0, made_jump):
-    """The kept last stage of the previous step as this step's first, evaluated again at
-    `(t0, y0)` for the members that jumped (under vmap, `unvmap_any` keeps the others' cheap
-    branch)."""
-    if made_jump is False:
-        return f0
-    return jax.lax.cond(
-        eqxi.unvmap_any(made_jump),
-        lambda: jax.tree_util.tree_map(
-            lambda a, b: jnp.where(made_jump, a, b), terms.vf(t0, y0, args), f0),
-        lambda: f0,
-    )
-
-
-class StageLoopERK(diffrax.AbstractSolver):
+class StageLoopERK(AbstractTableauSolver):
     r"""`base`'s step with the stages in a loop, as diffrax runs them, but each stage's
     combination written as a sum over the stage buffer's slices.
 
@@ -227,33 +226,6 @@ class StageLoopERK(diffrax.AbstractSolver):
     error estimate $\sum_j (b_j - \hat b_j) k_j$ skips the zero coefficients, the dense
     output is the base solver's interpolation of the same buffer. The results equal the base
     solver's to rounding (`tests/test_unrolled.py`). `base`: as for `UnrolledERK`."""
-
-    base: diffrax.AbstractERK
-    term_structure: ClassVar = diffrax.AbstractTerm
-
-    def __check_init__(self):
-        if not unrollable(self.base):
-            raise ValueError(
-                "StageLoopERK takes an explicit Runge-Kutta solver of diffrax with a "
-                "first-same-as-last Butcher tableau (Dopri8, Dopri5, Tsit5, Bosh3), got "
-                f"{type(self.base).__name__}."
-            )
-
-    @property
-    def interpolation_cls(self):  # pyright: ignore
-        return self.base.interpolation_cls
-
-    def order(self, terms):
-        return self.base.order(terms)
-
-    def error_order(self, terms):
-        return self.base.error_order(terms)
-
-    def func(self, terms, t0, y0, args):
-        return terms.vf(t0, y0, args)
-
-    def init(self, terms, t0, t1, y0, args):
-        return terms.vf(t0, y0, args)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
         tableau = type(self.base).tableau

@@ -71,7 +71,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, PyTree
 
-from .unrolled import StageLoopERK, UnrolledERK
+from .unrolled import AbstractTableauSolver
 
 EVENT_PIECES = 1
 """Parts of a step on which the watch checks each condition's quintic by its Bernstein
@@ -371,7 +371,7 @@ class WatchedSolver(diffrax.AbstractWrappedSolver):
         solver (Dopri5, Dopri8, Tsit5, Kvaerno5) keeps in its state for the next step, else
         evaluated. tippejax's own Runge-Kutta steps (`UnrolledERK`, `StageLoopERK`) keep that
         stage as their whole state."""
-        if isinstance(self.solver, (UnrolledERK, StageLoopERK)):
+        if isinstance(self.solver, AbstractTableauSolver):
             return inner
         if (
             isinstance(inner, tuple)
