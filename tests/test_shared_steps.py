@@ -38,7 +38,35 @@ def so3_summary():
     return _pair(tj.default_top(), 0.1, SPINS, t1=T1, model="so3", summary=True, grid=("spin",))
 
 
-def test_shared_summary_agrees_with_per_member(so3_summary):
+@pytest.fixture(scope="module")
+def so3_reference():
+    """The per-member runs of `so3_summary` converged (rtol 1e-12): the inversion times the
+    two paths are held to."""
+    return tj.simulate_batch(tj.default_top(), 0.1, SPINS, t1=T1, model="so3", summary=True,
+                             grid=("spin",), steps="per_member", rtol=1e-12, atol=1e-14)
+
+
+GRAZING = np.array([False, False, False, True, False, False])
+"""Members whose inversion falls in the grazing dips of R_n just before they leave the table
+(spin 330: inverts at 6.2516 s, loses contact about 0.05 s later). There the per-member run at
+the default rtol misses the converged inversion time by microseconds that move with rounding:
+over spins 300-360 (16 that invert) by at most 6.0e-6 s with diffrax's stage loop and 1.25e-5 s
+with tippejax's (`StageLoopERK`), median 2.2e-6 and 2.9e-6 s; the module docstring's contact-loss
+sensitivity. The shared path, whose steps are the fastest member's, is within 1e-8 s of it."""
+
+
+def _inversion_times_converge(per, shared, reference):
+    ref = np.asarray(reference.t_invert)
+    # every path against the converged runs: the shared one to 1e-5 s (measured <= 1e-8)
+    _close_times(shared.t_invert, ref, 1e-5)
+    # the per-member runs to 1e-5 s where the inversion is away from contact loss, to the
+    # module's contact-loss tolerance (1e-4 s) in the grazing dips
+    per_t = np.asarray(per.t_invert)
+    _close_times(per_t[~GRAZING], ref[~GRAZING], 1e-5)
+    _close_times(per_t[GRAZING], ref[GRAZING], 1e-4)
+
+
+def test_shared_summary_agrees_with_per_member(so3_summary, so3_reference):
     per, shared = so3_summary
     assert shared.theta.shape == per.theta.shape == (SPINS.size, 1)
     assert shared.model == "so3"
@@ -52,8 +80,8 @@ def test_shared_summary_agrees_with_per_member(so3_summary):
     assert np.all(t_final[LOST] < 7.0)
     _close_times(shared.t_final, per.t_final, 1e-3)
     _close_times(shared.t_contact_loss, per.t_contact_loss, 1e-3)
-    _close_times(shared.t_invert, per.t_invert, 1e-5)
-    assert np.all(np.isfinite(np.asarray(shared.t_invert)[[0, 1, 2, 5]]))
+    _inversion_times_converge(per, shared, so3_reference)
+    assert np.all(np.isfinite(np.asarray(shared.t_invert)[[0, 1, 2, 3, 5]]))
     # the state where each member ended
     for field in ("theta", "spin", "energy", "jellet"):
         a, b = np.asarray(getattr(per, field)), np.asarray(getattr(shared, field))
@@ -177,7 +205,7 @@ def test_shared_steps_sharded_over_two_host_devices():
     assert r["diff"] < 1e-5  # each device shares steps over its own shard only
 
 
-def test_shared_large_batch_is_split_into_blocks(so3_summary, monkeypatch):
+def test_shared_large_batch_is_split_into_blocks(so3_summary, so3_reference, monkeypatch):
     """A batch of more than `SHARED_BLOCK` members per device runs as several shared solves
     (buckets by spin, put back in order): with a block of 2, the six members of
     `so3_summary` give every member the result of its per-member run, in the same order."""
@@ -190,7 +218,7 @@ def test_shared_large_batch_is_split_into_blocks(so3_summary, monkeypatch):
     blocks = tj.simulate_batch(tj.default_top(), 0.1, SPINS, t1=T1, model="so3", summary=True,
                                grid=("spin",), steps="shared")
     np.testing.assert_array_equal(np.asarray(blocks.result._value), np.asarray(per.result._value))
-    _close_times(blocks.t_invert, per.t_invert, 1e-5)
+    _inversion_times_converge(per, blocks, so3_reference)
     _close_times(blocks.t_final, per.t_final, 1e-3)
     # more than one solve: the members' step counts differ between blocks (one per device's
     # shard within a block)
