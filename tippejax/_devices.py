@@ -104,7 +104,12 @@ def use_sequential_scheduler(environ: MutableMapping[str, str] = os.environ) -> 
     solve 30-32 ms against 33-43; `benchmarks/gradients.py`: its Jacobian 8.4x -> 3.7x the
     solve). A batch sharded over the cores (one device per core, `use_every_core`) runs as
     fast either way; one unsharded batch of 1000 full-model tops on one device ran 18%
-    slower with it (`TIPPEJAX_HOST_DEVICES=1`). Not set where `XLA_FLAGS` holds the flag
+    slower with it (`TIPPEJAX_HOST_DEVICES=1`). It does not keep every program on one thread:
+    XLA:CPU's executor still hands kernels to a second thread when more than 8 are ready at
+    once, and since tippejax's own stage loop (`StageLoopERK`) that Jacobian runs on two
+    threads again at 4.3-5.7x the solve by the clock and 9-11x in CPU time (2026-11-28,
+    `benchmarks/gradients.py`'s tangent scan: with 1, 2 or 5 tangents it stays on one thread at
+    1.7-2.1x). Not set where `XLA_FLAGS` holds the flag
     already (the user's choice), where `TIPPEJAX_CPU_SCHEDULER=concurrent` (XLA's default
     scheduler), where JAX's backends already run, or for a jaxlib not in `SCHEDULER_JAXLIB`.
 
