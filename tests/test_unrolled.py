@@ -157,10 +157,13 @@ def test_the_cpu_default_is_tippejaxs_stage_loop():
         assert isinstance(prepared, StageLoopERK)
 
 
+@pytest.mark.slow
 def test_stages_written_out_give_tippejax_the_stage_loops_results():
     """The accelerator path (`TIPPEJAX_UNROLL_STAGES=1`) run on the CPU: the same events,
     states and result codes as the CPU default's stage loop, per member and with shared
-    steps."""
+    steps. Slow (65-90 s under CI's load: the written-out programs compile in a fresh
+    process) and for a path CI never runs (accelerators): the step tests above hold
+    `UnrolledERK`'s step to diffrax's in CI, and `-m slow` runs this whole-solve check."""
     _assert_same_solves(_run("1", "solves"))
 
 
