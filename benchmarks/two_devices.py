@@ -2,10 +2,11 @@
 
 `peers.py`'s batch of 1000 on 2 host devices: before tippejax ran its own stage loop
 (`StageLoopERK`), `simulate_batch` missed issue 18's 1.2x of the plain script there (1.22x)
-while it beat the script on one device. Both shard the batch the same way (each device runs its 500 members by itself, `jax.shard_map`), so the question is
-what one process with 2 XLA:CPU devices costs each program beyond its own work. Here every
-round runs, for tippejax (`tj.simulate_batch(model="so3", summary=True)`) and the plain
-diffrax script (`jax.vmap`), the batch of 1000 in this process on 2 devices, then the same
+while it beat the script on one device. Both shard the batch the same way (each device runs
+its 500 members by itself, `jax.shard_map`), so the question is what one process with 2
+XLA:CPU devices costs each program beyond its own work. Here every round runs, for
+tippejax (`tj.simulate_batch(model="so3", summary=True)`) and the plain diffrax script
+(`jax.vmap`), the batch of 1000 in this process on 2 devices, then the same
 two halves of 500 at once in two worker processes with one device each, each pinned to its
 own core (`os.sched_setaffinity`). The workers are started once and compiled before the
 rounds; they wait on a pipe while this process runs. Same scene, same rtols as `peers.py`
