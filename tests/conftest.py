@@ -1,7 +1,25 @@
 import gc
+import os
 
-import jax
-import pytest
+# The programs a test compiles itself (a `jax.jit`, `jax.vmap` or `jax.grad` around `simulate`,
+# which a user's process compiles with XLA's defaults) are compiled at LLVM level 0 and with
+# XLA:CPU's element-wise loop emitter; tippejax's own CPU programs keep the options they ship
+# with (`tippejax._engine.cpu.CPU_COMPILER_OPTIONS`, which take precedence over these flags).
+# Compile options change how fast a program is compiled and runs, not what it computes, and
+# the suite's time is mostly XLA compiling. On the 2-core CI machine (2026-11-28, one run
+# each, side by side on separate cores) `tests/test_simulate.py` and `tests/test_gyroscopic.py`
+# took 507 s with XLA's defaults, 373 s with level 1 and the loop emitter, and in a second pair
+# 355 s at level 1 against 324 s at level 0. The tests that start a new process with
+# `XLA_FLAGS` of their own (the 2- and 4-device batches, the two-process map) compile with
+# XLA's defaults. TIPPEJAX_TEST_XLA_DEFAULTS=1 runs the whole suite with XLA's defaults.
+TEST_XLA_FLAGS = ("--xla_backend_optimization_level=0", "--xla_cpu_use_fusion_emitters=false")
+if os.environ.get("TIPPEJAX_TEST_XLA_DEFAULTS", "0") in ("0", ""):
+    _flags = os.environ.get("XLA_FLAGS", "")
+    _extra = [f for f in TEST_XLA_FLAGS if f.split("=")[0] not in _flags]
+    os.environ["XLA_FLAGS"] = " ".join([_flags, *_extra]).strip()
+
+import jax  # noqa: E402  (after XLA_FLAGS: XLA reads them when its CPU backend starts)
+import pytest  # noqa: E402
 
 # Under pytest-xdist (the README's test command runs `-n auto`) the workers share the persistent
 # compilation cache, so that a program one worker compiled is loaded by the others. JAX writes
@@ -31,13 +49,14 @@ def _free_compiled_code_between_modules():
     gc.collect()
 
 
-LONGEST_FIRST = ("test_fit.py", "test_shared_steps.py", "test_unrolled.py", "test_engine.py",
-                 "test_maps.py", "test_grad.py", "test_projection.py", "test_cache.py",
-                 "test_simulate.py", "test_batch.py", "test_gyroscopic.py", "test_inversion.py")
-"""The test files that take longest (a serial run's `--durations` on a 2-core machine, longest
-first). They are collected first, so that pytest-xdist, which hands out whole files in
-collection order (`--dist loadfile`), starts them first and fills in with the short files:
-otherwise a long file handed out late keeps one worker busy while the others idle."""
+LONGEST_FIRST = ("test_fit.py", "test_simulate.py", "test_shared_steps.py", "test_engine.py",
+                 "test_gyroscopic.py", "test_maps.py", "test_grad.py", "test_batch.py",
+                 "test_projection.py", "test_unrolled.py", "test_cache.py", "test_inversion.py")
+"""The test files that take longest (`--durations=0` of the README's test command on a 2-core
+machine, 2026-11-28, summed per file, longest first). They are collected first, so that
+pytest-xdist, which hands out whole files in collection order (`--dist loadfile`), starts them
+first and fills in with the short files: otherwise a long file handed out late keeps one worker
+busy while the others idle."""
 
 
 def pytest_collection_modifyitems(config, items):
