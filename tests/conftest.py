@@ -13,7 +13,9 @@ import os
 # single runs at 2.1e-8 against 1e-8; optimistix's Levenberg-Marquardt one step longer than
 # the host loop's), so level 1, which the suite passes at, is kept. The tests that start a
 # new process with `XLA_FLAGS` of their own (the 2- and 4-device batches, the two-process map)
-# compile with XLA's defaults. TIPPEJAX_TEST_XLA_DEFAULTS=1 runs the whole suite with them.
+# compile with XLA's defaults (JAX's persistent cache keys its entries on `XLA_FLAGS`, so
+# they share no programs with the workers). TIPPEJAX_TEST_XLA_DEFAULTS=1 runs the whole suite
+# with XLA's defaults.
 TEST_XLA_FLAGS = ("--xla_backend_optimization_level=1", "--xla_cpu_use_fusion_emitters=false")
 if os.environ.get("TIPPEJAX_TEST_XLA_DEFAULTS", "0") in ("0", ""):
     _flags = os.environ.get("XLA_FLAGS", "")
