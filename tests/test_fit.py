@@ -90,18 +90,25 @@ def test_start_at_the_truth_stays_and_nothing_is_trimmed(fast_record):
     assert 0.85 * NOISE < float(res.rms) < 1.15 * NOISE
     assert abs(float(res.runs_z)) < diagnostics.runs_limit()
     # The fitted curve (taken from the primal of the Jacobian's forward-mode solve) is the
-    # fitted top's own motion: a plain `simulate` of it at the fit's `rtol` (1e-10, the
-    # tolerance the statistics are computed at), and not one at the stages' looser
-    # `STAGE_RTOL`, which differs from it by more than the rounding. (The fit integrates no
-    # body vector: it reads theta and phi only.)
-    for rtol in (1e-10, fit_setup.STAGE_RTOL):
-        sol = tj.simulate(res.top, res.y0, TS_FAST[-1], saveat=TS_FAST, model="full",
-                          rtol=rtol, atol=1e-12, body=False)
-        gap = np.max(np.abs(np.asarray(res.theta_fit) - np.asarray(sol.theta)))
-        if rtol == 1e-10:
-            assert gap < 1e-11
-        else:
-            assert gap > 1e-9
+    # fitted top's own motion at the fit's `rtol` (1e-10, the tolerance the statistics are
+    # computed at): as close to a tight solve of the fitted top as a plain `simulate` at 1e-10
+    # is, and not a solve at the stages' looser `STAGE_RTOL`. Each is held to the tight solve,
+    # not to the other: they are two programs, whose step sequences agree for some fitted
+    # values and not for others (from the record of scipy's DOP853 the fit takes 9 steps, not 7,
+    # and the two 1e-10 solves differ by 1.3e-9 while each is 4.0e-9 from the tight one).
+    # (The fit integrates no body vector: it reads theta and phi only.)
+    def theta(rtol, atol=1e-12):
+        return np.asarray(tj.simulate(res.top, res.y0, TS_FAST[-1], saveat=TS_FAST, model="full",
+                                      rtol=rtol, atol=atol, body=False).theta)
+
+    tight = theta(1e-13, 1e-15)
+    fitted = np.max(np.abs(np.asarray(res.theta_fit) - tight))
+    plain = np.max(np.abs(theta(1e-10) - tight))
+    loose = np.max(np.abs(theta(fit_setup.STAGE_RTOL) - tight))
+    print(f"theta's error: fitted curve {fitted:.2e}, simulate at 1e-10 {plain:.2e}, at "
+          f"STAGE_RTOL {loose:.2e}")
+    assert fitted < 2 * plain + 1e-11
+    assert loose > 100 * fitted
 
 
 def _landed(fast_record):
