@@ -343,3 +343,28 @@ def test_grad_t_invert_wrt_mu_sign_and_size(reverse):
     print(f"\nd t_invert / d mu = {d_mu:.4f} s^2/m; times mu: {d_mu * mu:.3f} s")
     assert d_mu < 0
     assert 1.0 < abs(d_mu) * mu < 20.0
+
+
+def test_grad_and_jacfwd_trace_the_solve_once(monkeypatch):
+    """`simulate`'s value and its Jacobian (`forward_sensitivities`) are one staged solve:
+    under `jax.grad` and `jax.jacfwd` the solve's Python is traced once, not once for the
+    value and again for the Jacobian (a gradient's first call is mostly this tracing,
+    `benchmarks/gradients.py`)."""
+    import tippejax._simulate as simulate_module
+
+    calls = []
+    run_chain = simulate_module.run_chain
+    monkeypatch.setattr(simulate_module, "run_chain",
+                        lambda *a, **k: calls.append(type(k["adjoint"]).__name__)
+                        or run_chain(*a, **k))
+
+    def t_invert(top):
+        y0 = tj.initial_state(top, 0.1, 150.0)
+        return tj.simulate(top, y0, 1.0, summary=True, throw=False).theta[-1]
+
+    jax.clear_caches()  # (a trace cached by an earlier test would hide the count)
+    jax.jit(jax.grad(t_invert)).trace(tj.default_top())
+    assert calls == ["ForwardMode"]
+    # jacfwd's Jacobian rule is the same staged solve: its trace is found in JAX's cache
+    jax.jit(jax.jacfwd(t_invert)).trace(tj.default_top())
+    assert calls == ["ForwardMode"]

@@ -92,12 +92,20 @@ def _run(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_on
          pack_width=PACK_WIDTH, jacobian_pack_width=FORWARD_MODE_PACK_WIDTH, outcome=False):
     """The run of one top (`run_chain`) and its observed fields (`_outputs`); with
     `outcome=True` also `sol.outcome` and `sol.settled` (`_classify`), in the same program."""
-    run = functools.partial(
-        _run_core, level=level, solver=solver, guard_stiff=guard_stiff,
-        stop_on_contact=stop_on_contact, max_steps=max_steps, progress=progress,
-        pieces=pieces, names=names, inversion=inversion, locate=locate)
-    if isinstance(adjoint, ForwardSensitivities):
-        # (the default: derivatives from the forward-mode Jacobian, `sensitivity.py`)
+    options = dict(level=level, solver=solver, guard_stiff=guard_stiff,
+                   stop_on_contact=stop_on_contact, max_steps=max_steps, progress=progress,
+                   pieces=pieces, names=names, inversion=inversion, locate=locate)
+    run = functools.partial(_run_core, **options)
+    if isinstance(adjoint, ForwardSensitivities) and pack_width == jacobian_pack_width:
+        # (the default, one top: derivatives from the forward-mode Jacobian,
+        # `sensitivity.py`.) The value and the Jacobian are one staged solve, so that
+        # `jax.grad` and `jax.jacfwd` trace it once: JAX traces a `custom_jvp`'s value
+        # under `jit` eagerly, and the Jacobian's rule transforms the same cached jaxpr.
+        run = functools.partial(_run_core_staged, **options, adjoint=diffrax.ForwardMode(),
+                                pack_width=pack_width)
+        run = forward_sensitivities(run, run)
+    elif isinstance(adjoint, ForwardSensitivities):
+        # (a batch under the user's `jax.vmap`: the value in the batch layout)
         run = forward_sensitivities(
             functools.partial(run, adjoint=diffrax.RecursiveCheckpointAdjoint(),
                               pack_width=pack_width),
@@ -105,7 +113,11 @@ def _run(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_on
                               pack_width=jacobian_pack_width))
     else:
         run = functools.partial(run, adjoint=adjoint, pack_width=pack_width)
-    out = run(top, y0, ts, t0, t1, rtol, atol)
+    # (JAX keys its cache of traced programs on the context's abstract mesh: unset here at
+    # the first trace, the empty mesh where `jax.grad` replays `_run`'s jaxpr and calls the
+    # Jacobian's rule. Set it, so that both find the one trace of `_run_core_staged`.)
+    with jax.sharding.use_abstract_mesh(jax.sharding.get_abstract_mesh()):
+        out = run(top, y0, ts, t0, t1, rtol, atol)
     if outcome:
         # (integer outputs: their inputs' derivatives are not traced)
         out["outcome"], out["settled"] = _classify(
@@ -129,6 +141,11 @@ def _run_core(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, st
     )
     result = RESULTS.where(too_stiff, RESULTS.stiff_under_trace, out.result)
     return _outputs(top, y0, ts, out, result, level=level, names=names)
+
+
+_run_core_staged = eqx.filter_jit(_run_core)
+"""`_run_core` as a program of its own inside `_run`'s: its trace is cached per static
+options and argument shapes, for the value and the Jacobian of `forward_sensitivities`."""
 
 
 def _outputs(top, y0, ts, out, result, *, level, names=OBSERVED):
