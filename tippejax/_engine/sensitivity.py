@@ -51,7 +51,10 @@ def _is_float(x) -> bool:
 def forward_sensitivities(primal: Callable, forward: Callable) -> Callable:
     """`primal` (a function of pytrees of arrays) with its derivatives computed from the
     forward-mode Jacobian of `forward`, which must compute the same function (see the module
-    docstring). Integer outputs have zero derivatives (`float0`)."""
+    docstring). Integer outputs have zero derivatives (`float0`). `primal` and `forward` may
+    be one jitted function: `simulate` passes its solve, staged with `diffrax.ForwardMode`, as
+    both, so that JAX, which traces the value of a `custom_jvp` under `jit` eagerly, finds
+    the same trace in `jit`'s cache when the rule differentiates it."""
 
     @jax.custom_jvp
     def fn(*args):
