@@ -97,15 +97,16 @@ def _run(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_on
                    pieces=pieces, names=names, inversion=inversion, locate=locate)
     run = functools.partial(_run_core, **options)
     if isinstance(adjoint, ForwardSensitivities) and pack_width == jacobian_pack_width:
-        # (the default, one top: derivatives from the forward-mode Jacobian,
-        # `sensitivity.py`.) The value and the Jacobian are one staged solve, so that
+        # (the default: derivatives from the forward-mode Jacobian, `sensitivity.py`; the
+        # widths agree for one top, `simulate_batch` and a user's `jax.vmap` alike with the
+        # widths of `segment.py`.) The value and the Jacobian are one staged solve, so that
         # `jax.grad` and `jax.jacfwd` trace it once: JAX traces a `custom_jvp`'s value
         # under `jit` eagerly, and the Jacobian's rule transforms the same cached jaxpr.
         run = functools.partial(_run_core_staged, **options, adjoint=diffrax.ForwardMode(),
                                 pack_width=pack_width)
         run = forward_sensitivities(run, run)
     elif isinstance(adjoint, ForwardSensitivities):
-        # (a batch under the user's `jax.vmap`: the value in the batch layout)
+        # (layouts that differ between the value and the Jacobian: two programs)
         run = forward_sensitivities(
             functools.partial(run, adjoint=diffrax.RecursiveCheckpointAdjoint(),
                               pack_width=pack_width),
