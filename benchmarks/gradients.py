@@ -105,6 +105,10 @@ def measure(name, fn):
         lambda mr: fn(eqx.tree_at(lambda t: (t.m, t.R), top, mr), r, a))((top.m, top.R)))
     through = eqx.filter_jit(jax.grad(lambda top, r, a: fn(
         top, r, a, diffrax.RecursiveCheckpointAdjoint())))
+    # The reverse gradient once more, compiled with the options tippejax compiles its own
+    # programs with (its run time against the default's; its compile time here is less the
+    # trace, which the process has cached: compile_cache.py times it in a fresh process).
+    with_options = eqx.filter_jit(jax.grad(fn), compiler_options=tj.compiler_options())
     r8, a8 = (jnp.asarray(x) for x in TIMING_TOL)
     say(f"{name}: compiling and timing (rtol {TIMING_TOL[0]:g})")
     results = interleaved({
@@ -116,6 +120,8 @@ def measure(name, fn):
             lambda: two_tangents(top, r8, a8),
         "reverse through the solve (jax.grad, RecursiveCheckpointAdjoint)":
             lambda: through(top, r8, a8),
+        "with tj.compiler_options(): reverse (jax.grad)":
+            lambda: with_options(top, r8, a8),
     }, repeats=REPEATS)
     base = results["forward solve"][0]
     rows = []
@@ -331,6 +337,11 @@ def report(results, elapsed, plain, scan):
             for r in q["rows"][1:3]) for q in results)
         + f" | {verdict(worst_compile <= 10)} in both modes ({worst_compile:.1f} s at "
         "worst) |",
+        "| (option) the reverse gradient compiled with `tj.compiler_options()`, against "
+        "the default's run | " + "; ".join(
+            f"{q['name']}: {q['rows'][-1]['wall'] / q['rows'][1]['wall']:.2f}x wall, "
+            f"{q['rows'][-1]['cpu'] / q['rows'][1]['cpu']:.2f}x CPU" for q in results)
+        + " (its first call in a fresh process: `compile_cache.py`) | |",
         f"| (before) reverse mode through the solve (RecursiveCheckpointAdjoint) | "
         f"{worst_through:.1f}x at worst | |",
         f"| default reverse mode == reverse mode through the solve | largest relative "

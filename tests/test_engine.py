@@ -611,3 +611,28 @@ def test_a_dip_between_sample_points_is_seen():
     assert abs(reference - 3.5387) < 1e-3  # (the value in the docstring, not an answer key)
     for rtol in (1e-6, 1e-8):
         assert abs(first_loss(rtol) - reference) < 1e-4
+
+
+def test_compiler_options_are_tippejaxs_own_and_reach_xla():
+    """`tj.compiler_options()`: the options tippejax compiles its own CPU programs with, as a
+    new dict for a user's top-level `jax.jit`; None on other backends."""
+    from tippejax._engine.cpu import own_compiler_options
+
+    options = tj.compiler_options()
+    assert options == own_compiler_options()  # the CPU options here (CI runs on a CPU)
+    options["xla_backend_optimization_level"] = 3  # a copy: tippejax's own stay as they are
+    assert tj.compiler_options() == own_compiler_options() != options
+    assert tj.compiler_options("gpu") is None
+    with pytest.raises(TypeError, match="platform name"):
+        tj.compiler_options(jax.devices()[0])
+
+    # XLA takes them (a misspelt option fails to compile) and they change no number
+    def f(x):
+        return jnp.sum(jnp.sin(x) * jnp.cross(x, x[::-1]))
+
+    x = jnp.linspace(0.1, 0.3, 3)
+    want = jax.jit(jax.grad(f))(x)
+    got = jax.jit(jax.grad(f), compiler_options=tj.compiler_options())(x)
+    np.testing.assert_allclose(got, want, rtol=1e-14)
+    with pytest.raises(Exception, match="xla_no_such_option"):
+        jax.jit(f, compiler_options={"xla_no_such_option": 1})(x)

@@ -54,6 +54,33 @@ def own_compiler_options() -> dict | None:
     return CPU_COMPILER_OPTIONS if jax.default_backend() == "cpu" else None
 
 
+def compiler_options(backend: str | None = None) -> dict | None:
+    r"""The XLA compile options tippejax compiles its own programs with on `backend` (default:
+    JAX's default backend), for your own top-level `jax.jit` of code that calls tippejax:
+
+    ```python
+    loss_grad = jax.jit(jax.grad(loss), compiler_options=tj.compiler_options())
+    ```
+
+    JAX takes compile options only at the top-level `jax.jit`, so a function of yours that
+    calls `simulate` (a loss and its gradient) is compiled with XLA's defaults unless you pass
+    them. On a CPU they are `CPU_COMPILER_OPTIONS` (LLVM optimisation level 1 and XLA:CPU's
+    element-wise loop emitter), which compile a solve's many small loops sooner: the first
+    call of `jax.jit(jax.grad(...))` of a 20 s solve of the standard top, cache off, 2-core
+    AMD EPYC, took 9.3-11.9 s against 12.1-15.5 s with XLA's defaults, and the compiled
+    gradient ran within the runs' noise of it (0.9-1.1x; `benchmarks/gradients.py`). Elsewhere
+    (a GPU) None: XLA's defaults, as tippejax's own programs use there. Options of one
+    program, not a process-wide flag: the rest of your programs keep XLA's defaults.
+
+    **Returns:** a new dict of options for `jax.jit(..., compiler_options=...)` (or
+    `eqx.filter_jit`'s), or None.
+    """
+    backend = jax.default_backend() if backend is None else backend
+    if not isinstance(backend, str):
+        raise TypeError(f"backend must be a platform name such as 'cpu' or 'gpu', got {backend!r}.")
+    return dict(CPU_COMPILER_OPTIONS) if backend == "cpu" else None
+
+
 def own_layout(compiler_options):
     """The batch layout to trace a program compiled with `compiler_options` in: a context
     (`batch_pack_width`), `CPU_BATCH_PACK_WIDTH` with tippejax's CPU options."""
