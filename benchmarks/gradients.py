@@ -284,7 +284,11 @@ def scan_text(scan) -> str:
              "this in jaxlib 0.10 (tried: `xla_cpu_multi_thread_eigen`, "
              "`xla_cpu_enable_concurrency_optimized_scheduler`, tippejax's own CPU options, "
              "`PJRT_NPROC=1`). The saved-theta gradient's miss is this executor, not "
-             "arithmetic: the one-thread programs stay under 3x. With diffrax's own stage loop "
+             "arithmetic: "
+             + (f"the one-thread programs stay at or under {max(r['ratio_cpu'] for r in one):.1f}x"
+                f" in CPU time, the two-thread ones from {min(r['ratio_cpu'] for r in two):.1f}x"
+                if one and two else "see the table")
+             + ". With diffrax's own stage loop "
         "(`TIPPEJAX_UNROLL_STAGES=diffrax`, same day, same scene) every k ran on one thread "
         "but the cost grew with k, to 5.8x at k = 7 (its transposed copy of the stages per "
         "tangent); with the stages written out (`=1`) 6-10x.")
