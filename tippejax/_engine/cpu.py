@@ -65,12 +65,15 @@ def compiler_options(backend: str | None = None) -> dict | None:
     JAX takes compile options only at the top-level `jax.jit`, so a function of yours that
     calls `simulate` (a loss and its gradient) is compiled with XLA's defaults unless you pass
     them. On a CPU they are `CPU_COMPILER_OPTIONS` (LLVM optimisation level 1 and XLA:CPU's
-    element-wise loop emitter), which compile a solve's many small loops sooner: the first
-    call of `jax.jit(jax.grad(...))` of a 20 s solve of the standard top, cache off, 2-core
-    AMD EPYC, took 9.3-11.9 s against 12.1-15.5 s with XLA's defaults, and the compiled
-    gradient ran within the runs' noise of it (0.9-1.1x; `benchmarks/gradients.py`). Elsewhere
-    (a GPU) None: XLA's defaults, as tippejax's own programs use there. Options of one
-    program, not a process-wide flag: the rest of your programs keep XLA's defaults.
+    element-wise loop emitter), which compile a solve's many small loops sooner. On the 2-core
+    AMD EPYC of `benchmarks/RESULTS.md` (2026-11-29), the first call of
+    `jax.jit(jax.grad(...))` of `t_invert` over an 8 s run in a new process took 8.3 s with
+    them against 14.5 s with XLA's defaults (cache off; 9.5 s against 10.7 s with an empty
+    cache; `benchmarks/compile_cache.py`), and the compiled gradient of a 20 s run took 0.77x
+    (t_invert) and 1.02x (201 saved theta) the default-compiled one's time
+    (`benchmarks/gradients.py`). Their run-time effect depends on the program: measure yours.
+    Elsewhere (a GPU) None: XLA's defaults, as tippejax's own programs use there. Options of
+    one program, not a process-wide flag: the rest of your programs keep XLA's defaults.
 
     **Returns:** a new dict of options for `jax.jit(..., compiler_options=...)` (or
     `eqx.filter_jit`'s), or None.
