@@ -48,16 +48,15 @@ if case.startswith("simulate"):
     model = case.partition(":")[2] or "full"
     y0 = tj.initial_state(top, 0.1, 100.0)
     call = lambda: block(tj.simulate(top, y0, 10.0, model=model).theta)
-elif case == "grad":
+elif case == "grad" or case.startswith("jit(grad)"):
     y0 = tj.initial_state(top, 0.1, 100.0)
     g = lambda top: tj.simulate(top, y0, 8.0, summary=True).t_invert
-    call = lambda: block(jax.grad(g)(top))
-elif case.startswith("jit(grad)"):
-    y0 = tj.initial_state(top, 0.1, 100.0)
-    g = lambda top: tj.simulate(top, y0, 8.0, summary=True).t_invert
-    options = tj.compiler_options() if case.endswith("options") else None
-    jitted = jax.jit(jax.grad(g), compiler_options=options)
-    call = lambda: block(jitted(top))
+    if case == "grad":
+        gradient = jax.grad(g)  # eager
+    else:
+        options = tj.compiler_options() if case.endswith("options") else None
+        gradient = jax.jit(jax.grad(g), compiler_options=options)
+    call = lambda: block(gradient(top))
 elif case == "fit":
     ts = np.linspace(0.0, 6.0, 120)
     truth = tj.simulate(top, tj.initial_state(top, 0.1, 120.0), 6.0, saveat=ts)
