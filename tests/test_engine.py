@@ -391,23 +391,10 @@ def test_one_top_is_packed_in_one_vector_and_a_batch_in_narrow_ones(top):
                                np.asarray(one.states.omega[-1]), rtol=1e-7, atol=1e-7)
 
 
-def test_batches_compiled_with_the_cpu_options_trace_one_vector(top):
-    """tippejax's own CPU batch programs (`CpuProgram`) trace a vmapped state as one vector
-    (`CPU_BATCH_PACK_WIDTH`) and only while they trace; a user's `vmap` keeps `PACK_WIDTH`.
-    The layout changes the speed only: `simulate_batch` (a `CpuProgram`) and the user's
-    `vmap` of `simulate` end at the same state and inversion time."""
-    from tippejax._engine.cpu import CpuProgram
-    from tippejax._engine.segment import CPU_BATCH_PACK_WIDTH, PACK_WIDTH, pack_width_for
-
-    seen = []
-
-    def probe(x):
-        return jax.vmap(lambda v: seen.append(pack_width_for(v)) or v)(x)
-
-    CpuProgram(probe)(jnp.ones(2))
-    jax.vmap(lambda v: seen.append(pack_width_for(v)) or v)(jnp.ones(2))
-    assert seen == [CPU_BATCH_PACK_WIDTH, PACK_WIDTH]
-
+def test_batches_compiled_with_the_cpu_options_match_a_users_vmap(top):
+    """tippejax's own CPU batch programs (`CpuProgram`: its compile options, blocks under
+    `lax.map`, sharding) change the speed only: `simulate_batch` and the user's `vmap` of
+    `simulate` (XLA's defaults) end at the same state and inversion time."""
     spins = jnp.array([140.0, 160.0])
     own = tj.simulate_batch(top, 0.1, spins, 6.0, grid=(), summary=True, model="full")
     user = jax.vmap(lambda s: tj.simulate(top, tj.initial_state(top, 0.1, s), 6.0,

@@ -1,13 +1,13 @@
-"""tippejax's own programs on CPU devices: their XLA compile options and their state layout.
+"""tippejax's own programs on CPU devices: their XLA compile options.
 
 A batch of tiny ODE systems on XLA:CPU is bound by the hundreds of small fused loops each
 step runs, not by arithmetic (`benchmarks/RESULTS.md`, peers.py's profile), and how XLA
 compiles those loops matters more than anything in the loop. tippejax compiles the programs
 it owns, the ones it calls at the top level (`simulate` outside the user's `jit`, `vmap` or
 `grad`; `simulate_batch`, `outcome_map` and the inversion map's batches), with
-`CPU_COMPILER_OPTIONS`, and traces their batches with the state in one vector
-(`CPU_BATCH_PACK_WIDTH`). A user's own `jax.jit` keeps XLA's defaults: these are options of
-one program (`jax.jit`'s `compiler_options`), not process-wide flags.
+`CPU_COMPILER_OPTIONS`. A user's own `jax.jit` keeps XLA's defaults: these are options of
+one program (`jax.jit`'s `compiler_options`), not process-wide flags. (Their batches are
+traced in the state layout of any batch, `tippejax._engine.segment.PACK_WIDTH`.)
 
 The largest single kernel of such a batch is not the vector field. `perf record` on one
 pinned core running `simulate_batch` (500 SO(3) tops, peers.py's scene, Intel Xeon,
@@ -27,12 +27,8 @@ fuses into one loop with no copy and halves the batch's time
 
 from __future__ import annotations
 
-import contextlib
-
 import equinox as eqx
 import jax
-
-from .segment import CPU_BATCH_PACK_WIDTH, batch_pack_width
 
 CPU_COMPILER_OPTIONS = {"xla_backend_optimization_level": 1, "xla_cpu_use_fusion_emitters": False}
 """XLA compile options of tippejax's own programs on CPU devices.
@@ -84,27 +80,17 @@ def compiler_options(backend: str | None = None) -> dict | None:
     return dict(CPU_COMPILER_OPTIONS) if backend == "cpu" else None
 
 
-def own_layout(compiler_options):
-    """The batch layout to trace a program compiled with `compiler_options` in: a context
-    (`batch_pack_width`), `CPU_BATCH_PACK_WIDTH` with tippejax's CPU options."""
-    if compiler_options is CPU_COMPILER_OPTIONS:
-        return batch_pack_width(CPU_BATCH_PACK_WIDTH)
-    return contextlib.nullcontext()
-
-
 class CpuProgram:
-    """`eqx.filter_jit(impl)` compiled with `CPU_COMPILER_OPTIONS` and traced with the batch
-    layout `CPU_BATCH_PACK_WIDTH`; a top-level call only (JAX takes compile options there)."""
+    """`eqx.filter_jit(impl)` compiled with `CPU_COMPILER_OPTIONS`; a top-level call only (JAX
+    takes compile options there)."""
 
     def __init__(self, impl):
         self.impl = impl
         self.jitted = eqx.filter_jit(impl, compiler_options=CPU_COMPILER_OPTIONS)
 
     def __call__(self, *args, **kwargs):
-        with batch_pack_width(CPU_BATCH_PACK_WIDTH):
-            return self.jitted(*args, **kwargs)
+        return self.jitted(*args, **kwargs)
 
     def lower(self, *args, **kwargs):
         """The program lowered for these arguments (`eqx.filter_jit`'s `lower`)."""
-        with batch_pack_width(CPU_BATCH_PACK_WIDTH):
-            return self.jitted.lower(*args, **kwargs)
+        return self.jitted.lower(*args, **kwargs)

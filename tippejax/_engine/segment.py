@@ -7,8 +7,6 @@ downward crossing of each observed condition (see `watch.py`).
 
 from __future__ import annotations
 
-import contextlib
-import contextvars
 import dataclasses
 import math
 from collections.abc import Callable
@@ -52,29 +50,30 @@ class Watch(eqx.Module):
 
 
 PACK_WIDTH = 6
-"""Most components in one flat vector of a level state in a batch (see `ravel_state`), where
-the batch's program is compiled with XLA's default options (a user's `jax.vmap`, a GPU)."""
+"""Most components in one flat vector of a level state in a batch (see `ravel_state`): a
+user's `jax.vmap`, a GPU, and tippejax's own batches compiled with its CPU options
+(`tippejax._engine.cpu`) alike.
 
-CPU_BATCH_PACK_WIDTH = 64
-"""Most components in one flat vector of a level state in a batch compiled with tippejax's
-CPU options (`tippejax._engine.cpu`): the whole state in one vector. With XLA:CPU's
-element-wise loop emitter the one vector is fastest: `simulate_batch`, peers.py's scene,
-1000 tops, ms per top, width 6 against 64: full level 1.32 -> 1.10 (2 devices), 2.72 -> 2.32
-(1 device); SO(3) level with 6 saves and the body vector (10 components) 1.56 -> 1.29 (2
-devices). (With XLA's default MLIR emitters it was the other way round: `PACK_WIDTH`.)"""
+Those CPU programs traced the state as one vector until 2026-11-29 (width 64, chosen on
+2026-11-28 when it ran the full level faster: 1.32 -> 1.10 ms per top on 2 devices). The
+engine's stage loop changed after that (`StageLoopERK`), and now width 6 is faster for the
+full level and about even for the SO(3) level. `python benchmarks/pack_width.py 7`
+(2026-11-29, the 2-core AMD EPYC of `benchmarks/RESULTS.md`): `simulate_batch`, peers.py's
+scene (1000 tops, 20 s, rtol 1e-8), each layout its own program, paired rounds, wall time
+with width 6 over wall time with one vector (medians):
 
-_BATCH_WIDTH = contextvars.ContextVar("tippejax_batch_pack_width", default=PACK_WIDTH)
+| | summary, 2 devices | summary, 1 device | 6 saves, 2 devices | 6 saves, 1 device |
+|---|---|---|---|---|
+| full (summary 4 + 6 against 10; saves 4 + 6 + 4 against 14) | 0.78 | 0.90 | 0.83 | 0.83 |
+| SO(3) (summary 6, the same layout; saves 6 + 4 against 10) | 0.99 | 0.96 | 0.91 | 1.07 |
 
-
-@contextlib.contextmanager
-def batch_pack_width(width: int):
-    """Trace the batches inside the block with the state in vectors of at most `width`
-    (`pack_width_for`): for a program whose compile options favour another layout."""
-    token = _BATCH_WIDTH.set(int(width))
-    try:
-        yield
-    finally:
-        _BATCH_WIDTH.reset(token)
+Two earlier runs on 2 devices gave full 0.87 and 0.76 (summary), 0.81 and 0.82 (saves),
+SO(3) with saves 0.85 and 0.93. The SO(3) level with saves on one device loses because its
+two vectors then run on two threads (1.27x the CPU time); with every core a device (the
+default) each device's threads are busy with its own shard. `outcome_map` of the full model
+(768 launches, rtol 1e-6) 0.89 in a scratch run; a fit (one record, and 4 at once) took the
+same time either way.
+"""
 
 ONE_TOP_PACK_WIDTH = 64
 """Most components in one flat vector of a level state in a run of one top: the whole state
@@ -102,7 +101,7 @@ full 1.62 (2 + 2 + 3 + 3)."""
 
 
 def pack_width_for(*trees, adjoint=None) -> int:
-    """A batch's width (`PACK_WIDTH`, or the one `batch_pack_width` sets) where any leaf of
+    """A batch's width, `PACK_WIDTH`, where any leaf of
     `trees` is batched by `jax.vmap` (seen at trace time);
     else `FORWARD_MODE_PACK_WIDTH` with `adjoint=diffrax.ForwardMode()`, else
     `ONE_TOP_PACK_WIDTH`. JAX has no public test for "inside vmap"; where its private
@@ -111,10 +110,10 @@ def pack_width_for(*trees, adjoint=None) -> int:
     try:
         from jax._src.interpreters.batching import BatchTracer
     except ImportError:  # pragma: no cover
-        return _BATCH_WIDTH.get()
+        return PACK_WIDTH
     leaves = jax.tree_util.tree_leaves(trees)
     if any(isinstance(x, BatchTracer) for x in leaves):
-        return _BATCH_WIDTH.get()
+        return PACK_WIDTH
     if isinstance(adjoint, diffrax.ForwardMode):
         return FORWARD_MODE_PACK_WIDTH
     return ONE_TOP_PACK_WIDTH
@@ -242,10 +241,9 @@ def run_segment(
     started from. No step is taken again and no root is found, so the program is smaller to
     compile; for callers that need to know only which save times lie before an event (a
     fit's residuals). `pack_width`: the layout of the state in the solver (`ravel_state`;
-    `pack_width_for` picks it; default: a batch's, `PACK_WIDTH` or the one `batch_pack_width`
-    sets)."""
+    `pack_width_for` picks it; default: a batch's, `PACK_WIDTH`)."""
     if pack_width is None:
-        pack_width = _BATCH_WIDTH.get()
+        pack_width = PACK_WIDTH
     names = terminating + observed
     y0_flat, unravel = ravel_state(y0, pack_width)
     field = FlatField(level, unravel, pack_width)

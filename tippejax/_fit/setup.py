@@ -17,7 +17,7 @@ import numpy as np
 
 from .._cache import cacheable, cached_call, compile_ahead, to_device
 from .._devices import batch_sharding, shard_over
-from .._engine.cpu import own_compiler_options, own_layout
+from .._engine.cpu import own_compiler_options
 from .optimise import least_squares, optimise
 from .params import physical
 from .problem import (
@@ -284,7 +284,7 @@ def _own_call(fn, *args, ahead=False, **static):
     (`tippejax._engine.cpu`; the one-record fit of compile_cache.py's case, 40 steps: first
     call 13.5 -> 8.4 s, again 3.6 -> 2.8 s)."""
     options = own_compiler_options()
-    with cacheable(), own_layout(options):
+    with cacheable():
         if ahead:
             return compile_ahead(fn, *args, compiler_options=options, **static)
         return cached_call(fn, *args, compiler_options=options, **static)
