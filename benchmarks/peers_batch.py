@@ -10,6 +10,10 @@ of a round see the same load), and the medians of full / so3, and writes its sec
 benchmarks/RESULTS.md with the verdicts of the two batch targets it measures.
 
     python benchmarks/peers_batch.py [ROUNDS]     # default 15
+    TIPPEJAX_HOST_DEVICES=2 python benchmarks/peers_batch.py [ROUNDS]   # 2 host devices
+
+With more than one device (`TIPPEJAX_HOST_DEVICES`) every batch runs each device's shard as its own
+loop (`jax.shard_map`; peers.py's runners) and the section is written as `peers_batch.py@N` beside the one-device one.
 """
 
 import statistics
@@ -81,12 +85,15 @@ def main():
         rows.append([f"{a} / {b}", f"{med:.3f}", f"{lo:.3f}-{hi:.3f}",
                      f"{what}: {verdict(med <= bound)}" if bound else what])
     print(f"{ROUNDS} rounds")
-    write_section("peers_batch.py", "\n".join([
-        "## peers_batch.py: the batch target with more rounds",
+    n_dev = len(jax.devices())
+    name = "peers_batch.py" if n_dev == 1 else f"peers_batch.py@{n_dev}"
+    write_section(name, "\n".join([
+        f"## {name}: the batch target with more rounds",
         "",
         f"`python benchmarks/peers_batch.py {ROUNDS}` ({time.strftime('%Y-%m-%d')}). "
         f"{machine_line()}. Batch of 1000 (peers.py's scene: standard top, SO(3) equations, "
-        "theta0 0.1, spins 140-160 rad/s, 20 s, summary mode), one JAX device, "
+        "theta0 0.1, spins 140-160 rad/s, 20 s, summary mode), "
+        f"{'one JAX device' if n_dev == 1 else f'{n_dev} JAX devices'}, "
         f"{ROUNDS} interleaved rounds after a compiling call, each at its equal-error rtol "
         f"(plain {EQUAL_ERROR['plain']:g}, so3 {EQUAL_ERROR['so3']:g}, full "
         f"{EQUAL_ERROR['full']:g}: the plain script's error at rtol 1e-8, from peers.py). "
