@@ -12,8 +12,9 @@ benchmarks/RESULTS.md with the verdicts of the two batch targets it measures.
     python benchmarks/peers_batch.py [ROUNDS]     # default 15
     TIPPEJAX_HOST_DEVICES=2 python benchmarks/peers_batch.py [ROUNDS]   # 2 host devices
 
-With more than one device (`TIPPEJAX_HOST_DEVICES`) every batch runs each device's shard as its own
-loop (`jax.shard_map`; peers.py's runners) and the section is written as `peers_batch.py@N` beside the one-device one.
+With more than one device (`TIPPEJAX_HOST_DEVICES`) every batch runs each device's shard as
+its own loop (`jax.shard_map`; peers.py's runners), and the section is written as
+`peers_batch.py@N` beside the one-device one.
 """
 
 import statistics

@@ -101,9 +101,8 @@ full 1.62 (2 + 2 + 3 + 3)."""
 
 
 def pack_width_for(*trees, adjoint=None) -> int:
-    """A batch's width, `PACK_WIDTH`, where any leaf of
-    `trees` is batched by `jax.vmap` (seen at trace time);
-    else `FORWARD_MODE_PACK_WIDTH` with `adjoint=diffrax.ForwardMode()`, else
+    """A batch's width, `PACK_WIDTH`, where any leaf of `trees` is batched by `jax.vmap` (seen
+    at trace time); else `FORWARD_MODE_PACK_WIDTH` with `adjoint=diffrax.ForwardMode()`, else
     `ONE_TOP_PACK_WIDTH`. JAX has no public test for "inside vmap"; where its private
     tracer class is not found, the batch layout is used (only speed depends on the choice). A
     function jitted inside `jax.vmap` is traced unbatched and gets the one-top layout."""
