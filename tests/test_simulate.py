@@ -310,6 +310,23 @@ def test_contact_loss_continue(top, contact_stop):
     assert np.max(np.abs(_np(sol.theta)[before] - _np(contact_stop.theta)[before])) < 1e-12
 
 
+def test_steps_run_out_past_a_contact_loss_says_so(top, contact_stop):
+    """A run that goes on past its contact loss and then runs out of steps is told why (the
+    model feeds energy into the top past the loss, docs/notes.md), not only to raise
+    max_steps; a run out of steps with no loss keeps the friction hint."""
+    import equinox as eqx
+
+    lost = eqx.tree_at(lambda s: s.result, contact_stop, tj.RESULTS.max_steps_reached)
+    t_loss = float(contact_stop.t_contact_loss)
+    with pytest.raises(RuntimeError, match=f"lost contact .* t = {t_loss:.6g} s") as info:
+        ti.raise_if_failed(lost, "continue", top)
+    assert "on_contact_loss='stop'" in str(info.value)
+    never_lost = eqx.tree_at(lambda s: s.t_contact_loss, lost, jnp.asarray(jnp.nan))
+    with pytest.raises(RuntimeError, match="friction is not stiff") as info:
+        ti.raise_if_failed(never_lost, "continue", top)
+    assert "lost contact" not in str(info.value)
+
+
 def test_contact_loss_located_by_every_solver(contact_stop):
     """The located loss does not depend on the solver: Tsit5 at rtol 1e-8 (steps ~10x shorter
     than Dopri8's) finds it at the time the default Dopri8 does."""

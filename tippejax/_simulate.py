@@ -438,7 +438,11 @@ def simulate(
       `sol.result`.
     - `progress`: show diffrax's tqdm progress meter.
     - `on_contact_loss`: `"stop"` ends the run at $R_n = 0$ (a failure); `"continue"` goes on,
-      flags `result = contact_lost` and does not raise for it.
+      flags `result = contact_lost` and does not raise for it. Past the loss friction feeds
+      energy into the top, and a run can then take ever shorter steps up to `max_steps`
+      (of 100 spins 140-160 rad/s of `benchmarks/peers.py`'s scene at the full level, 5 ran
+      into 20,000 steps within about a second of the loss, where the others end 20 s in
+      about 2,000): in a batch such a member holds up the others; keep `max_steps` small.
     - `tolerance`: for `model="auto"`, the largest acceptable error in $\theta(t)$ (rad).
     - `event_pieces`: along each step every event condition is followed by a quintic (its
       values and rates at the start, middle and end of the step). A step is rejected and
@@ -639,6 +643,18 @@ def _max_steps_hint(top: TippeTop) -> str:
     )
 
 
+def _past_contact_loss_hint(t_loss: float) -> str:
+    """The `max_steps_reached` message of a run that went on past a contact loss."""
+    return (
+        "The maximum number of solver steps was reached before t1, in a run that lost contact "
+        f"with the table at t = {t_loss:.6g} s and went on (on_contact_loss='continue'). Past "
+        "that time the model is not physical: friction proportional to a negative R_n feeds "
+        "energy into the top, whose motion can then need ever shorter steps (docs/notes.md, "
+        "'Contact loss'). More max_steps may not get it to t1: stop at the loss "
+        "(on_contact_loss='stop') or end the run near t_contact_loss."
+    )
+
+
 def _raise_if_failed(sol: Solution, on_contact_loss: str, top: TippeTop | None = None) -> Solution:
     allowed = [RESULTS.successful]
     if on_contact_loss == "continue":
@@ -650,11 +666,14 @@ def _raise_if_failed(sol: Solution, on_contact_loss: str, top: TippeTop | None =
             first = int(np.argmax(failed))
             item = jax.tree_util.tree_map(lambda x: np.ravel(np.asarray(x))[first], sol.result)
             message = RESULTS.message(item)
-            if (codes[first] == int(RESULTS.max_steps_reached._value) and top is not None
-                    and _concrete(top)):
-                message = "The maximum number of solver steps was reached before t1." + (
-                    _max_steps_hint(top)
-                )
+            if codes[first] == int(RESULTS.max_steps_reached._value):
+                t_loss = float(np.ravel(np.asarray(sol.t_contact_loss))[first])
+                if np.isfinite(t_loss):
+                    message = _past_contact_loss_hint(t_loss)
+                elif top is not None and _concrete(top):
+                    message = "The maximum number of solver steps was reached before t1." + (
+                        _max_steps_hint(top)
+                    )
             raise RuntimeError(
                 f"tippejax.simulate failed: {message} "
                 "(pass throw=False to get the flagged solution instead)."
