@@ -128,9 +128,7 @@ def _run(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_on
         chain, result = run(top, y0, ts, t0, t1, rtol, atol)
     out = _outputs(top, y0, ts, chain, result, level=level, names=names)
     if outcome:
-        # (integer outputs: their inputs' derivatives are not traced)
-        out["outcome"], out["settled"] = _classify(
-            *jax.lax.stop_gradient((top, out["jellet_launch"], out["theta_end"])), out["result"])
+        out["outcome"], out["settled"] = _outcome_of(top, out, _classify)
     return out
 
 
@@ -233,6 +231,14 @@ def _classify(top, J, theta_end, result):
 
 
 _classify_program = eqx.filter_jit(_classify)
+
+
+def _outcome_of(top, out, classify):
+    """`sol.outcome`, `sol.settled` of `_run`'s outputs `out` by `classify` (`_classify`, or
+    `_classify_program` for a traced call); integer outputs, so their inputs' derivatives are
+    not traced."""
+    return classify(*jax.lax.stop_gradient((top, out["jellet_launch"], out["theta_end"])),
+                    out["result"])
 
 
 def _concrete(*xs) -> bool:
@@ -519,8 +525,7 @@ def simulate(
         # (a traced call: the classification is a program of its own, which an eager
         # `jax.grad` compiles apart from the differentiated solve, and a caller's `jit`
         # inlines as before)
-        out["outcome"], out["settled"] = _classify_program(
-            *jax.lax.stop_gradient((top, out["jellet_launch"], out["theta_end"])), out["result"])
+        out["outcome"], out["settled"] = _outcome_of(top, out, _classify_program)
     if n_save is not None and out["ts"].shape[0] != n_save:
         for key in _SAVED:
             out[key] = jax.tree_util.tree_map(lambda x: x[:n_save], out[key])
