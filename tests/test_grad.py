@@ -335,6 +335,55 @@ def test_grad_simulate_matches_finite_differences(reverse, forward, finite_diffe
     assert worst_forward < FD_RTOL
 
 
+def test_eager_jacrev_is_a_program_of_its_own_and_agrees(problem, reverse, monkeypatch):
+    """An eager `jax.jacrev` (no `jit` of the caller) runs the Jacobian of the solve as a
+    top-level program of its own (`_run_jacobian`, compiled with tippejax's options and
+    stored), not inside the program JAX derives from `_run`. Its derivatives agree with the
+    `jit`-ed route, which differentiates `_run` as one program."""
+    import tippejax._simulate as simulate_module
+
+    lives = []
+    call = simulate_module.cached_call
+
+    def spy(fn, *args, **kwargs):
+        if fn is simulate_module._run_jacobian:
+            lives.append(kwargs["live"])
+        return call(fn, *args, **kwargs)
+
+    monkeypatch.setattr(simulate_module, "cached_call", spy)
+    got = _by_name(_timed("jax.jacrev, eager", jax.jacrev(_outputs, argnums=(0, 1)), *problem))
+    # the seven fields of the top and the launch's tilt, spin, tilt rate are differentiated
+    assert len(lives) == 1 and len(lives[0]) >= len(FIELDS)
+    _check_complete(got)
+    assert _report("jax.jacrev eager vs jit", got, reverse) < MODES_RTOL
+
+
+def test_only_an_eager_derivative_takes_its_own_program():
+    """`_differentiated_eagerly`: true under an eager `jax.grad`, `jax.jacfwd` or `jax.jvp`,
+    false for concrete inputs, under `jax.vmap`, `jax.jit`, and `jax.grad` inside either
+    (where the rule's inputs are not concrete: one program, `_run`)."""
+    from tippejax._simulate import _differentiated_eagerly
+
+    seen = []
+
+    def record(x, y=1.0):
+        seen.append(_differentiated_eagerly((x, y)))
+        return x * y
+
+    jax.grad(record)(2.0)
+    jax.jacfwd(record)(2.0)
+    jax.jvp(record, (2.0,), (1.0,))
+    assert seen == [True, True, True]
+    seen.clear()
+    record(2.0)
+    jax.vmap(record)(jnp.ones(2))
+    jax.jit(record)(2.0)
+    jax.jit(jax.grad(record))(2.0)
+    jax.vmap(jax.grad(record))(jnp.ones(2))
+    jax.vmap(lambda y: jax.grad(lambda x: record(x, y))(2.0))(jnp.ones(2))  # (y batched)
+    assert seen == [False] * 6
+
+
 def test_grad_t_invert_wrt_mu_sign_and_size(reverse):
     # More friction, faster rise, earlier inversion. The rise is set by the friction, so the
     # elasticity of t_invert in mu is of order one: |d t_invert/d mu| * mu of order seconds.

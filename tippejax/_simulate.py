@@ -28,7 +28,7 @@ from ._engine.segment import (
     pack_width_for,
     top_axes,
 )
-from ._engine.sensitivity import ForwardSensitivities, forward_sensitivities
+from ._engine.sensitivity import ForwardSensitivities, forward_sensitivities, jacobian_of
 from ._engine.solver_choice import (
     IMPLICIT_RATE,
     STIFF_RATE,
@@ -93,12 +93,53 @@ def _run(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_on
     """The run of one top (`run_chain`) and its observed fields (`_outputs`); with
     `outcome=True` also `sol.outcome` and `sol.settled` (`_classify`), in the same program.
 
-    The default adjoint differentiates the segment chain alone (`_run_core`); the observed
+    The default adjoint differentiates the segment chain alone (`_chain`); the observed
     fields, simple functions of its states, are differentiated by JAX's own rules after it.
-    An eager `jax.grad` then compiles the Jacobian of the chain's outputs only, not of every
-    field: with the outcome left out of that program too (`simulate` classifies a traced
-    call in a program of its own), its first call took 0.92x as long (paired fresh
-    processes, 2026-11-29; `jax.jit(jax.grad)` unchanged, 0.99x)."""
+    (An eager `jax.grad` of `simulate` does not come here: see `_run_traced`.)"""
+    chain, result = _chain(
+        top, y0, ts, t0, t1, rtol, atol, level=level, solver=solver, guard_stiff=guard_stiff,
+        stop_on_contact=stop_on_contact, max_steps=max_steps, adjoint=adjoint,
+        progress=progress, pieces=pieces, inversion=inversion, locate=locate,
+        pack_width=pack_width, jacobian_pack_width=jacobian_pack_width)
+    out = _outputs(top, y0, ts, chain, result, level=level, names=names)
+    if outcome:
+        out["outcome"], out["settled"] = _outcome_of(top, out, _classify)
+    return out
+
+
+def _run_traced(top, y0, ts, t0, t1, rtol, atol, *, names=OBSERVED, inversion=True,
+                locate=True, **options):
+    """`_run` (without the outcome) for an eager `jax.grad`, `jax.jvp` or `jax.jacfwd` of
+    `simulate` (`_differentiated_eagerly`): its segment chain and its observed fields as two
+    programs, with the chain's derivative rule outside both.
+
+    JAX calls the rule with concrete inputs, and the chain's forward-mode Jacobian is then a
+    top-level program of its own (`_run_jacobian`): compiled with tippejax's options
+    (`own_compiler_options`) and kept in the store of traced programs (`cached_call`), which
+    JAX allows for neither the program it derives from `_run`'s nor a nested `jit`. First
+    call of an eager `jax.grad` of t_invert (8 s run) in a new process, paired with the
+    single program it replaced (2-core AMD EPYC, 2026-11-29): median 0.80x as long with the
+    cache off (6 pairs, 0.60-0.97x: 10.3-14.4 s against 14.1-17.1 s), 0.51x and 0.88x with an
+    empty cache, 1.7-2.0 s against 6.9-7.5 s with a warm one (the stored Jacobian is not
+    traced again)."""
+    core = {k: v for k, v in options.items() if k not in ("adjoint", "jacobian_pack_width")}
+    core.update(pack_width=options["jacobian_pack_width"], inversion=inversion, locate=locate)
+
+    def jacobian(args, live):
+        return cached_call(_run_jacobian, *args, compiler_options=own_compiler_options(),
+                           live=live, **core)
+
+    chain, result = _chain(top, y0, ts, t0, t1, rtol, atol, **options, inversion=inversion,
+                           locate=locate, jacobian=jacobian)
+    return _outputs_program(top, y0, ts, chain, result, level=options["level"], names=names)
+
+
+def _chain(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_on_contact,
+           max_steps, adjoint, progress, pieces, inversion, locate, pack_width,
+           jacobian_pack_width, jacobian=None):
+    """`_run_core` with the derivatives `adjoint` asks for: the default
+    (`ForwardSensitivities`) from its forward-mode Jacobian (`sensitivity.py`), with
+    `jacobian` for concrete inputs (see `forward_sensitivities`)."""
     options = dict(level=level, solver=solver, guard_stiff=guard_stiff,
                    stop_on_contact=stop_on_contact, max_steps=max_steps, progress=progress,
                    pieces=pieces, inversion=inversion, locate=locate)
@@ -111,25 +152,30 @@ def _run(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_on
         # under `jit` eagerly, and the Jacobian's rule transforms the same cached jaxpr.
         run = functools.partial(_run_core_staged, **options, adjoint=diffrax.ForwardMode(),
                                 pack_width=pack_width)
-        run = forward_sensitivities(run, run)
+        run = forward_sensitivities(run, run, jacobian=jacobian)
     elif isinstance(adjoint, ForwardSensitivities):
         # (layouts that differ between the value and the Jacobian: two programs)
         run = forward_sensitivities(
             functools.partial(run, adjoint=diffrax.RecursiveCheckpointAdjoint(),
                               pack_width=pack_width),
             functools.partial(run, adjoint=diffrax.ForwardMode(),
-                              pack_width=jacobian_pack_width))
+                              pack_width=jacobian_pack_width),
+            jacobian=jacobian)
     else:
         run = functools.partial(run, adjoint=adjoint, pack_width=pack_width)
     # (JAX keys its cache of traced programs on the context's abstract mesh: unset here at
     # the first trace, the empty mesh where `jax.grad` replays `_run`'s jaxpr and calls the
     # Jacobian's rule. Set it, so that both find the one trace of `_run_core_staged`.)
     with jax.sharding.use_abstract_mesh(jax.sharding.get_abstract_mesh()):
-        chain, result = run(top, y0, ts, t0, t1, rtol, atol)
-    out = _outputs(top, y0, ts, chain, result, level=level, names=names)
-    if outcome:
-        out["outcome"], out["settled"] = _outcome_of(top, out, _classify)
-    return out
+        return run(top, y0, ts, t0, t1, rtol, atol)
+
+
+@eqx.filter_jit
+def _run_jacobian(top, y0, ts, t0, t1, rtol, atol, *, live, **options):
+    """`_run_core`'s outputs and their forward-mode Jacobian in the leaves `live` of its
+    arguments (`jacobian_of`): the program an eager `jax.grad` of `simulate` runs."""
+    run = functools.partial(_run_core, **options, adjoint=diffrax.ForwardMode())
+    return jacobian_of(run, (top, y0, ts, t0, t1, rtol, atol), live)
 
 
 def _run_core(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_on_contact,
@@ -208,6 +254,10 @@ def _outputs(top, y0, ts, out, result, *, level, names=OBSERVED):
     )
 
 
+_outputs_program = eqx.filter_jit(_outputs)
+"""`_outputs` as a program of its own, for `_run_traced`."""
+
+
 _SAVED = ("ts", "states", "theta", "phi", "psi", "theta_dot", "phi_dot", "psi_dot", "spin",
           "position", "velocity", "jellet", "energy", "normal_force", "slip_speed")
 """The outputs with a save-time axis."""
@@ -243,6 +293,22 @@ def _outcome_of(top, out, classify):
 
 def _concrete(*xs) -> bool:
     return not any(is_traced(x) for x in jax.tree_util.tree_leaves(xs))
+
+
+def _differentiated_eagerly(args) -> bool:
+    """Whether the inputs `args` are differentiated by an eager `jax.grad`, `jax.jvp` or
+    `jax.jacfwd` alone: some leaf is a tracer of forward or reverse mode (one with a `primal`)
+    over a concrete value, and no leaf is traced otherwise (`jax.vmap`, `jax.jit`). False
+    where JAX's tracers look otherwise: then `_run` is used, the same derivatives in one
+    program."""
+    found = False
+    for x in jax.tree_util.tree_leaves(args):
+        while isinstance(x, jax.core.Tracer):
+            primal = getattr(x, "primal", None)
+            if primal is None:
+                return False
+            x, found = primal, True
+    return found
 
 
 def _as_dtype(x, dtype):
@@ -506,26 +572,34 @@ def simulate(
     if adjoint is None:
         adjoint = ForwardSensitivities()
     level = dataclasses.replace(LEVELS[model], body=not summary if body is None else bool(body))
+    options = dict(
+        level=level, solver=solver, guard_stiff=guard_stiff,
+        stop_on_contact=on_contact_loss == "stop", max_steps=int(max_steps),
+        adjoint=adjoint, progress=progress, pieces=int(event_pieces),
+        # (a slow-flow level's chain, which hands over to the full model, keeps the batch
+        # layout: with one vector its single top ran 22 ms against 12 ms, peers.py scene)
+        pack_width=PACK_WIDTH if LEVELS[model].slow_flow else pack_width_for(
+            top, y0, t0, t1, rtol, atol, ts, adjoint=adjoint),
+        jacobian_pack_width=PACK_WIDTH if LEVELS[model].slow_flow else pack_width_for(
+            top, y0, t0, t1, rtol, atol, ts, adjoint=diffrax.ForwardMode()),
+    )
+    args = (top, y0, ts, *(_as_dtype(x, dtype) for x in (t0, t1, rtol, atol)))
     with cacheable():
-        out = cached_call(
-            _run, top, y0, ts, *(_as_dtype(x, dtype) for x in (t0, t1, rtol, atol)),
-            compiler_options=own_compiler_options(),
-            level=level, solver=solver, guard_stiff=guard_stiff,
-            stop_on_contact=on_contact_loss == "stop", max_steps=int(max_steps),
-            adjoint=adjoint, progress=progress, pieces=int(event_pieces),
-            # (a slow-flow level's chain, which hands over to the full model, keeps the batch
-            # layout: with one vector its single top ran 22 ms against 12 ms, peers.py scene)
-            pack_width=PACK_WIDTH if LEVELS[model].slow_flow else pack_width_for(
-                top, y0, t0, t1, rtol, atol, ts, adjoint=adjoint),
-            jacobian_pack_width=PACK_WIDTH if LEVELS[model].slow_flow else pack_width_for(
-                top, y0, t0, t1, rtol, atol, ts, adjoint=diffrax.ForwardMode()),
-            outcome=_concrete(top, y0, ts, t0, t1, rtol, atol),
-        )
-    if "outcome" not in out:
-        # (a traced call: the classification is a program of its own, which an eager
-        # `jax.grad` compiles apart from the differentiated solve, and a caller's `jit`
-        # inlines as before)
-        out["outcome"], out["settled"] = _outcome_of(top, out, _classify_program)
+        if _concrete(*args):
+            out = cached_call(_run, *args, compiler_options=own_compiler_options(), **options,
+                              outcome=True)
+        else:
+            # (a traced call. An eager `jax.grad` or `jax.jacfwd` runs the Jacobian as a
+            # program of its own, `_run_traced`; a `jax.vmap` or a caller's `jit` traces
+            # `_run`, one program. The classification is a program of its own, which an
+            # eager `jax.grad` compiles apart from the differentiated solve, and a caller's
+            # `jit` inlines.)
+            own_jacobian = (isinstance(adjoint, ForwardSensitivities)
+                            and options["pack_width"] == options["jacobian_pack_width"]
+                            and _differentiated_eagerly(args))
+            run = _run_traced if own_jacobian else _run
+            out = run(*args, **options)
+            out["outcome"], out["settled"] = _outcome_of(top, out, _classify_program)
     if n_save is not None and out["ts"].shape[0] != n_save:
         for key in _SAVED:
             out[key] = jax.tree_util.tree_map(lambda x: x[:n_save], out[key])

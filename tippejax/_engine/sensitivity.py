@@ -48,13 +48,19 @@ def _is_float(x) -> bool:
     return jnp.issubdtype(jnp.result_type(x), jnp.inexact)
 
 
-def forward_sensitivities(primal: Callable, forward: Callable) -> Callable:
+def forward_sensitivities(primal: Callable, forward: Callable, *,
+                          jacobian: Callable | None = None) -> Callable:
     """`primal` (a function of pytrees of arrays) with its derivatives computed from the
     forward-mode Jacobian of `forward`, which must compute the same function (see the module
     docstring). Integer outputs have zero derivatives (`float0`). `primal` and `forward` may
     be one jitted function: `simulate` passes its solve, staged with `diffrax.ForwardMode`, as
     both, so that JAX, which traces the value of a `custom_jvp` under `jit` eagerly, finds
-    the same trace in `jit`'s cache when the rule differentiates it."""
+    the same trace in `jit`'s cache when the rule differentiates it.
+
+    `jacobian(args, live)`, if given, is called instead of `jacobian_of(forward, args, live)`
+    when the rule's primal inputs are concrete arrays (an eager `jax.grad` or `jax.jacfwd`):
+    the Jacobian is then a program of its own, which may be compiled with options and stored
+    (`simulate` passes one)."""
 
     @jax.custom_jvp
     def fn(*args):
@@ -63,30 +69,17 @@ def forward_sensitivities(primal: Callable, forward: Callable) -> Callable:
     def rule(primals, tangents):
         flat, tree = jax.tree_util.tree_flatten(primals)
         flat_tangents = tree.flatten_up_to(tangents)
-        live = [i for i, t in enumerate(flat_tangents)
-                if not isinstance(t, SymbolicZero) and _is_float(flat[i])]
+        live = tuple(i for i, t in enumerate(flat_tangents)
+                     if not isinstance(t, SymbolicZero) and _is_float(flat[i]))
         if not live:
             out = primal(*primals)
             return out, jax.tree_util.tree_map(_zero_tangent, out)
-        inputs = [jnp.asarray(flat[i]) for i in live]
-
-        def of_live(*values):
-            leaves = list(flat)
-            for i, value in zip(live, values):
-                leaves[i] = value
-            return forward(*jax.tree_util.tree_unflatten(tree, leaves))
-
-        # The k unit tangents, one leaf of the differentiated inputs at a time.
-        sizes = [x.size for x in inputs]
-        k = sum(sizes)
-        eye = jnp.eye(k, dtype=jnp.result_type(*inputs))
-        offsets = np.cumsum([0] + sizes)
-        basis = [eye[:, a:b].reshape((k,) + x.shape).astype(x.dtype)
-                 for a, b, x in zip(offsets[:-1], offsets[1:], inputs)]
-        out, jac = jax.vmap(lambda *t: jax.jvp(of_live, tuple(inputs), t),
-                            out_axes=(None, 0))(*basis)
+        if jacobian is not None and not any(isinstance(x, jax.core.Tracer) for x in flat):
+            out, jac = jacobian(primals, live)
+        else:
+            out, jac = jacobian_of(forward, primals, live)
         direction = jnp.concatenate(
-            [jnp.ravel(jnp.asarray(flat_tangents[i], x.dtype)) for i, x in zip(live, inputs)])
+            [jnp.ravel(jnp.asarray(flat_tangents[i], jnp.result_type(flat[i]))) for i in live])
 
         def tangent(o, j):
             if not _is_float(o):
@@ -97,6 +90,30 @@ def forward_sensitivities(primal: Callable, forward: Callable) -> Callable:
 
     fn.defjvp(rule, symbolic_zeros=True)
     return fn
+
+
+def jacobian_of(forward: Callable, args: tuple, live: tuple[int, ...]):
+    """`forward(*args)` and its Jacobian in the leaves `live` of `args` (indices into
+    `jax.tree_util.tree_leaves(args)`): `(out, jac)`, where each leaf of `jac` is the leaf of
+    `out` with a leading axis of the $k$ differentiated numbers (one `jax.jvp` per unit
+    tangent, `jax.vmap`-ed: one solve carrying $k$ tangents)."""
+    flat, tree = jax.tree_util.tree_flatten(args)
+    inputs = [jnp.asarray(flat[i]) for i in live]
+
+    def of_live(*values):
+        leaves = list(flat)
+        for i, value in zip(live, values):
+            leaves[i] = value
+        return forward(*jax.tree_util.tree_unflatten(tree, leaves))
+
+    # The k unit tangents, one leaf of the differentiated inputs at a time.
+    sizes = [x.size for x in inputs]
+    k = sum(sizes)
+    eye = jnp.eye(k, dtype=jnp.result_type(*inputs))
+    offsets = np.cumsum([0] + sizes)
+    basis = [eye[:, a:b].reshape((k,) + x.shape).astype(x.dtype)
+             for a, b, x in zip(offsets[:-1], offsets[1:], inputs)]
+    return jax.vmap(lambda *t: jax.jvp(of_live, tuple(inputs), t), out_axes=(None, 0))(*basis)
 
 
 def _zero_tangent(x):
