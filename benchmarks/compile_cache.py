@@ -123,8 +123,9 @@ def main() -> None:
         "first: the first call (trace, compile or load, run); second: the same call again in "
         "that process (run only); first - second: what a new process pays for compiling. "
         "A warm process loads both the XLA programs (JAX's persistent cache) and the traced "
-        "programs of `simulate` and `fit` (`jax.export`, `tippejax/_cache.py`); `grad` is "
-        "traced again (the differentiated function is the caller's). `grad`: `jax.grad` of "
+        "programs of `simulate`, `fit` and an eager gradient's Jacobian of the solve "
+        "(`jax.export`, `tippejax/_cache.py`); a gradient in `jax.jit` is traced again (the "
+        "differentiated function is the caller's). `grad`: `jax.grad` of "
         "`t_invert` (8 s summary run) called eagerly; `jit(grad)`: the same in `jax.jit` with "
         "XLA's default options; `jit(grad), options`: with "
         "`compiler_options=tj.compiler_options()`.",
