@@ -9,7 +9,8 @@ Standard top, launch theta0 = 0.1, spin 150 rad/s, t1 = 20 s, full model, defaul
 
 Modes, with `simulate`'s default adjoint (forward sensitivities, `tippejax/_engine/
 sensitivity.py`): reverse (`jax.grad`) and forward (`jax.jacfwd`); and reverse mode through the
-solve's steps (`adjoint=diffrax.RecursiveCheckpointAdjoint()`, the default before). Cost =
+solve's steps (`adjoint=diffrax.RecursiveCheckpointAdjoint()`, the default before); and the
+reverse gradient called eagerly, without `jax.jit`. Cost =
 median time of the compiled derivative / median time of the compiled forward solve of the same
 quantity (rtol 1e-8); compile = first call less the median. Correctness at rtol 1e-12: the
 default's reverse mode against reverse mode through the solve (independent routes), and both
@@ -71,6 +72,7 @@ def sum_theta(top, rtol, atol, adjoint=None):
 
 
 QUANTITIES = {"t_invert (summary)": t_invert, "sum(theta), 201 saves": sum_theta}
+EAGER = "eager reverse (jax.grad, no jax.jit)"
 
 
 def as_dict(grad_top) -> dict:
@@ -109,6 +111,10 @@ def measure(name, fn):
     # programs with (its run time against the default's; its compile time here is less the
     # trace, which the process has cached: compile_cache.py times it in a fresh process).
     with_options = eqx.filter_jit(jax.grad(fn), compiler_options=tj.compiler_options())
+    # The reverse gradient called eagerly (no jit of the caller): the Jacobian of the solve is
+    # then a program of its own, compiled with tippejax's options (`_simulate._run_traced`),
+    # and the caller's Python runs on every call.
+    eager = jax.grad(fn)
     r8, a8 = (jnp.asarray(x) for x in TIMING_TOL)
     say(f"{name}: compiling and timing (rtol {TIMING_TOL[0]:g})")
     results = interleaved({
@@ -120,6 +126,7 @@ def measure(name, fn):
             lambda: two_tangents(top, r8, a8),
         "reverse through the solve (jax.grad, RecursiveCheckpointAdjoint)":
             lambda: through(top, r8, a8),
+        EAGER: lambda: eager(top, r8, a8),
         "with tj.compiler_options(): reverse (jax.grad)":
             lambda: with_options(top, r8, a8),
     }, repeats=REPEATS)
@@ -345,6 +352,13 @@ def report(results, elapsed, plain, scan):
         "the default's run | " + "; ".join(
             f"{q['name']}: {q['rows'][-1]['wall'] / q['rows'][1]['wall']:.2f}x wall, "
             f"{q['rows'][-1]['cpu'] / q['rows'][1]['cpu']:.2f}x CPU" for q in results)
+        + " (its first call in a fresh process: `compile_cache.py`) | |",
+        "| (eager) the reverse gradient called without `jax.jit` (the solve's Jacobian a "
+        "program of its own, with tippejax's options), against the solve | " + "; ".join(
+            f"{q['name']}: " + ", ".join(
+                f"{r['ratio']:.2f}x wall / {r['ratio_cpu']:.2f}x CPU, compile "
+                f"{r['compile']:.1f} s" for r in q["rows"] if r["mode"] == EAGER)
+            for q in results)
         + " (its first call in a fresh process: `compile_cache.py`) | |",
         f"| (before) reverse mode through the solve (RecursiveCheckpointAdjoint) | "
         f"{worst_through:.1f}x at worst | |",
