@@ -352,7 +352,8 @@ def test_eager_jacrev_is_a_program_of_its_own_and_agrees(problem, reverse, monke
 
     monkeypatch.setattr(simulate_module, "cached_call", spy)
     got = _by_name(_timed("jax.jacrev, eager", jax.jacrev(_outputs, argnums=(0, 1)), *problem))
-    # the seven fields of the top and the launch's tilt, spin, tilt rate are differentiated
+    # one Jacobian, in the top's seven fields and the launch state's leaves that depend on
+    # (theta0, spin)
     assert len(lives) == 1 and len(lives[0]) >= len(FIELDS)
     _check_complete(got)
     assert _report("jax.jacrev eager vs jit", got, reverse) < MODES_RTOL

@@ -35,6 +35,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax.custom_derivatives import SymbolicZero
 
+from .solver_choice import is_traced
+
 
 class ForwardSensitivities(eqx.Module):
     """The adjoint `simulate` uses by default: derivatives of the run, in forward and in
@@ -74,7 +76,7 @@ def forward_sensitivities(primal: Callable, forward: Callable, *,
         if not live:
             out = primal(*primals)
             return out, jax.tree_util.tree_map(_zero_tangent, out)
-        if jacobian is not None and not any(isinstance(x, jax.core.Tracer) for x in flat):
+        if jacobian is not None and not any(map(is_traced, flat)):
             out, jac = jacobian(primals, live)
         else:
             out, jac = jacobian_of(forward, primals, live)
