@@ -23,6 +23,7 @@ FREE = ("mu", "eps", "spin")
 NOISE = 0.01
 TS_FAST = np.arange(0.0, 6.0, 1 / 240)  # 240 Hz, 6 s
 TS_SLOW = np.arange(0.0, 10.0, 1 / 30)  # 30 Hz, 10 s
+TS_UPRIGHT = np.arange(0.0, 8.0, 1 / 120)  # 120 Hz, 8 s: the tops launched upright
 
 # Tops of three groups (tj.classify checks below), none of them the default top.
 TOP_IIA = tj.TippeTop.from_ratios(0.7, 0.45, m=0.015, R=0.02, mu=0.8)
@@ -241,7 +242,7 @@ def test_recovers_from_30_percent_off_at_30_hz_group_III():
 def test_upright_launch_with_a_tilt_rate():
     """theta0 = 0 with theta_dot = 0.5 rad/s (a top dropped upright): accepted, theta_dot free."""
     spin = 3.0 * float(tj.thresholds(TOP_IIB).n1)
-    ts = np.arange(0.0, 8.0, 1 / 120)
+    ts = TS_UPRIGHT
     obs, clean = _record(TOP_IIB, ts, 0.0, spin, seed=2, theta_dot=0.5)
     assert clean.max() > 1.0
     guess, y0 = _guess(TOP_IIB, spin, (0.8, 1.2, 1.2), 0.0, theta_dot=0.4)
@@ -254,7 +255,7 @@ def test_upright_guess_is_accepted_and_fitted_near_the_truth():
     guess at the pole is accepted with theta_dot free, and a fit from 5% off (whole record,
     strategy="plain") ends within 3 SE of the truth with residuals that pass the diagnostics."""
     spin = 3.0 * float(tj.thresholds(TOP_IIB).n1)
-    ts = np.arange(0.0, 5.0, 1 / 60)
+    ts = TS_UPRIGHT  # (the grid and free set of the test above: the same compiled fit)
     obs, clean = _record(TOP_IIB, ts, 0.0, spin, seed=6, theta_dot=0.5)
     assert clean.max() > 0.5  # it rises off the pole within the record
     guess, y0 = _guess(TOP_IIB, spin, (1.05, 0.95, 1.02), 0.0, theta_dot=0.45)
@@ -727,9 +728,10 @@ def test_setup_reuses_an_evaluation_only_for_the_same_loss_and_point():
     """`Setup.data` returns one `Data` per arguments and a new one when the samples a fit may
     use change (trim); `evaluate` hands back a stored evaluation only for the same `Data` and
     the same point (the optimiser's end point, then `finish`), equal to a fresh one."""
-    top = tj.default_top()
-    ts = np.linspace(0.0, 1.0, 41)
-    obs = np.asarray(tj.simulate(top, tj.initial_state(top, 0.2, 90.0), 1.0, saveat=ts).theta)
+    # (the grid, free set and kind of top of the Group III fit above: the same compiled fit)
+    top, ts = TOP_III, TS_SLOW
+    spin = 4.0 * float(tj.thresholds(TOP_III).n1)
+    obs, _ = _record(TOP_III, ts, 0.1, spin, seed=1)
     captured = {}
     real = fit_setup.Setup.optimise
 
@@ -740,8 +742,7 @@ def test_setup_reuses_an_evaluation_only_for_the_same_loss_and_point():
     fit_setup.Setup.optimise = grab
     try:
         with pytest.raises(_Stop):
-            tj.fit(top, tj.initial_state(top, 0.2, 90.0), ts, obs, free=("mu", "eps"),
-                   strategy="plain")
+            tj.fit(top, tj.initial_state(top, 0.1, spin), ts, obs, free=FREE, strategy="plain")
     finally:
         fit_setup.Setup.optimise = real
     setup = captured["setup"]
@@ -749,7 +750,7 @@ def test_setup_reuses_an_evaluation_only_for_the_same_loss_and_point():
     assert setup.data(tol=setup.tol, final=True) is final
     loose = setup.data()
     assert loose is not final and float(loose.rtol) > float(final.rtol)
-    u, v = np.zeros(2), np.array([0.05, -0.05])
+    u, v = np.zeros(3), np.array([0.05, -0.05, 0.01])
     first = setup.evaluate(u, final)
     assert setup.evaluate(u.copy(), final) is first  # same point, same loss: stored
     other_point = setup.evaluate(v, final)
@@ -760,7 +761,7 @@ def test_setup_reuses_an_evaluation_only_for_the_same_loss_and_point():
     np.testing.assert_array_equal(np.asarray(fresh[0]), np.asarray(first[0]))
     np.testing.assert_array_equal(np.asarray(fresh[1]), np.asarray(first[1]))
     # trim shortens the samples a fit may use: another Data, with fewer weights
-    setup.fitted = ts[None, :] <= 0.5
+    setup.fitted = ts[None, :] <= 5.0
     half = setup.data(tol=setup.tol, final=True)
     assert half is not final
     assert np.sum(np.asarray(half.weights) > 0) < np.sum(np.asarray(final.weights) > 0)
