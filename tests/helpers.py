@@ -1,5 +1,7 @@
 """Shared test helpers: tree comparison and one top per group."""
 
+import os
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -52,3 +54,12 @@ def match_max_rel(ev_a, ev_b):
     cost = np.abs(ev_a[:, None] - ev_b[None, :])
     rows, cols = scipy.optimize.linear_sum_assignment(cost)
     return float(np.max(cost[rows, cols]) / np.max(np.abs(ev_a)))
+
+
+def host_devices_env(n: int, **extra) -> dict:
+    """The environment for a test's new process with `n` CPU devices: the pytest process's
+    `XLA_FLAGS` (the suite's compile options, `conftest.TEST_XLA_FLAGS`) without its device
+    count (tippejax sets one per core at import), and `n` host devices."""
+    count = "--xla_force_host_platform_device_count"
+    flags = [f for f in os.environ.get("XLA_FLAGS", "").split() if not f.startswith(count)]
+    return dict(os.environ, XLA_FLAGS=" ".join([f"{count}={n}", *flags]), **extra)

@@ -1,12 +1,12 @@
 """simulate_batch: a grid of launches in one compiled batch, and sharding over devices."""
 
 import json
-import os
 import subprocess
 import sys
 
 import numpy as np
 import pytest
+from helpers import host_devices_env
 
 import tippejax as tj
 
@@ -59,7 +59,7 @@ print(json.dumps(dict(devices=jax.device_count(),
 
 def test_sharded_batch_on_four_host_devices():
     """The same numbers as one device; every device loops over its own members alone."""
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4")
+    env = host_devices_env(4)
     out = subprocess.run(
         [sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True, check=True
     ).stdout

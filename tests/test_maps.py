@@ -7,6 +7,7 @@ import sys
 import jax
 import numpy as np
 import pytest
+from helpers import host_devices_env
 
 import tippejax as tj
 from tippejax._auto import choose_model
@@ -180,8 +181,7 @@ def test_two_processes_with_jax_distributed_give_the_single_process_map(tmp_path
     """Two CPU processes (two devices each: four shards) with jax.distributed."""
     script = os.path.join(ROOT, "examples", "distributed_map.py")
     common = ["--n-theta", "2", "--n-spin", "3", "--t1", "4", "--chunk-size", "4"]
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2",
-               JAX_PLATFORMS="cpu")
+    env = host_devices_env(2, JAX_PLATFORMS="cpu")
     import socket
 
     with socket.socket() as s:

@@ -7,12 +7,12 @@ loosely: the grazing dips of R_n before a top leaves the table make them sensiti
 """
 
 import json
-import os
 import subprocess
 import sys
 
 import numpy as np
 import pytest
+from helpers import host_devices_env
 
 import tippejax as tj
 
@@ -195,7 +195,7 @@ print(json.dumps(dict(devices=jax.device_count(), shape=list(sharded.theta.shape
 
 
 def test_shared_steps_sharded_over_two_host_devices():
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    env = host_devices_env(2)
     out = subprocess.run(
         [sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True, check=True
     ).stdout
