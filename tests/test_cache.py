@@ -160,6 +160,68 @@ def test_cached_call_compiles_with_the_callers_options(tmp_path, monkeypatch):
     assert jnp.allclose(traced, x**3)
 
 
+def test_calling_context_tells_top_level_calls_from_staged_ones():
+    """A jitted call runs as a top-level program (compile options allowed) with no
+    transformation, under eager `jax.vmap`s (JAX runs the batched program at the top level)
+    and in an eager derivative's rules; it is part of a program being traced under a `jit`
+    or in a loop's body, with or without a `vmap` inside."""
+    import jax
+    import jax.numpy as jnp
+
+    from tippejax._cache import calling_context
+
+    seen = {}
+
+    def record(name):
+        def f(x):
+            seen[name] = calling_context()
+            return x
+        return f
+
+    record("top")(1.0)
+    jax.vmap(record("vmap"))(jnp.ones(2))
+    jax.vmap(jax.vmap(record("vmap of vmap")))(jnp.ones((2, 2)))
+    jax.grad(record("grad"))(1.0)
+    jax.jvp(record("jvp"), (1.0,), (1.0,))
+    jax.jit(record("jit"))(1.0)
+    jax.jit(jax.vmap(record("jit of vmap")))(jnp.ones(2))
+    jax.vmap(jax.jit(record("vmap of jit")))(jnp.ones(2))
+    jax.lax.scan(lambda c, x: (record("scan")(c), x), 0.0, jnp.ones(2))
+    assert seen == {"top": "eager", "vmap": "vmap", "vmap of vmap": "vmap", "grad": "eager",
+                    "jvp": "eager", "jit": "staged", "jit of vmap": "staged",
+                    "vmap of jit": "staged", "scan": "staged"}
+
+
+def test_options_reach_an_eager_vmap_and_stay_out_of_a_callers_jit(tmp_path, monkeypatch):
+    """Under an eager `jax.vmap` the batched call is a top-level program and gets the
+    options (an unknown one raising proves it). Inside a caller's `jit` the call is nested and
+    gets none, even when its inputs are concrete arrays closed over by the caller (JAX refuses
+    options on a nested `jit`: such a call raised before), and nothing is stored for it."""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    import tippejax._cache as cache
+
+    monkeypatch.setattr(cache, "EXPORT_DIR", str(tmp_path))
+    monkeypatch.setattr(cache, "_LOADED", {})
+
+    @eqx.filter_jit
+    def cube(x, *, shift):
+        return x**3 + shift
+
+    bad = {"not_an_xla_option": 1}
+    x = jnp.array([1.0, -2.0, 3.0])
+    with pytest.raises(Exception, match="not_an_xla_option"):
+        jax.vmap(lambda v: cache.cached_call(cube, v, shift=1.0, compiler_options=bad))(x)
+    batched = jax.jit(jax.vmap(
+        lambda v: cache.cached_call(cube, v, shift=1.0, compiler_options=bad)))(x)
+    assert jnp.allclose(batched, x**3 + 1.0)
+    closed_over = jax.jit(lambda: cache.cached_call(cube, x, shift=2.0, compiler_options=bad))()
+    assert jnp.allclose(closed_over, x**3 + 2.0)
+    assert os.listdir(tmp_path) == []
+
+
 def test_compile_ahead_compiles_on_the_side_and_the_call_uses_it(tmp_path, monkeypatch):
     """`compile_ahead` stores the traced program and compiles it on a side thread without
     running it; the later call with arguments of the same shapes runs that compiled program

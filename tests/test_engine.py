@@ -394,11 +394,13 @@ def test_one_top_is_packed_in_one_vector_and_a_batch_in_narrow_ones(top):
 def test_batches_compiled_with_the_cpu_options_match_a_users_vmap(top):
     """tippejax's own CPU batch programs (`CpuProgram`: its compile options, blocks under
     `lax.map`, sharding) change the speed only: `simulate_batch` and the user's `vmap` of
-    `simulate` (XLA's defaults) end at the same state and inversion time."""
+    `simulate` in the user's `jit` (XLA's defaults; an eager `vmap` gets tippejax's options)
+    end at the same state and inversion time."""
     spins = jnp.array([140.0, 160.0])
     own = tj.simulate_batch(top, 0.1, spins, 6.0, grid=(), summary=True, model="full")
-    user = jax.vmap(lambda s: tj.simulate(top, tj.initial_state(top, 0.1, s), 6.0,
-                                          summary=True, model="full", throw=False))(spins)
+    user = jax.jit(jax.vmap(lambda s: tj.simulate(top, tj.initial_state(top, 0.1, s), 6.0,
+                                                  summary=True, model="full", throw=False)))(
+        spins)
     assert np.all(np.isfinite(np.asarray(own.t_invert)))
     np.testing.assert_allclose(np.asarray(own.t_invert), np.asarray(user.t_invert), rtol=1e-8)
     np.testing.assert_allclose(np.asarray(own.states.omega[:, -1]),

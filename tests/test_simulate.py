@@ -445,6 +445,42 @@ def test_jit_with_default_solver(top, full_ref):
     assert bool(ok) and err < 1e-5
 
 
+def test_jit_with_every_input_a_concrete_array(top):
+    """`simulate` inside a caller's `jit` whose inputs are all concrete arrays closed over (no
+    traced argument at all) is traced into the caller's program, and agrees with the call
+    outside it. (It raised before: the concrete inputs sent it to the path of a top-level
+    call, whose compile options JAX refuses on a nested `jit`.)"""
+    y0 = tj.initial_state(top, 0.1, 100.0)
+    t0, t1, rtol, atol = (jnp.asarray(v) for v in (0.0, 1.0, DEFAULT["rtol"], DEFAULT["atol"]))
+
+    def run():
+        sol = tj.simulate(top, y0, t1, t0=t0, model="full", summary=True, rtol=rtol,
+                          atol=atol)
+        return sol.states.omega[-1], sol.num_steps
+
+    omega, steps = jax.jit(run)()
+    omega_eager, steps_eager = run()
+    assert int(steps) == int(steps_eager) > 10
+    np.testing.assert_allclose(_np(omega), _np(omega_eager), rtol=1e-10, atol=1e-10)
+
+
+def test_an_eager_vmap_compiles_with_tippejaxs_options(top, monkeypatch):
+    """An eager `jax.vmap` of `simulate` runs the batched solve as a top-level program, so
+    it is compiled with tippejax's options, as a concrete call is (an unknown option raising
+    proves they reach XLA); `test_vmap_over_spins_matches_loop` checks its numbers."""
+    import tippejax._simulate as simulate_module
+
+    bad = {"not_an_xla_option": 1}
+    monkeypatch.setattr(simulate_module, "own_compiler_options", lambda: bad)
+
+    def one(n):
+        y0 = tj.initial_state(top, 0.1, n)
+        return tj.simulate(top, y0, 0.5, model="full", summary=True, throw=False).t_final
+
+    with pytest.raises(Exception, match="not_an_xla_option"):
+        jax.vmap(one)(jnp.array([100.0, 120.0]))
+
+
 def _four_tops():
     ratios = [(0.9, 0.3, 0.3), (0.8, 0.2, 0.5), (0.95, 0.4, 0.2), (1.2, 0.1, 1.0)]
     return [tj.TippeTop.from_ratios(a, e, m=0.02, R=0.025, mu=mu) for a, e, mu in ratios]

@@ -277,17 +277,47 @@ def to_device(x, dtype=None) -> jax.Array:
     return jax.device_put(x.astype(jax.dtypes.canonicalize_dtype(x.dtype), copy=False))
 
 
-def _concrete_call(args) -> bool:
-    return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(args))
+def calling_context() -> str:
+    """Where a jitted function is being called, as JAX sees it:
+
+    - `"staged"`: inside a program being traced (a caller's `jit`, or a loop's body). The
+      call becomes part of that program: JAX refuses compile options on it (even when every
+      input is a concrete array), and there is nothing of its own to store.
+    - `"vmap"`: under eager `jax.vmap`s only. JAX batches the jitted function and runs the
+      batched one as a top-level program, with its compile options.
+    - `"eager"`: otherwise (no transformation, or an eager `jax.grad`, `jax.jvp` or
+      `jax.jacfwd`, whose derivative rules call with concrete inputs). A call with concrete
+      inputs runs as a top-level program.
+
+    Reads JAX's private trace context (`jax._src.core.trace_ctx`); `"staged"` where that is
+    not found (another JAX), which costs only the options and the store."""
+    try:
+        from jax._src import core
+        from jax._src.interpreters.batching import BatchTrace
+        from jax._src.interpreters.partial_eval import DynamicJaxprTrace
+
+        trace = core.trace_ctx.trace
+    except (ImportError, AttributeError):  # pragma: no cover - another jax
+        return "staged"
+    kinds = []
+    while trace is not None:
+        kinds.append(trace)
+        trace = getattr(trace, "parent_trace", None)
+    if any(isinstance(t, DynamicJaxprTrace) for t in kinds):
+        return "staged"
+    if len(kinds) > 1 and all(isinstance(t, BatchTrace) for t in kinds[:-1]):
+        return "vmap"
+    return "eager"
 
 
 _WITH_OPTIONS: dict = {}  # (jitted function, options) -> the same function jitted with them
 
 
 def _plain_call(fn, args, static, compiler_options):
-    """`fn(*args, **static)` without the store: with `compiler_options` where the call is the
-    top-level one (JAX takes compile options only there), else as `fn` is."""
-    if not compiler_options or not _concrete_call(args):
+    """`fn(*args, **static)` without the store: with `compiler_options` where the call runs
+    as a top-level program (`calling_context`: JAX takes compile options only there), else as
+    `fn` is."""
+    if not compiler_options or calling_context() == "staged":
         return fn(*args, **static)
     import equinox as eqx
 
@@ -310,6 +340,7 @@ def _entry(fn, args, static, compiler_options=None):
         or not _PICKLABLE_TREES
         or any(isinstance(x, jax.core.Tracer) for x in leaves)
         or not _single_device(inputs)
+        or calling_context() == "staged"  # (concrete inputs inside a caller's `jit`)
     ):
         return None
     fixed = {i: x for i, x in enumerate(leaves) if i not in set(dynamic)}

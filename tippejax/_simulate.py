@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike
 
-from ._cache import cacheable, cached_call, to_device
+from ._cache import cacheable, cached_call, calling_context, to_device
 from ._engine.chain import run_chain, run_chain_shared
 from ._engine.cpu import own_compiler_options
 from ._engine.segment import (
@@ -585,15 +585,18 @@ def simulate(
     )
     args = (top, y0, ts, *(_as_dtype(x, dtype) for x in (t0, t1, rtol, atol)))
     with cacheable():
-        if _concrete(*args):
+        if _concrete(*args) or calling_context() == "vmap":
+            # (concrete inputs, or an eager `jax.vmap`, whose batched `_run` JAX runs as a
+            # program of its own: compiled with tippejax's options, as a concrete call is.
+            # Inside a caller's `jit` the same call is traced into the caller's program.)
             out = cached_call(_run, *args, compiler_options=own_compiler_options(), **options,
                               outcome=True)
         else:
             # (a traced call. An eager `jax.grad` or `jax.jacfwd` runs the Jacobian as a
-            # program of its own, `_run_traced`; a `jax.vmap` or a caller's `jit` traces
-            # `_run`, one program. The classification is a program of its own, which an
-            # eager `jax.grad` compiles apart from the differentiated solve, and a caller's
-            # `jit` inlines.)
+            # program of its own, `_run_traced`; a caller's `jit` traces `_run`, one
+            # program. The classification is a program of its own, which an eager
+            # `jax.grad` compiles apart from the differentiated solve, and a caller's `jit`
+            # inlines.)
             own_jacobian = (isinstance(adjoint, ForwardSensitivities)
                             and options["pack_width"] == options["jacobian_pack_width"]
                             and _differentiated_eagerly(args))

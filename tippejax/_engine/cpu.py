@@ -3,10 +3,10 @@
 A batch of tiny ODE systems on XLA:CPU is bound by the hundreds of small fused loops each
 step runs, not by arithmetic (`benchmarks/RESULTS.md`, peers.py's profile), and how XLA
 compiles those loops matters more than anything in the loop. tippejax compiles the programs
-it owns, the ones it calls at the top level (`simulate` outside the user's `jit`, `vmap` or
-`grad`; `simulate_batch`, `outcome_map` and the inversion map's batches), with
-`CPU_COMPILER_OPTIONS`. A user's own `jax.jit` keeps XLA's defaults: these are options of
-one program (`jax.jit`'s `compiler_options`), not process-wide flags. (Their batches are
+it owns, the ones it calls at the top level (`simulate` outside the user's `jit` and `grad`,
+an eager `jax.vmap` of it included; `simulate_batch`, `outcome_map` and the inversion map's
+batches), with `CPU_COMPILER_OPTIONS`. A user's own `jax.jit` keeps XLA's defaults: these are
+options of one program (`jax.jit`'s `compiler_options`), not process-wide flags. (Their batches are
 traced in the state layout of any batch, `tippejax._engine.segment.PACK_WIDTH`.)
 
 The largest single kernel of such a batch is not the vector field. `perf record` on one
@@ -67,7 +67,11 @@ def compiler_options(backend: str | None = None) -> dict | None:
     them against 14.5 s with XLA's defaults (cache off; 9.5 s against 10.7 s with an empty
     cache; `benchmarks/compile_cache.py`), and the compiled gradient of a 20 s run took 0.77x
     (t_invert) and 1.02x (201 saved theta) the default-compiled one's time
-    (`benchmarks/gradients.py`). Their run-time effect depends on the program: measure yours.
+    (`benchmarks/gradients.py`). A batch in your own `jax.jit(jax.vmap(...))` of `simulate`
+    (1000 tops, 20 s, `benchmarks/user_vmap.py`, 2026-11-29): 0.89x the time with XLA's
+    defaults at the SO(3) level and 0.76x for the full model, compiled 0.7x sooner. Their
+    run-time effect depends on the program (the plain diffrax script in one `jax.vmap` ran
+    1.2-1.3x slower with them): measure yours.
     Elsewhere (a GPU) None: XLA's defaults, as tippejax's own programs use there. Options of
     one program, not a process-wide flag: the rest of your programs keep XLA's defaults.
 
