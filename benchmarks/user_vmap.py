@@ -25,6 +25,7 @@ round and their medians quoted. Writes its section of benchmarks/RESULTS.md.
 
 import os
 import statistics
+import subprocess
 import sys
 import time
 
@@ -70,6 +71,39 @@ def as_before(fn):
         finally:
             simulate_module.calling_context = own
     return call
+
+
+FIRST_CALL = r"""
+import sys, time
+sys.path.insert(0, {here!r})
+level, route = sys.argv[1], sys.argv[2]
+sys.argv = sys.argv[:1]
+import jax, jax.numpy as jnp, numpy as np
+import user_vmap
+f = jax.vmap(user_vmap.one_top(level))
+if route == "before":
+    f = user_vmap.as_before(f)
+spins = jnp.asarray(np.linspace(140.0, 160.0, 1000))
+t = time.perf_counter(); jax.block_until_ready(f(spins)); first = time.perf_counter() - t
+t = time.perf_counter(); jax.block_until_ready(f(spins)); second = time.perf_counter() - t
+print(first - second)
+"""
+
+
+def first_calls(rounds=2):
+    """First call less the second of an eager `jax.vmap`, each in a new process with the
+    cache off, the two routes alternated: {(level, route): [seconds]}."""
+    env = dict(os.environ, TIPPEJAX_COMPILATION_CACHE="0", TIPPEJAX_HOST_DEVICES="1")
+    code = FIRST_CALL.format(here=os.path.dirname(os.path.abspath(__file__)))
+    out = {}
+    for _ in range(rounds):
+        for level in LEVELS:
+            for route in ("before", "now"):
+                run = subprocess.run([sys.executable, "-c", code, level, route], env=env,
+                                     capture_output=True, text=True, check=True)
+                out.setdefault((level, route), []).append(
+                    float(run.stdout.strip().splitlines()[-1]))
+    return out
 
 
 def main():
@@ -141,11 +175,19 @@ def main():
                 for route in ("eager vmap", "eager vmap, before", "jit(vmap)",
                               "jit(vmap), options", "simulate_batch")}
     print("full / so3:", {k: round(v, 3) for k, v in full_so3.items()})
+    compiles = first_calls()
+    compile_text = "; ".join(
+        f"{level}: " + ", ".join(f"{x:.2f}" for x in compiles[(level, "now")]) + " s against "
+        + ", ".join(f"{x:.2f}" for x in compiles[(level, "before")]) + " s before"
+        for level in LEVELS)
+    print("eager vmap, first call less the second, new processes:", compile_text)
     body = "\n".join([
         "## user_vmap.py: a batch in the user's own `jax.vmap` of `tj.simulate`",
         "",
-        f"`python benchmarks/user_vmap.py {ROUNDS}` (cache off: "
-        f"{os.environ.get('TIPPEJAX_COMPILATION_CACHE', '1') == '0'}). {machine_line()}. "
+        f"`python benchmarks/user_vmap.py {ROUNDS}`"
+        + (" (`TIPPEJAX_COMPILATION_CACHE=0`)"
+           if os.environ.get("TIPPEJAX_COMPILATION_CACHE") == "0" else "")
+        + f". {machine_line()}. "
         "Batch of 1000 (peers.py's scene: standard top, theta0 0.1, spins 140-160 rad/s, 20 s, "
         "summary mode) on one JAX device, each level at its equal-error rtol. Routes: an eager "
         "`jax.vmap` of `simulate` (its batched solve a top-level program, compiled with "
@@ -153,8 +195,9 @@ def main():
         "2026-11-29 (XLA's defaults, the outcome classified in a program of its own), the user's `jax.jit(jax.vmap(...))` (XLA's defaults), the same with "
         "`compiler_options=tj.compiler_options()`, and `tj.simulate_batch`. "
         f"{ROUNDS} interleaved rounds after a first call; ratios taken round by round, median "
-        "(quartiles). First calls in this order within a level: the first pays what the routes "
-        "share. The routes of a level end at the same states: members that run to t1 at "
+        "(quartiles). The 'first call' column is in this process, in the table's order within "
+        "a level, so the first route of a level also pays what the routes share; the eager "
+        "routes' first calls in new processes (cache off) are below the table. The routes of a level end at the same states: members that run to t1 at "
         f"the same axis (largest gap {max(gaps):.1e}; the solve's own error is 4.4e-8), "
         "members that lose contact (full level, spins above 156.7 rad/s) at the same time "
         f"(largest gap {max(loss_gaps):.1e} s).",
@@ -163,6 +206,9 @@ def main():
         "",
         "full / so3 per route: " + ", ".join(f"{k} {v:.3f}" for k, v in full_so3.items())
         + " (issue 18: the full model at most 1.3x the SO(3) level).",
+        "",
+        "An eager `jax.vmap`'s first call less its second, each in a new process with the "
+        "cache off, the routes alternated: " + compile_text + ".",
     ])
     write_section("user_vmap.py", body)
 
