@@ -17,7 +17,7 @@ level at its equal-error rtol (`peers_batch.EQUAL_ERROR`). Routes:
   `jax.vmap`.
 
 A first call of each (trace, compile and run: with `TIPPEJAX_COMPILATION_CACHE=0` no program
-comes from an earlier process), then ROUNDS interleaved rounds; ratios are taken round by
+comes from an earlier process), then ROUNDS interleaved rounds (`_common.interleaved`); ratios are taken round by
 round and their medians quoted. Writes its section of benchmarks/RESULTS.md.
 
     TIPPEJAX_COMPILATION_CACHE=0 python benchmarks/user_vmap.py [ROUNDS]   # default 5
@@ -27,7 +27,6 @@ import os
 import statistics
 import subprocess
 import sys
-import time
 
 ROUNDS = int(sys.argv[1]) if len(sys.argv) > 1 else 5
 sys.argv = sys.argv[:1]  # peers reads its own flags from sys.argv
@@ -37,7 +36,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import peers  # noqa: E402  (float64, the scene)
-from _common import machine_line, paired_ratios, table, write_section  # noqa: E402
+from _common import interleaved, machine_line, paired_ratios, table, write_section  # noqa: E402
 from peers_batch import EQUAL_ERROR  # noqa: E402
 
 import tippejax as tj  # noqa: E402
@@ -123,20 +122,12 @@ def main():
         fns[f"{level} jit(vmap), options"] = lambda f=user_jit_options: f(spins)
         fns[f"{level} simulate_batch"] = lambda lv=level: peers.tj_simulate_batch(
             spins, EQUAL_ERROR[lv], level=lv)
-    first = {}
-    finals = {}
-    for k, f in fns.items():
-        start = time.perf_counter()
-        out = jax.block_until_ready(f())
-        first[k] = time.perf_counter() - start
-        finals[k] = out
+    results = interleaved(fns, ROUNDS)
+    first = {k: timing.first_wall for k, (timing, _) in results.items()}
+    finals = {k: out for k, (_, out) in results.items()}
+    times = {k: timing.walls for k, (timing, _) in results.items()}
+    for k in fns:
         print(f"{k:40s} first call {first[k]:.2f} s", flush=True)
-    times = {k: [] for k in fns}
-    for _ in range(ROUNDS):
-        for k, f in fns.items():
-            start = time.perf_counter()
-            jax.block_until_ready(f())
-            times[k].append(time.perf_counter() - start)
     # the routes of one level compute the same batch. Compiled differently, they round
     # differently: the members that run to t1 end at the same axis to well within the
     # solve's own error (4.4e-8 at these rtols); those that lose contact (the full level,

@@ -68,8 +68,8 @@ def compiler_options(backend: str | None = None) -> dict | None:
     cache; `benchmarks/compile_cache.py`), and the compiled gradient of a 20 s run took 0.77x
     (t_invert) and 1.02x (201 saved theta) the default-compiled one's time
     (`benchmarks/gradients.py`). A batch in your own `jax.jit(jax.vmap(...))` of `simulate`
-    (1000 tops, 20 s, `benchmarks/user_vmap.py`, 2026-11-29): 0.89x the time with XLA's
-    defaults at the SO(3) level and 0.76x for the full model, compiled 0.7x sooner. Their
+    (1000 tops, 20 s, `benchmarks/user_vmap.py`, 2026-11-29): 0.88-0.90x the time with XLA's
+    defaults at the SO(3) level and 0.69-0.73x for the full model, compiled 0.7x sooner. Their
     run-time effect depends on the program (the plain diffrax script in one `jax.vmap` ran
     1.2-1.3x slower with them): measure yours.
     Elsewhere (a GPU) None: XLA's defaults, as tippejax's own programs use there. Options of
