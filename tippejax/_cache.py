@@ -277,6 +277,23 @@ def to_device(x, dtype=None) -> jax.Array:
     return jax.device_put(x.astype(jax.dtypes.canonicalize_dtype(x.dtype), copy=False))
 
 
+def _trace_classes():
+    """JAX's private trace context and the trace classes `calling_context` tells apart, or
+    None where they are not found (another JAX)."""
+    try:
+        from jax._src import core
+        from jax._src.interpreters.batching import BatchTrace
+        from jax._src.interpreters.partial_eval import DynamicJaxprTrace
+
+        core.trace_ctx.trace  # noqa: B018 (present in this JAX)
+    except (ImportError, AttributeError):  # pragma: no cover - another jax
+        return None
+    return core.trace_ctx, BatchTrace, DynamicJaxprTrace
+
+
+_TRACES = _trace_classes()
+
+
 def calling_context() -> str:
     """Where a jitted function is being called, as JAX sees it:
 
@@ -291,23 +308,18 @@ def calling_context() -> str:
 
     Reads JAX's private trace context (`jax._src.core.trace_ctx`); `"staged"` where that is
     not found (another JAX), which costs only the options and the store."""
-    try:
-        from jax._src import core
-        from jax._src.interpreters.batching import BatchTrace
-        from jax._src.interpreters.partial_eval import DynamicJaxprTrace
-
-        trace = core.trace_ctx.trace
-    except (ImportError, AttributeError):  # pragma: no cover - another jax
+    if _TRACES is None:  # pragma: no cover - another jax
         return "staged"
-    kinds = []
-    while trace is not None:
-        kinds.append(trace)
-        trace = getattr(trace, "parent_trace", None)
-    if any(isinstance(t, DynamicJaxprTrace) for t in kinds):
+    context, batch_trace, staging_trace = _TRACES
+    trace, batched = context.trace, True
+    while getattr(trace, "parent_trace", None) is not None:  # (the innermost first)
+        if isinstance(trace, staging_trace):
+            return "staged"
+        batched = batched and isinstance(trace, batch_trace)
+        trace = trace.parent_trace
+    if isinstance(trace, staging_trace):
         return "staged"
-    if len(kinds) > 1 and all(isinstance(t, BatchTrace) for t in kinds[:-1]):
-        return "vmap"
-    return "eager"
+    return "vmap" if batched and trace is not context.trace else "eager"
 
 
 _WITH_OPTIONS: dict = {}  # (jitted function, options) -> the same function jitted with them
