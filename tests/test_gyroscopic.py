@@ -1,4 +1,4 @@
-"""The gyroscopic level (`tippejax/_models/gyroscopic.py`): the slow flow re-derived in sympy from
+"""The gyroscopic level (`tippejax/_models/gyroscopic/`): the slow flow re-derived in sympy from
 the paper's L' and Q', checked against the linearisations of the Routhian and SO(3) models,
 its fixed points and their stability against the analysis level in all six groups, and the
 level run through `simulate` (error against SO(3) shrinking with spin, the poles, a launch

@@ -37,6 +37,7 @@ from ._analysis.potential import (
 from ._analysis.steady_states import SteadyStates as SteadyStates, steady_states as steady_states
 from ._animate import animate as animate
 from ._batch import simulate_batch as simulate_batch
+from ._engine import fibre as _fibre  # (GyroscopicLevel(projection="fibre"))
 from ._engine.cpu import compiler_options as compiler_options
 from ._engine.solver_choice import default_solver as default_solver, friction_rate as friction_rate
 from ._fit import FIT_RESULTS as FIT_RESULTS, FitResult as FitResult, fit as fit
