@@ -187,8 +187,9 @@ def test_nutation_frequency_sympy():
 
 
 def _nutation_damping_by_autodiff(top, theta, J):
-    """sigma of the module docstring with every x-derivative taken by jax.jvp of its
-    definition (the level writes them out in closed form)."""
+    """sigma ("The nutation it drops", docs/derivations/gyroscopic-averaging.md) with every
+    x-derivative taken by jax.jvp of its definition (the level writes them out in closed
+    form)."""
     m, g, eps, R, A, C, mu = (top.m, top.g, top.eps, top.R, top.A, top.C, top.mu)
     x, s2 = jnp.cos(theta), jnp.sin(theta) ** 2
     one = jnp.ones_like(x)

@@ -1,5 +1,5 @@
 """The averaged projection of a launch onto the slow manifold (`tippejax/_models/gyroscopic/`,
-"Projection of a launch"): its derivation re-done in sympy from the docstring's definitions of
+docs/derivations/launch-projection.md): its derivation re-done in sympy from the definitions of
 the slow flow (G3) and the nutation's growth rate sigma (the two roots exchange their roles at
 the pole; the leading coefficient of what the decaying nutation feeds into the slow mode), the
 other root's nutation against the SO(3) model's own linearisation, and the projection against
@@ -57,7 +57,7 @@ def values(top):
 @functools.cache
 def _sympy_rates():
     r"""(G3)'s rate u_dot = theta_dot/sin(theta) and the nutation's nu^2 and sigma on one root of
-    (G2), as functions of x = cos(theta), written from the module docstring's definitions
+    (G2), as functions of x = cos(theta), written from the definitions of the derivation pages
     (Omega(x) implicit in (G2); R'_n at rest as a function of (x, p) from eq. routh1).
 
     Returns (symbols, x, Omega(x), D, rate, nu2, sigma), D the total x-derivative."""
