@@ -7,7 +7,9 @@ matplotlib.use("Agg")
 import pytest  # noqa: E402
 
 import tippejax as tj  # noqa: E402
-from tippejax._cli import _demo_simulation, default_spin, main  # noqa: E402
+from tippejax._cli import main  # noqa: E402
+from tippejax._cli.common import default_spin  # noqa: E402
+from tippejax._cli.demo import demo_simulation  # noqa: E402
 
 
 def test_classify_default(tmp_path, capsys):
@@ -66,7 +68,7 @@ def test_demo_slow_spin_has_intermediate_state(tmp_path, capsys):
 
 
 def test_demo_simulation_inverts_and_writes_figure(tmp_path, capsys):
-    path = _demo_simulation(tj.default_top(), 0.1, 99.0, str(tmp_path))
+    path = demo_simulation(tj.default_top(), 0.1, 99.0, str(tmp_path))
     assert (tmp_path / "demo.png").is_file() and path.endswith("demo.png")
     out = capsys.readouterr().out
     line = next(s for s in out.splitlines() if "inversion time" in s)
@@ -160,10 +162,11 @@ def test_fit_bad_input_messages(tmp_path, capsys):
 
 
 def test_fit_guess_from_options():
-    from tippejax._cli import _parser, fit_guess
+    from tippejax._cli.common import top_from_options
+    from tippejax._cli.parser import build_parser
 
     def guess(*options):
-        return fit_guess(_parser().parse_args(["fit", "x.csv", *options]))
+        return top_from_options(build_parser().parse_args(["fit", "x.csv", *options]))
 
     default, top = tj.default_top(), guess("--mu", "2.5", "--eps", "0.005")
     assert float(top.mu) == 2.5 and float(top.eps) == 0.005

@@ -15,7 +15,7 @@ import vector_reference as ref
 
 import tippejax as tj
 from tippejax._devices import batch_sharding
-from tippejax._fit import diagnostics, params, problem, setup as fit_setup
+from tippejax._fit import diagnostics, params, problem, setup as fit_setup, smoothing
 from tippejax._fit.optimise import least_squares
 from tippejax._fit.stages import Final, GlobalSearch, PhaseScan, ValleyScan
 
@@ -626,7 +626,7 @@ def test_level_crossing_times_of_the_data_equal_the_models():
     grid = np.linspace(0.0, 6.0, 61)
     curve = 0.1 + 0.5 * np.sin(grid) ** 2 + 0.05 * np.sin(7.0 * grid)
     levels = np.array([0.1, 0.1001, 0.2, 0.35, 0.5, 0.61, 2.0])
-    got = problem.first_crossings_numpy(curve, grid, levels)
+    got = smoothing.first_crossings_numpy(curve, grid, levels)
     want = np.asarray(problem.first_crossings(jnp.asarray(curve), jnp.asarray(grid),
                                               jnp.asarray(levels)))
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
@@ -648,16 +648,16 @@ def test_smoother_removes_the_nutation_and_its_shapes_ignore_the_guess(rate):
     trend = 0.2 + 0.15 * ts + 0.02 * ts**2
     nutation = 0.05 * np.sin(2 * np.pi * ts / period + 0.3)
     mask = np.ones_like(ts)
-    band, grid = problem.smoother(ts, period)
-    smooth_trend = problem.smooth_numpy(trend, mask, band)
-    smooth_both = problem.smooth_numpy(trend + nutation, mask, band)
+    band, grid = smoothing.smoother(ts, period)
+    smooth_trend = smoothing.smooth_numpy(trend, mask, band)
+    smooth_both = smoothing.smooth_numpy(trend + nutation, mask, band)
     # The nutation is averaged out to well under a percent of its amplitude, except within 4
     # kernel widths (here 0.175 s) of the ends and the gap, where the kernel is cut.
     far = (grid > 0.7) & (grid < 7.3) & ((grid < 2.3) | (grid > 4.1))
     assert np.max(np.abs(smooth_both - smooth_trend)[far]) < 0.005 * 0.05
     # A constant is kept exactly; away from the cuts the trend is kept to the kernel's bias,
     # w^2 y''/2 = 6e-4 rad here.
-    assert np.allclose(problem.smooth_numpy(np.full_like(ts, 0.7), mask, band), 0.7, atol=1e-12)
+    assert np.allclose(smoothing.smooth_numpy(np.full_like(ts, 0.7), mask, band), 0.7, atol=1e-12)
     exact = 0.2 + 0.15 * grid + 0.02 * grid**2
     assert np.max(np.abs(smooth_trend - exact)[far]) < 1e-3
     # jax (the model's smoothing) equals numpy (the data's), masked samples included.
@@ -665,10 +665,10 @@ def test_smoother_removes_the_nutation_and_its_shapes_ignore_the_guess(rate):
     y = trend + nutation
     bins, kernel = band
     got = problem.smoothed(jnp.asarray(y), jnp.asarray(mask), jnp.asarray(bins), jnp.asarray(kernel))
-    np.testing.assert_allclose(np.asarray(got), problem.smooth_numpy(y, mask, band), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(got), smoothing.smooth_numpy(y, mask, band), rtol=1e-12)
     # Shapes from the record alone: a guess spun 4x slower or faster builds the same arrays.
     for other in (period / 4, period * 4):
-        (bins2, kernel2), grid2 = problem.smoother(ts, other)
+        (bins2, kernel2), grid2 = smoothing.smoother(ts, other)
         assert (bins2.shape, kernel2.shape, grid2.shape) == (bins.shape, kernel.shape, grid.shape)
 
 

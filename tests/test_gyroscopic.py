@@ -1,4 +1,4 @@
-"""The gyroscopic level (`tippejax/_models/gyroscopic.py`): the slow flow re-derived in sympy from
+"""The gyroscopic level (`tippejax/_models/gyroscopic/`): the slow flow re-derived in sympy from
 the paper's L' and Q', checked against the linearisations of the Routhian and SO(3) models,
 its fixed points and their stability against the analysis level in all six groups, and the
 level run through `simulate` (error against SO(3) shrinking with spin, the poles, a launch
@@ -187,8 +187,9 @@ def test_nutation_frequency_sympy():
 
 
 def _nutation_damping_by_autodiff(top, theta, J):
-    """sigma of the module docstring with every x-derivative taken by jax.jvp of its
-    definition (the level writes them out in closed form)."""
+    """sigma ("The nutation it drops", docs/derivations/gyroscopic-averaging.md) with every
+    x-derivative taken by jax.jvp of its definition (the level writes them out in closed
+    form)."""
     m, g, eps, R, A, C, mu = (top.m, top.g, top.eps, top.R, top.A, top.C, top.mu)
     x, s2 = jnp.cos(theta), jnp.sin(theta) ** 2
     one = jnp.ones_like(x)

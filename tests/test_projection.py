@@ -1,5 +1,5 @@
-"""The averaged projection of a launch onto the slow manifold (`tippejax/_models/gyroscopic.py`,
-"Projection of a launch"): its derivation re-done in sympy from the docstring's definitions of
+"""The averaged projection of a launch onto the slow manifold (`tippejax/_models/gyroscopic/`,
+docs/derivations/launch-projection.md): its derivation re-done in sympy from the definitions of
 the slow flow (G3) and the nutation's growth rate sigma (the two roots exchange their roles at
 the pole; the leading coefficient of what the decaying nutation feeds into the slow mode), the
 other root's nutation against the SO(3) model's own linearisation, and the projection against
@@ -18,10 +18,13 @@ import pytest
 import sympy as sp
 
 import tippejax as tj
+from tippejax._engine.fibre import FibreProjection
 from tippejax._models._rigid_body import rigid_body_dynamics
 from tippejax._models.gyroscopic import (
+    AveragedProjection,
     GyroscopicLevel,
     GyroscopicLevelState,
+    LinearProjection,
     _linear_state,
     average_launch,
     launch_transient,
@@ -54,7 +57,7 @@ def values(top):
 @functools.cache
 def _sympy_rates():
     r"""(G3)'s rate u_dot = theta_dot/sin(theta) and the nutation's nu^2 and sigma on one root of
-    (G2), as functions of x = cos(theta), written from the module docstring's definitions
+    (G2), as functions of x = cos(theta), written from the definitions of the derivation pages
     (Omega(x) implicit in (G2); R'_n at rest as a function of (x, p) from eq. routh1).
 
     Returns (symbols, x, Omega(x), D, rate, nu2, sigma), D the total x-derivative."""
@@ -391,7 +394,7 @@ def test_exact_on_the_slow_manifold_and_regular_at_the_poles():
 
 
 def test_projection_option():
-    assert GyroscopicLevel().projection == "averaged"
+    assert GyroscopicLevel().projection == AveragedProjection()
     with pytest.raises(ValueError, match="projection"):
         GyroscopicLevel(projection="fibres")
     y0 = tj.initial_state(STANDARD, 0.1, 150.0)
@@ -401,6 +404,28 @@ def test_projection_option():
     # the averaged and fibre projections agree (to their errors), the linear one does not as well
     assert abs(np.log(thetas["averaged"] / thetas["fibre"])) < 0.01
     assert abs(np.log(thetas["linear"] / thetas["fibre"])) > 0.01
+
+
+def test_projection_objects_and_their_names():
+    """Each name is its projection object; the objects check their options; the averaged
+    projection's quadrature has converged at its default number of nodes (a single node is
+    visibly off, so the option reaches the integrals)."""
+    for name, projection in (("averaged", AveragedProjection()), ("fibre", FibreProjection()),
+                             ("linear", LinearProjection())):
+        assert GyroscopicLevel(projection=name) == GyroscopicLevel(projection=projection)
+        assert GyroscopicLevel(projection=name).projection.name == name
+    with pytest.raises(ValueError, match="nodes"):
+        AveragedProjection(nodes=0)
+    with pytest.raises(ValueError, match="amplitude"):
+        FibreProjection(amplitude=0.0)
+    nodes = {"one": AveragedProjection(nodes=1), "default": AveragedProjection(),
+             "many": AveragedProjection(nodes=32)}
+    for theta0, spin in ((0.1, 300.0), (0.2, 150.0)):
+        y0 = tj.initial_state(STANDARD, theta0, spin)
+        u = {k: float(p.project(STANDARD, y0).log_tan_half_theta) for k, p in nodes.items()}
+        assert float(GyroscopicLevel().from_state(STANDARD, y0).log_tan_half_theta) == u["default"]
+        assert abs(u["default"] - u["many"]) < 1e-9
+        assert abs(u["one"] - u["many"]) > 1e-4
 
 
 def test_gradient_and_vmap():

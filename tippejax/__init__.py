@@ -14,6 +14,7 @@ linear-stability cross-checks, the engine) stay importable from their private mo
 
 import importlib.metadata as _metadata
 import os as _os
+import warnings as _warnings
 
 import jax as _jax
 
@@ -37,6 +38,7 @@ from ._analysis.potential import (
 from ._analysis.steady_states import SteadyStates as SteadyStates, steady_states as steady_states
 from ._animate import animate as animate
 from ._batch import simulate_batch as simulate_batch
+from ._engine import fibre as _fibre  # noqa: F401  (GyroscopicLevel(projection="fibre"))
 from ._engine.cpu import compiler_options as compiler_options
 from ._engine.solver_choice import default_solver as default_solver, friction_rate as friction_rate
 from ._fit import FIT_RESULTS as FIT_RESULTS, FitResult as FitResult, fit as fit
@@ -44,7 +46,7 @@ from ._invariants import (
     energy as energy,
     jellet as jellet,
     normal_force as normal_force,
-    normal_force_denominator as normal_force_denominator,
+    normal_force_denominator as _normal_force_denominator,
     slip_velocity as slip_velocity,
 )
 from ._inversion import inversion_time as inversion_time
@@ -54,7 +56,7 @@ from ._maps import (
     outcome_map as outcome_map,
     outcome_map_tops as outcome_map_tops,
 )
-from ._models.routhian import CHART_SIN_MIN as CHART_SIN_MIN
+from ._models.routhian import CHART_SIN_MIN as _CHART_SIN_MIN
 from ._simulate import MODELS as MODELS, simulate as simulate
 from ._solution import RESULTS as RESULTS, Solution as Solution
 from ._state import (
@@ -70,3 +72,74 @@ try:
     __version__ = _metadata.version("tippejax")
 except _metadata.PackageNotFoundError:  # running from a source tree
     __version__ = "0.0.0"
+
+__all__ = [
+    "GROUPS",
+    "FIT_RESULTS",
+    "MODELS",
+    "OUTCOMES",
+    "RESULTS",
+    "FitResult",
+    "OutcomeMap",
+    "Solution",
+    "State",
+    "SteadyStates",
+    "Thresholds",
+    "TippeTop",
+    "animate",
+    "classify",
+    "compiler_options",
+    "default_solver",
+    "default_top",
+    "effective_potential",
+    "effective_potential_derivative",
+    "energy",
+    "euler_angles",
+    "euler_rates",
+    "fit",
+    "friction_rate",
+    "initial_state",
+    "inversion_time",
+    "jellet",
+    "normal_force",
+    "outcome_map",
+    "outcome_map_tops",
+    "simulate",
+    "simulate_batch",
+    "slip_velocity",
+    "state_from_euler",
+    "steady_states",
+    "thresholds",
+]
+
+# Internals that were once exported: still importable as `tippejax.<name>`, with a warning.
+_DEPRECATED = {
+    "CHART_SIN_MIN": (
+        _CHART_SIN_MIN,
+        "the Routhian level's chart edge, an internal of model='routhian' "
+        "(tippejax._models.routhian.CHART_SIN_MIN)",
+    ),
+    "normal_force_denominator": (
+        _normal_force_denominator,
+        "the denominator of R_n (eq. reactie), an internal of the levels "
+        "(tippejax._invariants.normal_force_denominator); a run that reaches the singularity "
+        "reports RESULTS.normal_force_singular, and tj.normal_force gives R_n",
+    ),
+}
+
+
+def __getattr__(name):
+    if name in _DEPRECATED:
+        value, what = _DEPRECATED[name]
+        _warnings.warn(
+            f"tippejax.{name} is deprecated and will be removed from the public namespace: it "
+            f"is {what}.",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return value
+    raise AttributeError(f"module 'tippejax' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted([*__all__, "__version__"])

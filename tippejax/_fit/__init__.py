@@ -1,6 +1,7 @@
 """Fitting: one stage per file (`stages/`), behind one interface (`stages/base.py`)."""
 
 from .fit import fit as fit
+from .inputs import FIT_MODELS as FIT_MODELS, METHODS as METHODS
 from .params import (
     FREE_NAMES as FREE_NAMES,
     LAUNCH_FIELDS as LAUNCH_FIELDS,
@@ -9,5 +10,3 @@ from .params import (
 from .problem import FAILED_RESIDUAL as FAILED_RESIDUAL
 from .result import FIT_RESULTS as FIT_RESULTS, FitResult as FitResult
 from .strategies import STRATEGIES as STRATEGIES
-
-METHODS = ("levenberg_marquardt", "gauss_newton", "adam")
