@@ -85,46 +85,67 @@ _GX, _GW = 0.5 * (_GX + 1.0), 0.5 * _GW
 
 
 @_jit
-def _hertz(vx, vy, wn, rho, delta, gx, gw, n_angle):
+def _hertz(vx, vy, wn, rho, delta, gx, gw, n_angle, pole_rays=True):
     """(F_x, F_y, M) / (mu R_n) of Coulomb's law over a Hertz disc, by quadrature.
 
-    Pressure 3 R_n/(2 pi rho^2) sqrt(1 - r^2/rho^2); element at r slides at u = v + w_n e_z x r;
-    F = -mu int p u/|u|_delta dA, M = -mu int p (r x u/|u|_delta)_z dA, |u|_delta = sqrt(|u|^2 +
-    delta^2). If the slip pole r* = e_z x v / w_n (u = 0) lies in the disc, rays start at r*
-    (there u = w_n e_z x (r - r*) is smooth along each ray); else rays start at the centre.
-    Each ray's sqrt edge is removed by s = s_+ (1 - t^2) (resp. r = rho sin(beta)).
+    Pressure 3 R_n/(2 pi rho^2) sqrt(1 - r^2/rho^2); the element at r slides at
+    u = v + w_n e_z x r; F = -mu int p u/|u|_delta dA, M = -mu int p (r x u/|u|_delta)_z dA with
+    |u|_delta = sqrt(|u|^2 + delta^2). Rays start at the slip pole r* = e_z x v / w_n (u = 0),
+    where u = w_n e_z x (r - r*) is smooth along each ray: over all angles if r* is in the disc
+    (angles clustered towards the nearest edge), over the disc's aperture if outside. Each ray's
+    sqrt edge is removed by a change of variable. With w_n = 0 or pole_rays=False, rays start
+    at the centre.
     """
     fx = 0.0
     fy = 0.0
     mz = 0.0
-    dphi = 2.0 * math.pi / n_angle
-    scale = 3.0 / (2.0 * math.pi * rho**3)
     d2 = delta * delta
-    if wn != 0.0 and vx * vx + vy * vy < (rho * wn) ** 2:
+    n_ray = gx.shape[0]
+    dist = math.sqrt(vx * vx + vy * vy) / abs(wn) if wn != 0.0 else math.inf
+    if pole_rays and dist < math.inf:
         px, py = -vy / wn, vx / wn
         c0 = px * px + py * py - rho * rho
-        for j in range(n_angle):
-            phi = (j + 0.5) * dphi
+        base = math.atan2(py, px)
+        if dist < rho:  # all angles; phi = base + q - k sin q clusters towards the near edge
+            kappa = dist / rho
+            n_phi, span = n_angle, 2.0 * math.pi
+        else:  # the aperture |phi - (base + pi)| < asin(rho / dist), Gauss-Legendre
+            n_phi, span = gx.shape[0], 2.0 * math.asin(min(rho / dist, 1.0))
+        for j in range(n_phi):
+            if dist < rho:
+                q = (j + 0.5) * span / n_phi
+                phi = base + q - kappa * math.sin(q)
+                wphi = (1.0 - kappa * math.cos(q)) * span / n_phi
+            else:
+                phi = base + math.pi + span * (gx[j] - 0.5)
+                wphi = span * gw[j]
             ex, ey = math.cos(phi), math.sin(phi)
             b = px * ex + py * ey
-            root = math.sqrt(b * b - c0)
+            root = math.sqrt(max(b * b - c0, 0.0))
             sp, sm = -b + root, -b - root
-            for i in range(gx.shape[0]):
-                t = gx[i]
-                s = sp * (1.0 - t * t)
-                pressure = t * math.sqrt(sp * (s - sm))  # sqrt(rho^2 - |r|^2)
-                weight = gw[i] * dphi * 2.0 * sp * t * s * pressure
+            for i in range(n_ray):
+                if dist < rho:  # s = s_+ (1 - t^2): sqrt(s_+ - s) = t sqrt(s_+)
+                    t = gx[i]
+                    s = sp * (1.0 - t * t)
+                    pressure = t * math.sqrt(sp * (s - sm))  # sqrt(rho^2 - |r|^2)
+                    weight = gw[i] * wphi * 2.0 * sp * t * s * pressure
+                else:  # s in (s_-, s_+), s = mid - half cos(gamma)
+                    half, gam = 0.5 * (sp - sm), math.pi * gx[i]
+                    s = 0.5 * (sp + sm) - half * math.cos(gam)
+                    pressure = half * math.sin(gam)
+                    weight = math.pi * gw[i] * wphi * half * math.sin(gam) * s * pressure
                 rx, ry = px + s * ex, py + s * ey
                 ux, uy = -wn * s * ey, wn * s * ex
                 inv = weight / math.sqrt(ux * ux + uy * uy + d2)
                 fx -= inv * ux
                 fy -= inv * uy
                 mz -= inv * (rx * uy - ry * ux)
-    else:
+    else:  # rays from the centre, r = rho sin(beta)
+        dphi = 2.0 * math.pi / n_angle
         for j in range(n_angle):
             phi = (j + 0.5) * dphi
             ex, ey = math.cos(phi), math.sin(phi)
-            for i in range(gx.shape[0]):
+            for i in range(n_ray):
                 beta = 0.5 * math.pi * gx[i]
                 sb, cb = math.sin(beta), math.cos(beta)
                 weight = 0.5 * math.pi * gw[i] * dphi * rho**3 * sb * cb * cb
@@ -134,6 +155,7 @@ def _hertz(vx, vy, wn, rho, delta, gx, gw, n_angle):
                 fx -= inv * ux
                 fy -= inv * uy
                 mz -= inv * (rx * uy - ry * ux)
+    scale = 3.0 / (2.0 * math.pi * rho**3)
     return scale * fx, scale * fy, scale * mz
 
 
@@ -153,16 +175,17 @@ def _friction(law, vx, vy, wn, mu, rho, delta, gx, gw, n_angle):
     return mu * fx, mu * fy, mu * mz
 
 
-def hertz_contensou(v, omega_n, rho, delta, *, n_ray=N_RAY, n_angle=N_ANGLE):
+def hertz_contensou(v, omega_n, rho, delta, *, n_ray=N_RAY, n_angle=N_ANGLE, pole_rays=True):
     """Coulomb-Contensou friction over a Hertz disc by quadrature, per unit mu R_n.
 
     **Arguments:** slip velocity v (2,) in m/s, drilling rate omega_n in rad/s, disc radius rho in
-    m, slip scale delta in m/s; n_ray, n_angle: nodes along each ray and in the angle.
+    m, slip scale delta in m/s; n_ray, n_angle: nodes along each ray and in the angle;
+    pole_rays=False always starts the rays at the centre (a second, slower route for checks).
     **Returns:** (force (2,), torque) with force/(mu R_n) dimensionless and torque/(mu R_n) in m.
     """
     gx, gw = np.polynomial.legendre.leggauss(int(n_ray))
     fx, fy, mz = _hertz(float(v[0]), float(v[1]), float(omega_n), float(rho), float(delta),
-                        0.5 * (gx + 1.0), 0.5 * gw, int(n_angle))
+                        0.5 * (gx + 1.0), 0.5 * gw, int(n_angle), bool(pole_rays))
     return np.array([fx, fy]), mz
 
 
