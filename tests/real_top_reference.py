@@ -424,7 +424,8 @@ def _event(fn, direction=0.0, terminal=False):
     return fn
 
 
-def _phase(P, rigid, y0, t0, t1, t_eval, method, rtol, atol, switch_gap, max_step=np.inf):
+def _phase(P, rigid, y0, t0, t1, t_eval, method, rtol, atol, switch_gap, max_step=np.inf,
+           stop_at_half=False):
     """One solve_ivp run of the rigid or the compliant field; returns (sol, event names)."""
     scratch, normals = np.empty(14), np.empty(2)
     scale = np.array([P[1]] * 3 + [0.1] * 3 + [1.0] * 3 + [max(np.abs(y0[9:12]).max(), 1.0)] * 3
@@ -446,7 +447,7 @@ def _phase(P, rigid, y0, t0, t1, t_eval, method, rtol, atol, switch_gap, max_ste
     def axis_z(t, y):
         return y[8]
 
-    events, names = [_event(axis_z, -1.0)], ["theta_pi/2"]
+    events, names = [_event(axis_z, -1.0, stop_at_half)], ["theta_pi/2"]
     if rigid:
         events.append(_event(lambda t, y: _rhs_rigid(y, P, scratch, _GX, _GW), -1.0, True))
         names.append("rigid_liftoff")
@@ -484,7 +485,7 @@ def _event_list(names, sol):
 def solve(top, law, theta0, spin, t_end, *, mu, rho=5e-4, delta=1e-6, stem=True,
           contact="rigid-then-compliant", E_star=E_STAR, damping=DAMPING, switch_gap=1e-4,
           dt_sample=1e-3, rtol=1e-9, atol=1e-12, method_rigid=None, method_compliant="LSODA",
-          max_step=np.inf):
+          max_step=np.inf, stop_at_half=False):
     """Integrate a launch (`initial_state`) to t_end with events.
 
     **Arguments:** top, law, mu, rho, delta, stem, E_star, damping as `make_params`; theta0 in rad,
@@ -493,7 +494,8 @@ def solve(top, law, theta0, spin, t_end, *, mu, rho=5e-4, delta=1e-6, stem=True,
     "rigid-then-compliant" (rigid until the stem is `switch_gap` metres from the table);
     dt_sample: sampling step; rtol, atol (times each component's scale); method_rigid (default
     DOP853, LSODA for "coulomb", which is stiff below the slip scale), method_compliant and
-    max_step (compliant phase: a contact shorter than a step may go unlogged).
+    max_step (compliant phase: a contact shorter than a step may go unlogged); stop_at_half: end
+    where theta first reaches pi/2.
     **Returns:** dict: t, y, compliant (bool per sample) and `fields`; events: list of
     (t, name, theta) with names theta_pi/2, switch, stem_touch, stem_liftoff, ball_liftoff,
     ball_touchdown, rigid_liftoff; t_half (first theta = pi/2), t_stem and theta_stem (first
@@ -516,17 +518,19 @@ def solve(top, law, theta0, spin, t_end, *, mu, rho=5e-4, delta=1e-6, stem=True,
         ys[0], flags[0] = y[None], np.ones(1, bool)
     else:
         sol, names = _phase(P, True, y, 0.0, t_end, t_eval, method_rigid, rtol, atol,
-                            switch_gap if contact == "rigid-then-compliant" else None)
+                            switch_gap if contact == "rigid-then-compliant" else None,
+                            stop_at_half=stop_at_half)
         nfev += sol.nfev
         ts.append(sol.t), ys.append(sol.y.T), flags.append(np.zeros(sol.t.size, bool))
         events += _event_list(names, sol)
         t = t_end
-        if sol.status == 1 and contact == "rigid-then-compliant":
-            which = next(i for i, te in enumerate(sol.t_events) if i > 0 and len(te))
-            t, y = float(sol.t_events[which][0]), _to_compliant(sol.y_events[which][0], P)
+        hit = [i for i, te in enumerate(sol.t_events) if i > 0 and len(te)]
+        if sol.status == 1 and hit and contact == "rigid-then-compliant":
+            # the stem is near, or the ball would lift off: continue with compliant contacts
+            t, y = float(sol.t_events[hit[0]][0]), _to_compliant(sol.y_events[hit[0]][0], P)
     if t < t_end:
         sol, names = _phase(P, False, y, t, t_end, t_eval, method_compliant, rtol, atol, None,
-                            max_step)
+                            max_step, stop_at_half)
         nfev += sol.nfev
         ts.append(sol.t), ys.append(sol.y.T), flags.append(np.ones(sol.t.size, bool))
         events += _event_list(names, sol)
