@@ -13,7 +13,8 @@ cardillo is not a dependency: `--cardillo` is a checkout of that commit and `--c
 a python with its requirements (numpy < 2, scipy, matplotlib, tqdm). Each run of the example's
 `make_system` with `MoreauClassical` goes to a subprocess (`--worker`) at `nice --nice`, one at
 a time, and its trajectory is kept in `--cache` so that a rerun reuses it. cardillo's times
-converge at first order in dt: they are extrapolated to dt -> 0 by a least-squares line in dt.
+converge at first order in dt once dt is small: they are extrapolated to dt -> 0 by the line
+through the two finest dts (and, for comparison, a least-squares line through all of them).
 """
 
 from __future__ import annotations
@@ -146,6 +147,7 @@ def summary(rr, r):
     if np.isfinite(again):
         on_stem &= r["t"] < again
     out = {"t_half": r["t_half"], "t_stem": t_stem, "theta_stem": r["theta_stem"],
+           "touchdowns": sum(n == "ball_touchdown" for t, n in after),
            "ball_liftoff": off, "ball_again": again, "wall": r["wall"], "nfev": r["nfev"],
            "theta_max_stem": float(r["theta"][on_stem].max()) if on_stem.any() else math.nan,
            "t": r["t"], "theta": r["theta"]}
@@ -220,17 +222,19 @@ def report(args):
 
     # 1. the reference on Leine & Glocker's top
     runs = {(law, d): lg_run(rr, law, d, t_after) for law in laws for d in deltas}
-    rows = [[law, _g(d), _f(s["t_half"]), _f(s["t_stem"]), _f(s["theta_stem"]),
-             _f(s["ball_liftoff"]), _f(s["theta_max_stem"]), _f(s["ball_again"]),
-             _f(s["theta_0.5"]), _f(s["theta_2.5"]), _f(s["theta_6"]), _g(s["wall"])]
+    rows = [[law, _g(d), _f(s["t_half"], 7), _f(s["t_stem"], 6), _f(s["theta_stem"]),
+             _f(s["ball_liftoff"], 6), _f(s["theta_max_stem"]), _f(s["ball_again"], 6),
+             s["touchdowns"], _f(s["theta_0.5"]), _f(s["theta_2.5"]), _f(s["theta_6"]),
+             _g(s["wall"])]
             for (law, d), s in runs.items()]
     sections.append(
         f"### The reference on Leine & Glocker's top ({t_after:g} s)\n\n"
         "Published (Leine & Glocker 2003): theta passes pi/2 at about 1 s, the stem touches at "
         "about 1.5 s. 'ball off': first ball lift-off after the touch; 'max theta on stem': "
-        "until the ball touches again ('ball again', s).\n\n"
+        "until the ball touches again ('ball again', s); 'touchdowns': the ball's touchdowns "
+        f"after the stem touch, up to {t_after:g} s.\n\n"
         + table(["law", "delta m/s", "theta = pi/2 s", "stem touch s", "theta at touch",
-                 "ball off s", "max theta on stem", "ball again s", "theta(0.5)",
+                 "ball off s", "max theta on stem", "ball again s", "touchdowns", "theta(0.5)",
                  "theta(2.5)", f"theta({t_after:g})", "wall s"], rows))
 
     # 2. Leine & Glocker's figure 15: theta at 0.5 s against the contact radius
@@ -291,12 +295,15 @@ def report(args):
         rows.append([f"cardillo dt {dt:g}"] + [_f(c[k]) for k in keys]
                     + [_f(c["ball_liftoff"]), _g(err), _g(c["wall"])])
     if len(cards) >= 2:
-        ex = [first_order_extrapolation(list(cards), [c[k] for c in cards.values()])
-              for k in keys]
-        rows.append(["cardillo, dt -> 0 (line in dt)"] + [_f(v0) for v0, _, _ in ex]
-                    + ["", "", ""])
-        rows.append(["(slope per ms of dt; max residual)"]
-                    + [f"{_g(sl * 1e-3)}; {_g(res)}" for _, sl, res in ex] + ["", "", ""])
+        fine = sorted(cards)[:2]  # first order holds at the finest steps only
+        for label, chosen in ((f"cardillo, dt -> 0 from dt {fine[1]:g} and {fine[0]:g}", fine),
+                              ("cardillo, dt -> 0, line through all dts", sorted(cards))):
+            if label.endswith("all dts") and len(cards) < 3:
+                continue
+            ex = [first_order_extrapolation(chosen, [cards[d][k] for d in chosen]) for k in keys]
+            rows.append([label] + [_f(v0) for v0, _, _ in ex] + ["", "", ""])
+            if len(chosen) > 2:
+                rows.append(["(its max residual)"] + [_g(res) for _, _, res in ex] + ["", "", ""])
     rows.append([f"reference ellipse, delta {deltas[-1]:g}"] + [_f(ref[k]) for k in keys]
                 + [_f(ref["ball_liftoff"]), "0", _g(ref["wall"])])
     for law in laws:
@@ -342,14 +349,29 @@ def report(args):
             f"scipy {scipy.__version__}, numba {'yes' if rr.HAVE_NUMBA else 'no'}): "
             "`tests/real_top_reference.py`, DOP853 with the rigid ball until the stem is 0.1 mm "
             "from the table, then LSODA with Hunt-Crossley ball and stem (E* 5 GPa, c 200 s/m), "
-            "rtol 1e-9.")
-    body = head + "\n\n" + "\n\n".join(sections)
+            "rtol 1e-9. cardillo runs one at a time at `nice` while other jobs may share the "
+            "machine: its wall times vary with that load.")
+    sys.path.insert(0, str(HERE))
+    import _common
+
+    body = head + "\n\n" + _common.machine_block() + "\n\n" + "\n\n".join(sections)
     print(body)
     if not smoke:
-        sys.path.insert(0, str(HERE))
-        import _common
+        write_section(body)
 
-        _common.write_section(SCRIPT, body)
+
+def write_section(body):
+    """Replace (or append) this script's section of RESULTS.md; the shared header is left as is
+    (the machine of this run is in the section itself)."""
+    path = HERE / "RESULTS.md"
+    text = path.read_text() if path.exists() else ""
+    block = f"<!-- {SCRIPT} -->\n{body.strip()}\n<!-- /{SCRIPT} -->"
+    start, end = text.find(f"<!-- {SCRIPT} -->"), text.find(f"<!-- /{SCRIPT} -->")
+    if start >= 0 and end > start:
+        text = text[:start] + block + text[end + len(f"<!-- /{SCRIPT} -->"):]
+    else:
+        text = text.rstrip("\n") + "\n\n" + block + "\n"
+    path.write_text(text)
 
 
 if __name__ == "__main__":
