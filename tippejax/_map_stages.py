@@ -74,10 +74,11 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from ._devices import shard_over
+from ._devices import gather, shard_over
 from ._engine.chain import run_chain
 from ._engine.cpu import CpuProgram
 from ._engine.watch import EVENT_PIECES
+from ._invariants import jellet
 from ._models.full import FullLevel, pole_linearisation
 from ._models.gyroscopic import (
     NUTATION_FLOOR,
@@ -329,17 +330,11 @@ class _Runner:
             out = _stage_batch(level, self.top_host, chunk_states, chunk_level,
                                self._put(begin.astype(self.dtype)),
                                self._put(stop.astype(self.dtype)), self.options, self.mesh)
-            parts.append(jax.tree_util.tree_map(lambda x: _gather(x)[: index.size], out))
+            parts.append(jax.tree_util.tree_map(lambda x: gather(x)[: index.size], out))
         joined = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs), *parts)
         inverse = np.empty_like(perm)
         inverse[perm] = np.arange(size)
         return jax.tree_util.tree_map(lambda x: x[inverse], joined)
-
-
-def _gather(x) -> np.ndarray:
-    from ._maps import _gather as gather
-
-    return gather(x)
 
 
 def _spin(states) -> np.ndarray:
@@ -471,6 +466,4 @@ def staged_outcomes(top: TippeTop, y0: State, t1: float, *, rtol, atol, solver, 
 
 @eqx.filter_jit
 def _jellets(top, states):
-    from ._invariants import jellet
-
     return jax.vmap(lambda y: jellet(top, y))(states)

@@ -50,23 +50,15 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._analysis.potential import effective_potential_d2_closed_form
-from ._analysis.steady_states import _branch_pieces, _find_root
-from ._batch import cpu_block
-from ._devices import run_in_blocks, shard_over
+from ._devices import cpu_block, gather, run_in_blocks, shard_over
 from ._engine.cpu import CpuProgram
 from ._engine.solver_choice import default_solver
 from ._invariants import jellet
+from ._outcome import INTERMEDIATE, OUTCOMES, classify_end
 from ._simulate import MODELS, simulate
 from ._solution import RESULTS
 from ._state import euler_angles, initial_state
 from ._top import TippeTop
-
-OUTCOMES = ("upright", "inverted", "intermediate", "contact_lost", "failed")
-"""Outcome codes of `outcome_map`: `tj.OUTCOMES[int(om.outcome[i, j])]`."""
-
-UPRIGHT, INVERTED, INTERMEDIATE, CONTACT_LOST, FAILED = range(len(OUTCOMES))
-
-_CONTACT_CODES = ("contact_lost", "contact_loss_missed")
 
 
 class OutcomeMap(eqx.Module):
@@ -151,45 +143,6 @@ class OutcomeMap(eqx.Module):
         return "\n".join(lines)
 
 
-def stable_states(top: TippeTop, J) -> tuple[Float[Array, "4"], Bool[Array, "4"], Int[Array, "4"]]:
-    r"""The steady states of `top` at Jellet `J` and whether each is stable ($W'' > 0$).
-
-    The lean part of `steady_states` that a map needs (no eigenvalues): four slots, the
-    vertical states $\theta = 0$ and $\pi$ and the two intermediate slots (roots of eq.
-    (Exist) on the two monotone pieces of the branch).
-
-    **Returns:** `(theta, stable, kind)`: tilts (nan for an empty slot), stability (False for an
-    empty slot), and the outcome code of each slot (`UPRIGHT`, `INVERTED`, `INTERMEDIATE`).
-    """
-    dtype = jnp.result_type(top.m)
-    J = jnp.asarray(J, dtype)
-    roots = [_find_root(top, J, lo, hi) for lo, hi in _branch_pieces(top)]
-    theta = jnp.stack([jnp.zeros((), dtype), jnp.asarray(jnp.pi, dtype)] + [r[0] for r in roots])
-    exists = jnp.stack([jnp.array(True), jnp.array(True)] + [r[1] for r in roots])
-    safe = jnp.where(exists, theta, 1.0)
-    d2w = effective_potential_d2_closed_form(top, safe, J)
-    stable = exists & (d2w > 0)
-    kind = jnp.array([UPRIGHT, INVERTED, INTERMEDIATE, INTERMEDIATE])
-    return jnp.where(exists, theta, jnp.nan), stable, kind
-
-
-def classify_end(top: TippeTop, J, theta_final, result, *, settle_tol):
-    """Outcome code, settled flag and expected tilt of one run (see the module docstring)."""
-    theta, stable, kind = stable_states(top, J)
-    distance = jnp.where(stable, jnp.abs(theta_final - theta), jnp.inf)
-    nearest = jnp.argmin(distance)
-    any_stable = jnp.any(stable)
-    outcome = jnp.where(any_stable, kind[nearest], FAILED)
-    expected = jnp.where(any_stable, theta[nearest], jnp.nan)
-    settled = any_stable & (distance[nearest] <= settle_tol)
-    contact = jnp.zeros((), bool)
-    for code in _CONTACT_CODES:
-        contact = contact | (result == getattr(RESULTS, code))
-    ok = (result == RESULTS.successful) & jnp.isfinite(theta_final)
-    outcome = jnp.where(contact, CONTACT_LOST, jnp.where(ok, outcome, FAILED))
-    return outcome.astype(jnp.int8), settled & ok, jnp.where(ok, expected, jnp.nan)
-
-
 def _run_chunk_impl(top_fields, top_static, thetas, spins, t1, options, mesh, block=None):
     """Simulate and classify one sharded chunk of launches (summary outputs only), each
     device its own shard (`shard_over`), on CPU devices in blocks of `block` members
@@ -230,15 +183,6 @@ def _classified_runs(top_static, options, top_fields, thetas, spins, t1):
 
     field_axes = jax.tree_util.tree_map(lambda x: 0 if x.ndim == 1 else None, top_fields)
     return jax.vmap(one, in_axes=(field_axes, 0, 0))(top_fields, thetas, spins)
-
-
-def _gather(x) -> np.ndarray:
-    """A (possibly multi-process) sharded array as a numpy array on every process."""
-    if jax.process_count() > 1 and not x.is_fully_addressable:
-        from jax.experimental import multihost_utils
-
-        return np.asarray(multihost_utils.process_allgather(x, tiled=True))
-    return np.asarray(x)
 
 
 def _run_flat(top: TippeTop, thetas, spins, t1, *, batched_top: bool, model, rtol, atol,
@@ -284,7 +228,7 @@ def _run_flat(top: TippeTop, thetas, spins, t1, *, batched_top: bool, model, rto
         else:
             chunk_fields = fields
         out = run_chunk(chunk_fields, static, th, sp, t1, options, mesh, block)
-        parts.append({k: _gather(v)[: stop - start] for k, v in out.items()})
+        parts.append({k: gather(v)[: stop - start] for k, v in out.items()})
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
 
@@ -574,4 +518,4 @@ def outcome_map_tops(
     )
 
 
-__all__ = ["OUTCOMES", "OutcomeMap", "outcome_map", "outcome_map_tops", "stable_states"]
+__all__ = ["OUTCOMES", "OutcomeMap", "outcome_map", "outcome_map_tops"]
