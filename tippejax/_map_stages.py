@@ -74,6 +74,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from ._bucket import bucket
 from ._devices import gather, shard_over
 from ._engine.chain import run_chain
 from ._engine.cpu import CpuProgram
@@ -229,14 +230,14 @@ def _entry(top, theta, phi, J, log_amplitude, rate):
 
 
 def _bucketed(fn, top, *trees):
-    """`fn(top, *trees)` with the leading axis of `trees` padded to a power of two (at least 16;
-    copies of the last member), cut back after: one compilation per bucket, not per size."""
+    """`fn(top, *trees)` with the leading axis of `trees` padded to its `bucket` (copies of the
+    last member), cut back after: one compilation per bucket, not per size."""
     size = np.asarray(jax.tree_util.tree_leaves(trees[0])[0]).shape[0]
-    bucket = max(16, 1 << (size - 1).bit_length())
+    padded = bucket(size)
 
     def pad(x):
         x = np.asarray(x)
-        return np.concatenate([x, np.repeat(x[-1:], bucket - size, axis=0)]) if bucket > size else x
+        return np.concatenate([x, np.repeat(x[-1:], padded - size, axis=0)]) if padded > size else x
 
     out = fn(top, *(jax.tree_util.tree_map(pad, t) for t in trees))
     return jax.tree_util.tree_map(lambda x: np.asarray(x)[:size], out)

@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike
 
+from ._bucket import bucket
 from ._cache import cacheable, cached_call, calling_context, to_device
 from ._engine.chain import run_chain, run_chain_shared
 from ._engine.cpu import own_compiler_options
@@ -39,6 +40,7 @@ from ._engine.solver_choice import (
 from ._engine.watch import EVENT_PIECES
 from ._invariants import energy, jellet, normal_force, slip_velocity
 from ._models.levels import LEVELS
+from ._outcome import classify, classify_program
 from ._solution import RESULTS, Solution
 from ._state import State, euler_angles, euler_rates, spin
 from ._top import TippeTop
@@ -103,7 +105,7 @@ def _run(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_on
         pack_width=pack_width, jacobian_pack_width=jacobian_pack_width)
     out = _outputs(top, y0, ts, chain, result, level=level, names=names)
     if outcome:
-        out["outcome"], out["settled"] = _outcome_of(top, out, _classify)
+        out["outcome"], out["settled"] = _outcome_of(top, out, classify)
     return out
 
 
@@ -263,29 +265,9 @@ _SAVED = ("ts", "states", "theta", "phi", "psi", "theta_dot", "phi_dot", "psi_do
 """The outputs with a save-time axis."""
 
 
-def save_bucket(n: int) -> int:
-    """Length a save grid of `n` times is padded to: the next power of two, at least 16."""
-    return max(16, 1 << (int(n) - 1).bit_length())
-
-
-SETTLE_TOL = 0.1
-"""Tilt distance (rad) within which a run's end counts as `settled` on its outcome."""
-
-
-def _classify(top, J, theta_end, result):
-    """`sol.outcome`, `sol.settled`: the end state classified as `outcome_map` does."""
-    from ._maps import classify_end  # (_maps imports simulate)
-
-    outcome, settled, _ = classify_end(top, J, theta_end, result, settle_tol=SETTLE_TOL)
-    return outcome, settled
-
-
-_classify_program = eqx.filter_jit(_classify)
-
-
 def _outcome_of(top, out, classify):
-    """`sol.outcome`, `sol.settled` of `_run`'s outputs `out` by `classify` (`_classify`, or
-    `_classify_program` for a traced call); integer outputs, so their inputs' derivatives are
+    """`sol.outcome`, `sol.settled` of `_run`'s outputs `out` by `classify` (or
+    `classify_program` for a traced call); integer outputs, so their inputs' derivatives are
     not traced."""
     return classify(*jax.lax.stop_gradient((top, out["jellet_launch"], out["theta_end"])),
                     out["result"])
@@ -437,10 +419,10 @@ def _save_times(summary, saveat, t0, t1, dtype):
     # compiled program of its bucket instead of compiling anew.
     n_save = None if ts is None else int(ts.shape[0])
     if ts is not None:
-        bucket = save_bucket(n_save)
+        size = bucket(n_save)
         xp = np if isinstance(ts, np.ndarray) else jnp
-        if bucket > n_save:
-            ts = xp.concatenate([ts, xp.broadcast_to(ts[-1:], (bucket - n_save,))])
+        if size > n_save:
+            ts = xp.concatenate([ts, xp.broadcast_to(ts[-1:], (size - n_save,))])
         if xp is np:
             ts = to_device(ts, dtype)
     return ts, n_save
@@ -602,7 +584,7 @@ def simulate(
                             and _differentiated_eagerly(args))
             run = _run_traced if own_jacobian else _run
             out = run(*args, **options)
-            out["outcome"], out["settled"] = _outcome_of(top, out, _classify_program)
+            out["outcome"], out["settled"] = _outcome_of(top, out, classify_program)
     if n_save is not None and out["ts"].shape[0] != n_save:
         for key in _SAVED:
             out[key] = jax.tree_util.tree_map(lambda x: x[:n_save], out[key])
@@ -683,7 +665,7 @@ def _run_shared(tops, y0s, ts, t0, t1, rtol, atol, *, level, solver, stop_on_con
         in_axes=(axes, 0, 0),
     )(tops, y0s, out)
     theta_end, jellet_launch = fields.pop("theta_end"), fields.pop("jellet_launch")
-    outcome, settled = jax.vmap(_classify, in_axes=(axes, 0, 0, 0))(
+    outcome, settled = jax.vmap(classify, in_axes=(axes, 0, 0, 0))(
         tops, jellet_launch, theta_end, fields["result"]
     )
     return dict(fields, outcome=outcome, settled=settled)
