@@ -18,7 +18,9 @@ from ._engine.cpu import CpuProgram
 from ._engine.segment import top_axes
 from ._engine.solver_choice import default_solver, is_traced
 from ._models.levels import LEVELS
-from ._simulate import _SAVED, SHARED_OPTIONS, _run_shared, shared_run_options, simulate
+from ._simulate import simulate
+from ._simulate.programs import trim_saves
+from ._simulate.shared import SHARED_OPTIONS, run_shared, shared_run_options
 from ._solution import Solution
 from ._state import check_theta0, initial_state
 from ._top import _FIELDS, TippeTop
@@ -62,12 +64,12 @@ def _launch_state(top, launch):
 
 @eqx.filter_jit
 def _shared_batch_run(top, launches, arrays, static, mesh):
-    # The batch with shared steps (`_run_shared`). With a `mesh` every device runs its own
+    # The batch with shared steps (`run_shared`). With a `mesh` every device runs its own
     # shared-step solve on its shard (`jax.shard_map`): steps are shared within a shard only,
     # and the devices never wait for each other inside the loop.
     def local(top, launches, arrays):
         y0s = jax.vmap(_launch_state, in_axes=(top_axes(top), 0))(top, launches)
-        return _run_shared(top, y0s, **arrays, **static)
+        return run_shared(top, y0s, **arrays, **static)
 
     if mesh is None:
         return local(top, launches, arrays)
@@ -354,9 +356,5 @@ def simulate_batch(
         return jax.device_put(x) if isinstance(x, np.ndarray) else x
 
     if steps == "shared":
-        out = dict(sol)
-        if n_save is not None and out["ts"].shape[1] != n_save:
-            for key in _SAVED:
-                out[key] = jax.tree_util.tree_map(lambda x: x[:, :n_save], out[key])
-        sol = Solution(model=static["level"].name, **out)
+        sol = Solution(model=static["level"].name, **trim_saves(dict(sol), n_save, axis=1))
     return jax.tree_util.tree_map(unflatten, sol)
