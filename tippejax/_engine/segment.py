@@ -2,7 +2,7 @@
 
 A segment integrates one level from `t0` until `t1` or a terminating event, saving at the
 times of `ts` that fall inside it (or only its end, in summary mode), and records the first
-downward crossing of each observed condition (see `watch.py`).
+downward crossing of each observed condition (see `watch.py` and `events.py`).
 """
 
 from __future__ import annotations
@@ -19,16 +19,9 @@ from diffrax._root_finder import use_stepsize_tol  # diffrax exports no public n
 from jaxtyping import Array, Bool, Float, PyTree
 
 from .._models.base import AbstractLevel
+from .events import event_root_finder, locate_observed, locate_terminating
 from .unrolled import StageLoopERK, UnrolledERK, own_stage_loop, unroll_stages, unrollable
-from .watch import (
-    STOP,
-    SharedWatchedSolver,
-    WatchedSolver,
-    ended_on_event,
-    event_root_finder,
-    locate_observed,
-    locate_terminating,
-)
+from .watch import STOP, SharedWatchedSolver, WatchedSolver, ended_on_event
 
 
 def as_event_dtype(x):
