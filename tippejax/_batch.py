@@ -139,18 +139,17 @@ def simulate_batch(
     device running its own members' loops (`jax.shard_map`). On CPU devices each device's
     members run in blocks of at most `PER_MEMBER_BLOCK` (128), one after the other, and the
     batch's program is compiled with tippejax's CPU options (LLVM level 1, XLA's element-wise
-    loop emitter; `tippejax._engine.cpu`, for this program only): 1.5-1.9x faster than
-    `simulate` in one `vmap` with XLA's defaults on the machine of `benchmarks/RESULTS.md`
-    (`benchmarks/peers.py`). Results agree with a single run of each member to about `rtol`
-    (the program's rounding differs).
+    loop emitter; `tippejax._engine.cpu`, for this program only), faster than `simulate` in
+    one `vmap` with XLA's defaults (see the performance page). Results agree with a single
+    run of each member to about `rtol` (the program's rounding differs).
 
     Under `vmap` every member takes as many solver steps as the slowest one. With
     `buckets > 1` the members are sorted by $|n|$ (their cost grows with spin x t1), split
     into `buckets` equal-size groups (padded with the last member), each run as its own batch
     through the same compiled function, and put back in order. This pays when the members run
-    to `t1` with step counts spread by spin (`benchmarks/batch.py`: 2-4 buckets ran a batch of
-    spins 20..400 ~1.4x faster); not when many stop early (contact loss). Results agree with
-    `buckets=1` to about `rtol`.
+    to `t1` with step counts spread by spin (2-4 buckets for a batch of spins spread over a
+    decade); not when many stop early (contact loss). Results agree with `buckets=1` to about
+    `rtol`.
 
     The default solver is `default_solver` of the stiffest top in the batch.
 

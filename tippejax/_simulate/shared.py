@@ -9,7 +9,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .._engine.chain import run_chain_shared
+from .._engine.chain import run_chain
 from .._engine.segment import SHARED_PACK_WIDTH, top_axes
 from .._engine.solver_choice import default_solver
 from .._engine.watch import EVENT_PIECES
@@ -64,13 +64,13 @@ def shared_run_options(top: TippeTop, t1, *, model="full", saveat=None, t0=0.0, 
 @eqx.filter_jit
 def run_shared(tops, y0s, ts, t0, t1, rtol, atol, *, level, solver, stop_on_contact,
                max_steps, pieces, pack_width=SHARED_PACK_WIDTH):
-    """`run` for a batch whose members share their steps (`run_chain_shared`): `y0s` has a
-    leading member axis, `tops` is one top or one per member. Returns `run`'s outputs with
-    the member axis leading, and each member's outcome and settled flag."""
+    """`run` for a batch whose members share their steps (`run_chain(..., shared_steps=True)`):
+    `y0s` has a leading member axis, `tops` is one top or one per member. Returns `run`'s
+    outputs with the member axis leading, and each member's outcome and settled flag."""
     axes = top_axes(tops)
-    out = run_chain_shared(
-        level, tops, y0s, t0, t1, ts, stop_on_contact=stop_on_contact, solver=solver,
-        rtol=rtol, atol=atol, max_steps=max_steps,
+    out = run_chain(
+        level, tops, y0s, t0, t1, ts, stop_on_contact=stop_on_contact, shared_steps=True,
+        solver=solver, rtol=rtol, atol=atol, max_steps=max_steps,
         # Not differentiated: the plain while loop of forward mode.
         adjoint=diffrax.ForwardMode(), progress_meter=diffrax.NoProgressMeter(),
         pieces=pieces, pack_width=pack_width,
