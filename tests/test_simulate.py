@@ -600,7 +600,7 @@ def test_convergence_in_rtol(top, y_std, full_ref, full_default):
 
 def test_save_grid_lengths_in_one_bucket_compile_once(top, y_std):
     from tippejax._bucket import bucket as save_bucket
-    from tippejax._simulate.programs import run as _run
+    from tippejax._simulate.programs import _run
 
     assert [save_bucket(n) for n in (1, 16, 17, 32, 33, 1001)] == [16, 16, 32, 32, 64, 1024]
     ts = np.linspace(0.0, 0.5, 21)

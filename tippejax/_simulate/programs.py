@@ -61,9 +61,9 @@ def _observe(top, states: State, friction_model: str, valid, names=OBSERVED):
 
 
 @eqx.filter_jit
-def run(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_on_contact,
-        max_steps, adjoint, progress, pieces, names=OBSERVED, inversion=True, locate=True,
-        pack_width=PACK_WIDTH, jacobian_pack_width=FORWARD_MODE_PACK_WIDTH, outcome=False):
+def _run(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_on_contact,
+         max_steps, adjoint, progress, pieces, names=OBSERVED, inversion=True, locate=True,
+         pack_width=PACK_WIDTH, jacobian_pack_width=FORWARD_MODE_PACK_WIDTH, outcome=False):
     """The run of one top (`run_chain`) and its observed fields (`outputs`); with
     `outcome=True` also `sol.outcome` and `sol.settled` (`classify`), in the same program.
 
@@ -79,6 +79,11 @@ def run(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_on_
     if outcome:
         out["outcome"], out["settled"] = outcome_of(top, out, classify)
     return out
+
+
+run = _run
+"""The program of a run (`_run`, the name JAX's compile log and the store of traced programs
+show)."""
 
 
 def run_traced(top, y0, ts, t0, t1, rtol, atol, *, names=OBSERVED, inversion=True,
