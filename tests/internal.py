@@ -29,5 +29,5 @@ from tippejax._models.routhian import (
     state_from_routhian as state_from_routhian,
 )
 from tippejax._models.so3 import so3_vector_field as so3_vector_field
-from tippejax._simulate import _raise_if_failed as raise_if_failed  # noqa: F401
+from tippejax._simulate.single import _raise_if_failed as raise_if_failed  # noqa: F401
 from tippejax._state import spin as spin

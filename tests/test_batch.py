@@ -91,9 +91,9 @@ def test_blocks_of_members_equal_single_runs(monkeypatch):
     over `vmap`, padded to equal blocks): with blocks of 2, a sweep of 2 tops x 3 spins (the
     tops' fields split into the blocks with the launches) is every member's single run, the
     padding cut off."""
-    from tippejax import _batch
+    from tippejax import _batch, _devices
 
-    monkeypatch.setattr(_batch, "PER_MEMBER_BLOCK", 2)
+    monkeypatch.setattr(_devices, "PER_MEMBER_BLOCK", 2)
     calls = []
     run = _batch._batch_run_cpu
     monkeypatch.setattr(_batch, "_batch_run_cpu", lambda *a: calls.append(a) or run(*a))

@@ -554,7 +554,7 @@ def test_bernstein_polygon_is_the_quintic(pieces):
     fewer than the quintic's own on a fine grid (the bound the watch relies on)."""
     from math import comb
 
-    from tippejax._engine.watch import _bernstein_polygon, _quintic_samples
+    from tippejax._engine.bernstein import _bernstein_polygon, _quintic_samples
 
     rng = np.random.default_rng(pieces)
     weights = _bernstein_polygon(pieces)

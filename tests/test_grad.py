@@ -340,7 +340,7 @@ def test_eager_jacrev_is_a_program_of_its_own_and_agrees(problem, reverse, monke
     top-level program of its own (`_run_jacobian`, compiled with tippejax's options and
     stored), not inside the program JAX derives from `_run`. Its derivatives agree with the
     `jit`-ed route, which differentiates `_run` as one program."""
-    import tippejax._simulate as simulate_module
+    import tippejax._simulate.programs as simulate_module
 
     lives = []
     call = simulate_module.cached_call
@@ -363,7 +363,7 @@ def test_only_an_eager_derivative_takes_its_own_program():
     """`_differentiated_eagerly`: true under an eager `jax.grad`, `jax.jacfwd` or `jax.jvp`,
     false for concrete inputs, under `jax.vmap`, `jax.jit`, and `jax.grad` inside either
     (where the rule's inputs are not concrete: one program, `_run`)."""
-    from tippejax._simulate import _differentiated_eagerly
+    from tippejax._simulate.single import _differentiated_eagerly
 
     seen = []
 
@@ -400,7 +400,7 @@ def test_grad_and_jacfwd_trace_the_solve_once(monkeypatch):
     under `jax.grad` and `jax.jacfwd` the solve's Python is traced once, not once for the
     value and again for the Jacobian (a gradient's first call is mostly this tracing,
     `benchmarks/gradients.py`)."""
-    import tippejax._simulate as simulate_module
+    import tippejax._simulate.programs as simulate_module
 
     calls = []
     run_chain = simulate_module.run_chain

@@ -32,7 +32,7 @@ from tippejax._models.gyroscopic import (
     slow_manifold,
 )
 from tippejax._models.levels import LEVELS
-from tippejax._simulate import _run
+from tippejax._simulate.programs import _run
 
 N = 201  # one save-grid length for every run
 REF = dict(rtol=1e-10, atol=1e-12)  # SO(3) reference runs

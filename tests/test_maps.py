@@ -12,8 +12,9 @@ from helpers import host_devices_env
 import tippejax as tj
 from tippejax._auto import choose_model
 from tippejax._map_stages import staged_outcomes
-from tippejax._maps import INTERMEDIATE, INVERTED, UPRIGHT, _auto_models
+from tippejax._maps import _auto_models
 from tippejax._models.levels import LEVELS
+from tippejax._outcome import INTERMEDIATE, INVERTED, UPRIGHT
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 THETA0 = np.array([0.1, 0.6, 1.2])
@@ -133,9 +134,9 @@ def test_map_in_blocks_is_each_launchs_single_run(monkeypatch):
     """On CPU devices a map's launches run in blocks (`run_in_blocks`, as in simulate_batch):
     with blocks of 2, a map of 3 x 2 tops (their fields split into the blocks) holds each
     top's own single run, the padding cut off."""
-    from tippejax import _batch, _maps
+    from tippejax import _devices, _maps
 
-    monkeypatch.setattr(_batch, "PER_MEMBER_BLOCK", 2)
+    monkeypatch.setattr(_devices, "PER_MEMBER_BLOCK", 2)
     calls = []
     run = _maps._run_chunk_cpu
     monkeypatch.setattr(_maps, "_run_chunk_cpu", lambda *a: calls.append(a) or run(*a))

@@ -33,7 +33,7 @@ from tippejax._models.gyroscopic import (
     slow_manifold,
 )
 from tippejax._models.so3 import SO3Level
-from tippejax._simulate import _run
+from tippejax._simulate.programs import _run
 from tippejax._state import state_from_euler
 
 STANDARD = tj.default_top()

@@ -211,10 +211,10 @@ def test_shared_large_batch_is_split_into_blocks(so3_summary, so3_reference, mon
     `so3_summary` give every member the result of its per-member run, in the same order."""
     import jax
 
-    import tippejax._batch as batch
+    import tippejax._devices as devices
 
     per, _ = so3_summary
-    monkeypatch.setattr(batch, "SHARED_BLOCK", 2)
+    monkeypatch.setattr(devices, "SHARED_BLOCK", 2)
     blocks = tj.simulate_batch(tj.default_top(), 0.1, SPINS, t1=T1, model="so3", summary=True,
                                grid=("spin",), steps="shared")
     np.testing.assert_array_equal(np.asarray(blocks.result._value), np.asarray(per.result._value))

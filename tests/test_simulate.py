@@ -348,7 +348,7 @@ def test_contact_loss_too_brief_for_the_watch_is_reported(monkeypatch):
     kept out of the store of traced programs): Dopri8's long steps at rtol 1e-5 then go over
     the dip, which the 1.3 ms save grid sees."""
     from tippejax import _cache
-    from tippejax._engine import watch
+    from tippejax._engine import bernstein as watch
 
     monkeypatch.setattr(_cache, "EXPORT_DIR", None)
 
@@ -470,7 +470,7 @@ def test_an_eager_vmap_compiles_with_tippejaxs_options(top, monkeypatch):
     """An eager `jax.vmap` of `simulate` runs the batched solve as a top-level program, so
     it is compiled with tippejax's options, as a concrete call is (an unknown option raising
     proves they reach XLA); `test_vmap_over_spins_matches_loop` checks its numbers."""
-    import tippejax._simulate as simulate_module
+    import tippejax._simulate.single as simulate_module
 
     bad = {"not_an_xla_option": 1}
     monkeypatch.setattr(simulate_module, "own_compiler_options", lambda: bad)
@@ -599,7 +599,8 @@ def test_convergence_in_rtol(top, y_std, full_ref, full_default):
 
 
 def test_save_grid_lengths_in_one_bucket_compile_once(top, y_std):
-    from tippejax._simulate import _run, save_bucket
+    from tippejax._bucket import bucket as save_bucket
+    from tippejax._simulate.programs import _run
 
     assert [save_bucket(n) for n in (1, 16, 17, 32, 33, 1001)] == [16, 16, 32, 32, 64, 1024]
     ts = np.linspace(0.0, 0.5, 21)
@@ -650,7 +651,7 @@ def test_max_steps_reached(top, y_std):
     assert "not stiff" in text and "would not help" in text
     assert f"{float(tj.friction_rate(top)):.3g}/s" in text
     # A stiff top's message does point to an implicit solver.
-    from tippejax._simulate import _max_steps_hint
+    from tippejax._simulate.single import _max_steps_hint
 
     stiff = top.replace(mu=3000.0)
     assert float(tj.friction_rate(stiff)) > 1e3

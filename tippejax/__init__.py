@@ -51,12 +51,12 @@ from ._invariants import (
 )
 from ._inversion import inversion_time as inversion_time
 from ._maps import (
-    OUTCOMES as OUTCOMES,
     OutcomeMap as OutcomeMap,
     outcome_map as outcome_map,
     outcome_map_tops as outcome_map_tops,
 )
 from ._models.routhian import CHART_SIN_MIN as _CHART_SIN_MIN
+from ._outcome import OUTCOMES as OUTCOMES
 from ._simulate import MODELS as MODELS, simulate as simulate
 from ._solution import RESULTS as RESULTS, Solution as Solution
 from ._state import (

@@ -50,6 +50,7 @@ from ._analysis.groups import classify
 from ._analysis.potential import effective_potential_derivative
 from ._engine.solver_choice import STIFF_RATE, friction_rate
 from ._invariants import jellet
+from ._models.levels import LEVELS
 from ._state import State
 from ._top import TippeTop
 
@@ -117,8 +118,6 @@ def launch_regime(top: TippeTop, y0: State) -> str:
 def accepts(level: str, top: TippeTop, y0: State) -> bool:
     """Whether `level` describes this launch: False for a level with a chart of its own (the
     gyroscopic level) when the launch is outside it (needs concrete values)."""
-    from ._models.levels import LEVELS
-
     lvl = LEVELS[level]
     return lvl.chart_end_result is None or bool(np.asarray(lvl.in_chart(top, y0)))
 

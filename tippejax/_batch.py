@@ -13,41 +13,20 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import ArrayLike
 
 from ._cache import cacheable
-from ._devices import run_in_blocks, shard_over
+from ._devices import cpu_block, run_in_blocks, shard_over, shared_block
 from ._engine.cpu import CpuProgram
 from ._engine.segment import top_axes
 from ._engine.solver_choice import default_solver, is_traced
 from ._models.levels import LEVELS
-from ._simulate import _SAVED, SHARED_OPTIONS, _run_shared, shared_run_options, simulate
+from ._simulate import simulate
+from ._simulate.programs import trim_saves
+from ._simulate.shared import SHARED_OPTIONS, run_shared, shared_run_options
 from ._solution import Solution
 from ._state import check_theta0, initial_state
 from ._top import _FIELDS, TippeTop
 
 LAUNCH = ("theta0", "spin", "theta_dot", "phi_dot", "phi", "psi", "vx", "vy")
 """The launch quantities `simulate_batch` sweeps (the arguments of `initial_state`)."""
-
-
-PER_MEMBER_BLOCK = 128
-"""Most members in one vmapped solve of a per-member batch on a CPU device: a device's shard
-of a larger batch runs as consecutive blocks of at most this many members (`jax.lax.map`
-over `jax.vmap`), compiled with `tippejax._engine.cpu.CPU_COMPILER_OPTIONS`. On the 2-core
-AMD EPYC of `benchmarks/RESULTS.md` (peers.py's scene, SO(3) level, 1000 tops, ms per top):
-one vmap of every member per device, LLVM's default optimisation 3.43 (1 device) and 1.35 (2
-devices); blocks of 250 at level 1: 2.20 and 1.08; blocks of 100-300 at level 1 on 2 devices
-1.07-1.13, while neither change alone helped (blocks at the default level 3.68 / 1.84,
-level 1 without blocks 3.62 / 1.57). With XLA:CPU's element-wise emitter as well (the CPU
-options now), 2 devices: blocks of 64 1.80, 128 0.915, 250 0.90 (full level 2.23, 1.11,
-1.25). A block's loop also ends with its own slowest member rather than the shard's.
-`benchmarks/peers.py` measures it against the plain script."""
-
-
-def cpu_block(shard_size: int) -> int | None:
-    """The block size of a CPU device's shard of `shard_size` members: equal blocks of at most
-    `PER_MEMBER_BLOCK` (the shard is padded to a multiple of it), or None for one block."""
-    if shard_size <= PER_MEMBER_BLOCK:
-        return None
-    blocks = -(-shard_size // PER_MEMBER_BLOCK)
-    return -(-shard_size // blocks)
 
 
 def _batch_run_impl(top, launches, t1, kwargs, mesh=None, block=None):
@@ -85,37 +64,16 @@ def _launch_state(top, launch):
 
 @eqx.filter_jit
 def _shared_batch_run(top, launches, arrays, static, mesh):
-    # The batch with shared steps (`_run_shared`). With a `mesh` every device runs its own
+    # The batch with shared steps (`run_shared`). With a `mesh` every device runs its own
     # shared-step solve on its shard (`jax.shard_map`): steps are shared within a shard only,
     # and the devices never wait for each other inside the loop.
     def local(top, launches, arrays):
         y0s = jax.vmap(_launch_state, in_axes=(top_axes(top), 0))(top, launches)
-        return _run_shared(top, y0s, **arrays, **static)
+        return run_shared(top, y0s, **arrays, **static)
 
     if mesh is None:
         return local(top, launches, arrays)
     return shard_over(local, mesh, "batch", (top, launches, arrays), (True, True, False))
-
-
-SHARED_BLOCK = 512
-"""Most members per CPU device in one solve with shared steps: a larger batch is split into
-buckets by spin (`simulate_batch`'s `buckets`), each its own shared solve. The state of a
-shared solve and its stages outgrow the cores' caches with the batch: SO(3) level, the scene
-of `benchmarks/shared_steps.py`, time per top on one device, 1000 members in one solve 1.63
-ms, in 2 buckets of 500 1.41, in 4 of 250 1.43; 1e4 members on 2 devices, one solve per
-device 1.21 ms, 10 buckets (500 per device) 0.63 ms (the 1000-member batch on 2 devices,
-500 per device: 0.68 ms)."""
-
-SHARED_BLOCK_ACCELERATOR = 2**20
-"""Most members per GPU (or other accelerator) device in one shared solve. A GPU runs each
-step's arithmetic across the members in parallel and pays a fixed cost per kernel launch, so
-the widest state is the cheapest per member; the bound only keeps one solve's stages (13
-copies of the batched state for Dopri8) to a few GB in float64 (`benchmarks/gpu.py`)."""
-
-
-def shared_block(platform: str) -> int:
-    """`SHARED_BLOCK` on CPU devices, `SHARED_BLOCK_ACCELERATOR` on the others."""
-    return SHARED_BLOCK if platform == "cpu" else SHARED_BLOCK_ACCELERATOR
 
 
 def _concrete_array(name, value):
@@ -181,18 +139,17 @@ def simulate_batch(
     device running its own members' loops (`jax.shard_map`). On CPU devices each device's
     members run in blocks of at most `PER_MEMBER_BLOCK` (128), one after the other, and the
     batch's program is compiled with tippejax's CPU options (LLVM level 1, XLA's element-wise
-    loop emitter; `tippejax._engine.cpu`, for this program only): 1.5-1.9x faster than
-    `simulate` in one `vmap` with XLA's defaults on the machine of `benchmarks/RESULTS.md`
-    (`benchmarks/peers.py`). Results agree with a single run of each member to about `rtol`
-    (the program's rounding differs).
+    loop emitter; `tippejax._engine.cpu`, for this program only), faster than `simulate` in
+    one `vmap` with XLA's defaults (see the performance page). Results agree with a single
+    run of each member to about `rtol` (the program's rounding differs).
 
     Under `vmap` every member takes as many solver steps as the slowest one. With
     `buckets > 1` the members are sorted by $|n|$ (their cost grows with spin x t1), split
     into `buckets` equal-size groups (padded with the last member), each run as its own batch
     through the same compiled function, and put back in order. This pays when the members run
-    to `t1` with step counts spread by spin (`benchmarks/batch.py`: 2-4 buckets ran a batch of
-    spins 20..400 ~1.4x faster); not when many stop early (contact loss). Results agree with
-    `buckets=1` to about `rtol`.
+    to `t1` with step counts spread by spin (2-4 buckets for a batch of spins spread over a
+    decade); not when many stop early (contact loss). Results agree with `buckets=1` to about
+    `rtol`.
 
     The default solver is `default_solver` of the stiffest top in the batch.
 
@@ -398,9 +355,5 @@ def simulate_batch(
         return jax.device_put(x) if isinstance(x, np.ndarray) else x
 
     if steps == "shared":
-        out = dict(sol)
-        if n_save is not None and out["ts"].shape[1] != n_save:
-            for key in _SAVED:
-                out[key] = jax.tree_util.tree_map(lambda x: x[:, :n_save], out[key])
-        sol = Solution(model=static["level"].name, **out)
+        sol = Solution(model=static["level"].name, **trim_saves(dict(sol), n_save, axis=1))
     return jax.tree_util.tree_map(unflatten, sol)

@@ -1,33 +1,18 @@
-"""Every CPU core a JAX device, by default, so that batches spread over the whole machine.
-
-XLA runs a batch (`jax.vmap` of a solve) on one CPU device, and its while loop on one core: a
-batch of 1000 tops on an 8-core machine would use one core. With `N` host devices,
-`simulate_batch` and `outcome_map` shard their launches over `jax.devices()`
-(`jax.sharding`, padding the batch to a multiple of the device count), one core each, and a
-batched `fit` shards its records over the most devices that divide their number
-(`batch_sharding`). JAX makes `N` host devices only when the
-flag `--xla_force_host_platform_device_count=N` is in `XLA_FLAGS` before its CPU backend
-starts; importing tippejax puts it there, with `N = os.cpu_count()`, unless
-
-- `XLA_FLAGS` already holds that flag (the user's choice is kept);
-- the environment variable `TIPPEJAX_HOST_DEVICES` is set: `TIPPEJAX_HOST_DEVICES=1` keeps
-  JAX's default single CPU device, another positive integer asks for that many devices;
-- JAX's backends are already running (jax was used before tippejax was imported): then the
-  flag could no longer take effect, and nothing is changed.
-
-A single solve runs on the first device whatever their number (`benchmarks/peers.py` measures
-one top with one and with two host devices).
-
-Importing tippejax also turns off XLA:CPU's concurrency-optimised scheduler
-(`use_sequential_scheduler`; `TIPPEJAX_CPU_SCHEDULER=concurrent` keeps it): one top's solve and
-its derivatives ran up to 3x slower, and by how much changed from process to process, with
-their tiny operations spread over the cores.
-"""
+"""JAX devices: every CPU core a device (set at import), and batches split over devices and
+into blocks."""
 
 from __future__ import annotations
 
+import importlib.metadata
 import os
 from collections.abc import MutableMapping
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.experimental import multihost_utils
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 ENV = "TIPPEJAX_HOST_DEVICES"
 FLAG = "--xla_force_host_platform_device_count"
@@ -60,7 +45,23 @@ def requested_devices(environ: MutableMapping[str, str] = os.environ) -> int:
 
 
 def use_every_core(environ: MutableMapping[str, str] = os.environ) -> int | None:
-    """Add `--xla_force_host_platform_device_count` to `XLA_FLAGS` (see the module docstring).
+    """Make every CPU core a JAX device, so that batches spread over the whole machine.
+
+    XLA runs a batch (`jax.vmap` of a solve) on one CPU device, and its while loop on one
+    core. With `N` host devices, `simulate_batch` and `outcome_map` shard their launches over
+    `jax.devices()` (padding the batch to a multiple of the device count), one core each, and
+    a batched `fit` shards its records over the most devices that divide their number
+    (`batch_sharding`). A single solve runs on the first device whatever their number.
+
+    JAX makes `N` host devices only when the flag `--xla_force_host_platform_device_count=N`
+    is in `XLA_FLAGS` before its CPU backend starts; importing tippejax puts it there, with
+    `N = os.cpu_count()`, unless
+
+    - `XLA_FLAGS` already holds that flag (the user's choice is kept);
+    - the environment variable `TIPPEJAX_HOST_DEVICES` is set: `TIPPEJAX_HOST_DEVICES=1` keeps
+      JAX's default single CPU device, another positive integer asks for that many devices;
+    - JAX's backends are already running (jax was used before tippejax was imported): then the
+      flag could no longer take effect, and nothing is changed.
 
     **Returns:** the device count set, or None where nothing was changed.
     """
@@ -85,8 +86,6 @@ process on a flag it does not know, so it is set only for these."""
 
 
 def _jaxlib_version() -> tuple[int, int] | None:
-    import importlib.metadata
-
     try:
         major, minor = importlib.metadata.version("jaxlib").split(".")[:2]
         return int(major), int(minor)
@@ -97,21 +96,16 @@ def _jaxlib_version() -> tuple[int, int] | None:
 def use_sequential_scheduler(environ: MutableMapping[str, str] = os.environ) -> bool:
     """Add `--xla_cpu_enable_concurrency_optimized_scheduler=false` to `XLA_FLAGS`: XLA:CPU then
     runs a program's operations in their order instead of spreading independent ones over the
-    cores. A solve of one top is thousands of tiny operations per step; spread over two
-    threads they cost more than on one, and the run time of the same compiled program moved
-    between processes (the standard top's 20 s run with 201 saves, `jax.jacfwd` in the seven
-    fields: 130 ms in 15 processes, 340 ms in 4; with the flag 113-115 ms in 10 of 10, and the
-    solve 30-32 ms against 33-43; `benchmarks/gradients.py`: its Jacobian 8.4x -> 3.7x the
-    solve). A batch sharded over the cores (one device per core, `use_every_core`) runs as
-    fast either way; one unsharded batch of 1000 full-model tops on one device ran 18%
-    slower with it (`TIPPEJAX_HOST_DEVICES=1`). It does not keep every program on one thread:
-    XLA:CPU's executor still hands kernels to a second thread when more than 8 are ready at
-    once, and since tippejax's own stage loop (`StageLoopERK`) that Jacobian runs on two
-    threads again at 4.3-5.7x the solve by the clock and 9-11x in CPU time (2026-11-28,
-    `benchmarks/gradients.py`'s tangent scan: with 1, 2 or 5 tangents it stays on one thread at
-    1.7-2.1x). Not set where `XLA_FLAGS` holds the flag
-    already (the user's choice), where `TIPPEJAX_CPU_SCHEDULER=concurrent` (XLA's default
-    scheduler), where JAX's backends already run, or for a jaxlib not in `SCHEDULER_JAXLIB`.
+    cores.
+
+    A solve of one top is thousands of tiny operations per step; spread over two threads they
+    cost more than on one, and the run time of the same compiled program varies between
+    processes. A batch sharded over the cores (one device per core, `use_every_core`) runs as
+    fast either way. XLA:CPU's executor may still hand kernels to a second thread when many
+    are ready at once. Not set where `XLA_FLAGS` holds the flag already (the user's choice),
+    where `TIPPEJAX_CPU_SCHEDULER=concurrent` (XLA's default scheduler), where JAX's backends
+    already run, or for a jaxlib not in `SCHEDULER_JAXLIB`. Importing tippejax calls it; see
+    the performance page for what it changes.
 
     **Returns:** whether the flag was added."""
     flags = environ.get("XLA_FLAGS", "")
@@ -130,20 +124,48 @@ def use_sequential_scheduler(environ: MutableMapping[str, str] = os.environ) -> 
 use_sequential_scheduler()
 
 
+PER_MEMBER_BLOCK = 128
+"""Most members in one vmapped solve of a per-member batch on a CPU device: a device's shard
+of a larger batch runs as consecutive blocks of at most this many members (`run_in_blocks`:
+`jax.lax.map` over `jax.vmap`), compiled with `tippejax._engine.cpu.CPU_COMPILER_OPTIONS`.
+Blocks of about a hundred members keep a block's state in the cores' caches, and a block's
+loop ends with its own slowest member rather than the shard's (`cpu_block`)."""
+
+SHARED_BLOCK = 512
+"""Most members per CPU device in one solve with shared steps: a larger batch is split into
+buckets by spin (`simulate_batch`'s `buckets`), each its own shared solve, since the state of a
+shared solve and its stages outgrow the cores' caches with the batch."""
+
+SHARED_BLOCK_ACCELERATOR = 2**20
+"""Most members per GPU (or other accelerator) device in one shared solve. A GPU runs each
+step's arithmetic across the members in parallel and pays a fixed cost per kernel launch, so
+the widest state is the cheapest per member; the bound only keeps one solve's stages (13
+copies of the batched state for Dopri8) to a few GB in float64."""
+
+
+def cpu_block(shard_size: int) -> int | None:
+    """The block size of a CPU device's shard of `shard_size` members: equal blocks of at most
+    `PER_MEMBER_BLOCK` (the shard is padded to a multiple of it), or None for one block."""
+    if shard_size <= PER_MEMBER_BLOCK:
+        return None
+    blocks = -(-shard_size // PER_MEMBER_BLOCK)
+    return -(-shard_size // blocks)
+
+
+def shared_block(platform: str) -> int:
+    """`SHARED_BLOCK` on CPU devices, `SHARED_BLOCK_ACCELERATOR` on the others."""
+    return SHARED_BLOCK if platform == "cpu" else SHARED_BLOCK_ACCELERATOR
+
+
 def batch_sharding(size: int):
     """A `NamedSharding` that splits an axis of length `size` over the most of `jax.devices()`
     that divide it, or None where that is one device (a batched fit's records: padding them
     would cost a fit of a copy per pad)."""
-    import jax
-    import numpy as np
-    from jax.sharding import Mesh, NamedSharding, PartitionSpec
-
     devices = jax.devices()
     count = max(k for k in range(1, min(len(devices), size) + 1) if size % k == 0)
     if count == 1:
         return None
     return NamedSharding(Mesh(np.array(devices[:count]), ("batch",)), PartitionSpec("batch"))
-
 
 
 def shard_over(fn, mesh, axis: str, args, members):
@@ -157,10 +179,7 @@ def shard_over(fn, mesh, axis: str, args, members):
     runs ONE while loop over all devices, whose condition (is any member still running?) is
     reduced across them at every step: every device takes as many steps as the slowest member
     of the whole batch and waits for the others at each. Here each device loops until its own
-    members are done (`benchmarks/shared_steps.py`, 1000 SO(3) tops, one solve per member,
-    2 host devices: 1.68 -> 1.38 s)."""
-    import jax
-    from jax.sharding import PartitionSpec
+    members are done."""
 
     def spec(x, split):
         return PartitionSpec(axis) if split and getattr(x, "ndim", 0) >= 1 else PartitionSpec()
@@ -180,11 +199,7 @@ def run_in_blocks(fn, block, args):
     long) and are split into the blocks; the others go whole to every block. The outputs are
     the blocks' put back together along their first axis. `block` None, or no larger than the
     batch, calls `fn(*args)` once. On a CPU device a vmapped solve runs faster in blocks of
-    about a hundred members (`tippejax._batch.PER_MEMBER_BLOCK`)."""
-    import equinox as eqx
-    import jax
-    import jax.numpy as jnp
-
+    about a hundred members (`PER_MEMBER_BLOCK`)."""
     split, whole = eqx.partition(args, lambda x: jnp.ndim(x) >= 1)
     leaves = jax.tree_util.tree_leaves(split)
     n = leaves[0].shape[0] if leaves else 0
@@ -194,3 +209,10 @@ def run_in_blocks(fn, block, args):
     parts = jax.tree_util.tree_map(lambda x: x.reshape(blocks, block, *x.shape[1:]), split)
     out = jax.lax.map(lambda part: fn(*eqx.combine(part, whole)), parts)
     return jax.tree_util.tree_map(lambda x: x.reshape(n, *x.shape[2:]), out)
+
+
+def gather(x) -> np.ndarray:
+    """A (possibly multi-process) sharded array as a numpy array on every process."""
+    if jax.process_count() > 1 and not x.is_fully_addressable:
+        return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+    return np.asarray(x)

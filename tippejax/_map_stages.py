@@ -1,67 +1,5 @@
-r"""Outcome maps at the cheapest adequate level: the gyroscopic level where it holds, the full
-model where it does not, each in batches of its own (`outcome_map(model="auto")`).
-
-A batch of launches runs in lock-step (`jax.vmap` of a solve takes as many steps as its longest
-member), so a batch that mixed slow-flow runs (tens of steps) with full-model runs (thousands)
-would cost as much as the full-model map. Here every launch is a sequence of **stages**, and each
-stage runs the members that need it as a batch of their own, compacted on the host between two
-compiled calls (`staged_outcomes`):
-
-1. **Full window**: a launch the gyroscopic level does not accept (`in_chart`: gyroscopic
-   balance fails, or the launch carries more nutation than it can project,
-   `NUTATION_LAUNCH_MAX`) runs in the full model for a window (`FIRST_WINDOW`, doubling on
-   each further window of the same run), ending early where contact is lost. At the end of the
-   window the state is split into the full model's modes at the nearer pole (`split_state`:
-   the slow manifold's component and the nutation), and the gyroscopic level takes the run
-   over where `entry_margin` is positive: gyroscopic balance with a margin, the nutation
-   about the slow manifold decaying ($-\sigma/\nu >$ `ENTRY_DECAY`), the nutation below
-   `ENTRY_NUTATION` and taking less than `ENTRY_CONTACT` of $g$ off the normal force.
-2. **Slow**: the slow flow (G3) (`GyroscopicLevel(stop_at_hand_over=True,
-   contact_margin=HAND_OVER_CONTACT)`) from the slow component (a launch: the averaged
-   projection) to `t1`, or to where the run must go back to the full model: the slow manifold
-   repels ($\sigma > 0$, at fast spins during the rise: the route to contact loss),
-   gyroscopic balance is lost, or the nutation the run carries would take `HAND_OVER_CONTACT`
-   of $g$ off the normal force.
-3. **Replay**: a run handed back goes to the full model again from the state where it last
-   left it (the launch, or the end of its last window), through the hand-over time and on in
-   windows as in 1. The full model thus decides every contact loss from its own state; the
-   slow stage only decides when the full model is needed, and what it computed after that
-   state is discarded.
-
-A run is handed back at most `MAX_HAND_OVERS` times and goes through at most `MAX_STAGES`
-stages; then it finishes in the full model. Members of a full-model stage are sorted by spin x
-length of the window (the full model's steps follow the nutation, whose frequency grows with
-the spin) and run in chunks of `STAGE_CHUNK`, padded with zero-length members (one compilation
-per stage and chunk size), so a chunk holds members of similar cost.
-
-**The nutation the slow stage carries.** The gyroscopic level is the slow flow of the SO(3)
-model, and there the nutation a launch carries (the other root's mode) decays at about 5/s
-(`nutation_damping`). In the full model it does not all decay: at the vertical state that mode
-splits into one that decays faster still and one in which the centre of mass rolls round with
-the contact point, which barely decays (`pole_linearisation`: standard top at 200 rad/s,
-$-0.06$/s against $-5.1$/s). A launch at $\theta_0 = 0.1$ keeps about 0.035 rad of it through
-the rise, one at $\theta_0 = 0.5$ about 0.15-0.2 rad, and with it the full model loses contact
-where the slow flow ($R_n = mg$, $\sigma < 0$) sees nothing: at $\theta_0 = 0.6$, 175 rad/s,
-the full model loses contact at 5.14 s, at $\theta \approx 0.4$, while the slow manifold only
-repels from $\theta \approx 1.2$ on. The vertical acceleration of the centre of mass that a
-nutation of amplitude $a$ and frequency $\nu$ brings is about $\epsilon\sin\theta\,a\nu^2$, and
-contact is lost where it reaches about $g$. So each run carries into the slow stage the
-amplitude $a$ of its nutation (the modes of `pole_linearisation` other than the slow
-manifold's) and the growth rate of the one that outlives the other (the rolling mode's real
-part), and the slow stage hands over where $\epsilon\sin\theta\,a\nu^2$ reaches
-`HAND_OVER_CONTACT` $g$. A state away from the poles ($\sin\theta >$ `POLE_SPLIT_SIN`) is split
-with the linear projection (SO(3) modes) instead.
-
-Why a replay and not a restart from the slow state with the carried nutation added (a turning
-point of the nutation of the reduced system, at fixed $J$ and momentum of $\bar\varphi$): an
-earlier version that restarted there, handing over only where the slow manifold repels, agreed
-on 95% of the standard map's outcomes and missed 37 of its 141 contact losses, most of them at
-$\theta_0 \geq 0.3$, where the contact loss comes from the carried nutation before the slow
-manifold repels, and the rest near the boundary of the contact-loss region, where the outcome
-turns on the amplitude and phase the full model carries, which the slow stage knows only
-roughly. The replay gives the full model's outcome wherever the slow stage hands over, at the
-cost of the full model from the last window to the hand-over.
-"""
+"""Outcome maps at the cheapest adequate level (`outcome_map(model="auto")`): the gyroscopic
+level where it holds, the full model where it does not, each in batches of its own."""
 
 from __future__ import annotations
 
@@ -74,10 +12,12 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from ._devices import shard_over
+from ._bucket import bucket
+from ._devices import gather, shard_over
 from ._engine.chain import run_chain
 from ._engine.cpu import CpuProgram
 from ._engine.watch import EVENT_PIECES
+from ._invariants import jellet
 from ._models.full import FullLevel, pole_linearisation
 from ._models.gyroscopic import (
     NUTATION_FLOOR,
@@ -127,10 +67,8 @@ r"""... and where the nutation takes less than this fraction of $g$ off the norm
 
 HAND_OVER_CONTACT = 0.3
 r"""The slow stage hands over where the nutation it carries would take this fraction of $g$
-off the normal force (`GyroscopicLevel(contact_margin=...)`). At 0.5 the Group III map
-(`benchmarks/maps.py`) missed 5 of its 95 contact losses (launches at theta0 0.28-0.41,
-179-207 rad/s, the full model losing contact at 1.7-1.9 s, just after the window the slow
-flow took over from); at 0.3 it misses none, on that grid and on the shifted one."""
+off the normal force (`GyroscopicLevel(contact_margin=...)`). A larger fraction misses contact
+losses of launches whose nutation lifts the top soon after the slow flow took over."""
 
 
 def _stage_batch_impl(level, top, states, level_states, t0, t_stop, options, mesh):
@@ -228,14 +166,14 @@ def _entry(top, theta, phi, J, log_amplitude, rate):
 
 
 def _bucketed(fn, top, *trees):
-    """`fn(top, *trees)` with the leading axis of `trees` padded to a power of two (at least 16;
-    copies of the last member), cut back after: one compilation per bucket, not per size."""
+    """`fn(top, *trees)` with the leading axis of `trees` padded to its `bucket` (copies of the
+    last member), cut back after: one compilation per bucket, not per size."""
     size = np.asarray(jax.tree_util.tree_leaves(trees[0])[0]).shape[0]
-    bucket = max(16, 1 << (size - 1).bit_length())
+    padded = bucket(size)
 
     def pad(x):
         x = np.asarray(x)
-        return np.concatenate([x, np.repeat(x[-1:], bucket - size, axis=0)]) if bucket > size else x
+        return np.concatenate([x, np.repeat(x[-1:], padded - size, axis=0)]) if padded > size else x
 
     out = fn(top, *(jax.tree_util.tree_map(pad, t) for t in trees))
     return jax.tree_util.tree_map(lambda x: np.asarray(x)[:size], out)
@@ -256,7 +194,7 @@ def _put_back(tree, index, values):
 
 def split_state(top: TippeTop, states: State, J: np.ndarray):
     r"""Each state split into the full model's three modes at the nearer pole (host-side,
-    batched; module docstring): `(theta_s, phi_s, a, rate)`, the tilt and phase of the slow
+    batched; see `staged_outcomes`): `(theta_s, phi_s, a, rate)`, the tilt and phase of the slow
     manifold's component, the amplitude (rad) of the other two (the nutation), and the
     growth rate (1/s, at most 0) of the rolling mode, which outlives the other. Away from the
     poles ($\sin\theta >$ `POLE_SPLIT_SIN`): the linear projection, and rate 0."""
@@ -329,17 +267,11 @@ class _Runner:
             out = _stage_batch(level, self.top_host, chunk_states, chunk_level,
                                self._put(begin.astype(self.dtype)),
                                self._put(stop.astype(self.dtype)), self.options, self.mesh)
-            parts.append(jax.tree_util.tree_map(lambda x: _gather(x)[: index.size], out))
+            parts.append(jax.tree_util.tree_map(lambda x: gather(x)[: index.size], out))
         joined = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs), *parts)
         inverse = np.empty_like(perm)
         inverse[perm] = np.arange(size)
         return jax.tree_util.tree_map(lambda x: x[inverse], joined)
-
-
-def _gather(x) -> np.ndarray:
-    from ._maps import _gather as gather
-
-    return gather(x)
 
 
 def _spin(states) -> np.ndarray:
@@ -348,7 +280,64 @@ def _spin(states) -> np.ndarray:
 
 def staged_outcomes(top: TippeTop, y0: State, t1: float, *, rtol, atol, solver, slow_solver,
                     max_steps, devices) -> dict[str, np.ndarray]:
-    """Run the launches `y0` (a batched `State`) in stages (module docstring) to `t1`.
+    r"""Run the launches `y0` (a batched `State`) to `t1` in stages, each at the cheapest
+    adequate level.
+
+    A batch of launches runs in lock-step (`jax.vmap` of a solve takes as many steps as its
+    longest member), so a batch that mixed slow-flow runs (tens of steps) with full-model runs
+    (thousands) would cost as much as the full-model map. Here every launch is a sequence of
+    **stages**, and each stage runs the members that need it as a batch of their own,
+    compacted on the host between two compiled calls:
+
+    1. **Full window**: a launch the gyroscopic level does not accept (`in_chart`: gyroscopic
+       balance fails, or the launch carries more nutation than it can project) runs in the
+       full model for a window (`FIRST_WINDOW`, doubling on each further window of the same
+       run), ending early where contact is lost. At the end of the window the state is split
+       into the full model's modes at the nearer pole (`split_state`: the slow manifold's
+       component and the nutation), and the gyroscopic level takes the run over where
+       `entry_margin` is positive: gyroscopic balance with a margin, the nutation about the
+       slow manifold decaying ($-\sigma/\nu >$ `ENTRY_DECAY`), the nutation below
+       `ENTRY_NUTATION` and taking less than `ENTRY_CONTACT` of $g$ off the normal force.
+    2. **Slow**: the slow flow (G3) (`GyroscopicLevel(stop_at_hand_over=True,
+       contact_margin=HAND_OVER_CONTACT)`) from the slow component (a launch: the averaged
+       projection) to `t1`, or to where the run must go back to the full model: the slow
+       manifold repels ($\sigma > 0$, at fast spins during the rise: the route to contact
+       loss), gyroscopic balance is lost, or the nutation the run carries would take
+       `HAND_OVER_CONTACT` of $g$ off the normal force.
+    3. **Replay**: a run handed back goes to the full model again from the state where it
+       last left it (the launch, or the end of its last window), through the hand-over time
+       and on in windows as in 1. The full model thus decides every contact loss from its own
+       state; the slow stage only decides when the full model is needed, and what it computed
+       after that state is discarded.
+
+    A run is handed back at most `MAX_HAND_OVERS` times and goes through at most `MAX_STAGES`
+    stages; then it finishes in the full model. Members of a full-model stage are sorted by
+    spin x length of the window (the full model's steps follow the nutation, whose frequency
+    grows with the spin) and run in chunks of `STAGE_CHUNK`, padded with zero-length members
+    (one compilation per stage and chunk size), so a chunk holds members of similar cost.
+
+    **The nutation the slow stage carries.** The gyroscopic level is the slow flow of the
+    SO(3) model, where the nutation a launch carries (the other root's mode) decays
+    (`nutation_damping`). In the full model it does not all decay: at the vertical state that
+    mode splits into one that decays faster still and one in which the centre of mass rolls
+    round with the contact point, which barely decays (`pole_linearisation`). A launch keeps
+    some of it through the rise, the more the larger its tilt, and with it the full model can
+    lose contact where the slow flow ($R_n = mg$, $\sigma < 0$) sees nothing. The vertical
+    acceleration of the centre of mass that a nutation of amplitude $a$ and frequency $\nu$
+    brings is about $\epsilon\sin\theta\,a\nu^2$, and contact is lost where it reaches about
+    $g$. So each run carries into the slow stage the amplitude $a$ of its nutation (the modes
+    of `pole_linearisation` other than the slow manifold's) and the growth rate of the one
+    that outlives the other (the rolling mode's real part), and the slow stage hands over
+    where $\epsilon\sin\theta\,a\nu^2$ reaches `HAND_OVER_CONTACT` $g$. A state away from the
+    poles ($\sin\theta >$ `POLE_SPLIT_SIN`) is split with the linear projection (SO(3) modes)
+    instead.
+
+    **A replay, not a restart** from the slow state with the carried nutation added: where the
+    contact loss comes from the carried nutation before the slow manifold repels, and near
+    the boundary of the contact-loss region, the outcome turns on the amplitude and phase of
+    the nutation the full model carries, which the slow stage knows only roughly. The replay
+    gives the full model's outcome wherever the slow stage hands over, at the cost of the
+    full model from the last window to the hand-over.
 
     **Returns:** host arrays per launch: `state` (where each run ended), `t_final`, `result`
     (`RESULTS` code), `t_invert`, `t_contact_loss`, `num_steps` (all stages), `route` (str:
@@ -471,6 +460,4 @@ def staged_outcomes(top: TippeTop, y0: State, t1: float, *, rtol, atol, solver, 
 
 @eqx.filter_jit
 def _jellets(top, states):
-    from ._invariants import jellet
-
     return jax.vmap(lambda y: jellet(top, y))(states)

@@ -1,39 +1,5 @@
-r"""Outcome maps: where thousands of launches end, batched, sharded, and across processes.
-
-A map simulates a grid of launches in summary mode (`simulate(..., summary=True)`: only the
-state where each run ended is kept, so memory per launch does not grow with `t1`) and
-classifies each end state against the analysis level.
-
-**Classification.** The Jellet integral $J$ of a launch is exactly conserved, so the steady
-states it can end in are those of the analysis level for that $J$ (`steady_states`): the
-vertical states $\theta = 0, \pi$ and up to two intermediate states on the branch of
-eq. (Exist), each stable when $W''(\theta; J) > 0$ (eq. stabilityba). Energy decreases along
-the motion, so a launch that does not leave the table ends near a stable one. The outcome of a
-launch is the stable state of its $J$ nearest to the final tilt $\theta(t_1)$:
-
-- `"upright"` ($\theta = 0$), `"inverted"` ($\theta = \pi$), `"intermediate"` (an
-  intermediate state; `theta_expected` holds its tilt);
-- `"contact_lost"`: $R_n$ reached 0 (the model stops there; `docs/notes.md`, "Contact loss");
-- `"failed"`: any other failure of the solve (max steps, the $R_n$ singularity, NaN, a
-  level that cannot describe the launch), and a $J$ with no stable state.
-
-`settled` says whether the final tilt is within `settle_tol` of that state: a launch still on
-its way at $t_1$ is classified by the stable state it is nearest to, which in the bistable
-groups (Ib, IIa) need not be the one it will reach. Choose `t1` long enough that the map is
-settled where it matters (`OutcomeMap.counts()` reports the unsettled fraction).
-
-**Scale.** The launches are flattened and run in chunks of `chunk_size` (one compilation per
-level of model); each chunk is one array sharded over every device JAX sees
-(`jax.devices()`); on CPU devices each device's launches run in blocks of at most
-`PER_MEMBER_BLOCK` (128) at LLVM optimisation level 1, as in `simulate_batch` (a map of
-24 x 48 launches, full model, 10 s, 2 host devices: 1.42 -> 1.16 s). The staged maps of
-`model="auto"` (`_map_stages`) run chunks of `STAGE_CHUNK` (64) launches, under a block,
-compiled at level 1 too (the same map, `auto`, 30 s: 0.94 -> 0.78 s). Under
-`jax.distributed.initialize` that is every device of every process: each process simulates
-only the launches on its own devices (`jax.make_array_from_callback`), and the results are
-gathered on every process. The same call runs on one CPU, on a GPU, on
-all local devices, or on a cluster; see `examples/distributed_map.py` for the launch command.
-"""
+"""Outcome maps: where a grid of launches (or of tops) ends, batched and sharded over every
+device of every process."""
 
 from __future__ import annotations
 
@@ -50,23 +16,18 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._analysis.potential import effective_potential_d2_closed_form
-from ._analysis.steady_states import _branch_pieces, _find_root
-from ._batch import cpu_block
-from ._devices import run_in_blocks, shard_over
+from ._auto import choose_model
+from ._devices import cpu_block, gather, run_in_blocks, shard_over
 from ._engine.cpu import CpuProgram
 from ._engine.solver_choice import default_solver
 from ._invariants import jellet
+from ._map_stages import staged_outcomes
+from ._models.levels import LEVELS
+from ._outcome import INTERMEDIATE, OUTCOMES, classify_end
 from ._simulate import MODELS, simulate
 from ._solution import RESULTS
 from ._state import euler_angles, initial_state
 from ._top import TippeTop
-
-OUTCOMES = ("upright", "inverted", "intermediate", "contact_lost", "failed")
-"""Outcome codes of `outcome_map`: `tj.OUTCOMES[int(om.outcome[i, j])]`."""
-
-UPRIGHT, INVERTED, INTERMEDIATE, CONTACT_LOST, FAILED = range(len(OUTCOMES))
-
-_CONTACT_CODES = ("contact_lost", "contact_loss_missed")
 
 
 class OutcomeMap(eqx.Module):
@@ -151,45 +112,6 @@ class OutcomeMap(eqx.Module):
         return "\n".join(lines)
 
 
-def stable_states(top: TippeTop, J) -> tuple[Float[Array, "4"], Bool[Array, "4"], Int[Array, "4"]]:
-    r"""The steady states of `top` at Jellet `J` and whether each is stable ($W'' > 0$).
-
-    The lean part of `steady_states` that a map needs (no eigenvalues): four slots, the
-    vertical states $\theta = 0$ and $\pi$ and the two intermediate slots (roots of eq.
-    (Exist) on the two monotone pieces of the branch).
-
-    **Returns:** `(theta, stable, kind)`: tilts (nan for an empty slot), stability (False for an
-    empty slot), and the outcome code of each slot (`UPRIGHT`, `INVERTED`, `INTERMEDIATE`).
-    """
-    dtype = jnp.result_type(top.m)
-    J = jnp.asarray(J, dtype)
-    roots = [_find_root(top, J, lo, hi) for lo, hi in _branch_pieces(top)]
-    theta = jnp.stack([jnp.zeros((), dtype), jnp.asarray(jnp.pi, dtype)] + [r[0] for r in roots])
-    exists = jnp.stack([jnp.array(True), jnp.array(True)] + [r[1] for r in roots])
-    safe = jnp.where(exists, theta, 1.0)
-    d2w = effective_potential_d2_closed_form(top, safe, J)
-    stable = exists & (d2w > 0)
-    kind = jnp.array([UPRIGHT, INVERTED, INTERMEDIATE, INTERMEDIATE])
-    return jnp.where(exists, theta, jnp.nan), stable, kind
-
-
-def classify_end(top: TippeTop, J, theta_final, result, *, settle_tol):
-    """Outcome code, settled flag and expected tilt of one run (see the module docstring)."""
-    theta, stable, kind = stable_states(top, J)
-    distance = jnp.where(stable, jnp.abs(theta_final - theta), jnp.inf)
-    nearest = jnp.argmin(distance)
-    any_stable = jnp.any(stable)
-    outcome = jnp.where(any_stable, kind[nearest], FAILED)
-    expected = jnp.where(any_stable, theta[nearest], jnp.nan)
-    settled = any_stable & (distance[nearest] <= settle_tol)
-    contact = jnp.zeros((), bool)
-    for code in _CONTACT_CODES:
-        contact = contact | (result == getattr(RESULTS, code))
-    ok = (result == RESULTS.successful) & jnp.isfinite(theta_final)
-    outcome = jnp.where(contact, CONTACT_LOST, jnp.where(ok, outcome, FAILED))
-    return outcome.astype(jnp.int8), settled & ok, jnp.where(ok, expected, jnp.nan)
-
-
 def _run_chunk_impl(top_fields, top_static, thetas, spins, t1, options, mesh, block=None):
     """Simulate and classify one sharded chunk of launches (summary outputs only), each
     device its own shard (`shard_over`), on CPU devices in blocks of `block` members
@@ -230,15 +152,6 @@ def _classified_runs(top_static, options, top_fields, thetas, spins, t1):
 
     field_axes = jax.tree_util.tree_map(lambda x: 0 if x.ndim == 1 else None, top_fields)
     return jax.vmap(one, in_axes=(field_axes, 0, 0))(top_fields, thetas, spins)
-
-
-def _gather(x) -> np.ndarray:
-    """A (possibly multi-process) sharded array as a numpy array on every process."""
-    if jax.process_count() > 1 and not x.is_fully_addressable:
-        from jax.experimental import multihost_utils
-
-        return np.asarray(multihost_utils.process_allgather(x, tiled=True))
-    return np.asarray(x)
 
 
 def _run_flat(top: TippeTop, thetas, spins, t1, *, batched_top: bool, model, rtol, atol,
@@ -284,7 +197,7 @@ def _run_flat(top: TippeTop, thetas, spins, t1, *, batched_top: bool, model, rto
         else:
             chunk_fields = fields
         out = run_chunk(chunk_fields, static, th, sp, t1, options, mesh, block)
-        parts.append({k: _gather(v)[: stop - start] for k, v in out.items()})
+        parts.append({k: gather(v)[: stop - start] for k, v in out.items()})
     return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
 
@@ -328,9 +241,6 @@ def _auto_models(top: TippeTop, flat_theta, flat_spin, tolerance) -> tuple[list[
     """The level `model="auto"` picks for each launch: `choose_model`'s rule, evaluated once
     per class of launches that it cannot tell apart (regime x whether the gyroscopic level
     accepts the launch), since the rule depends on nothing else."""
-    from ._auto import choose_model
-    from ._models.levels import LEVELS
-
     if tolerance is None:
         return ["full"], np.zeros(flat_theta.size, int)
     y0s = initial_state(top, jnp.asarray(flat_theta), jnp.asarray(flat_spin))
@@ -369,8 +279,6 @@ def _staged_map(top: TippeTop, flat_theta, flat_spin, t1, *, rtol, atol, solver,
 
     **Returns:** `(fields, routes, index)`: the per-launch fields of an `OutcomeMap`, the
     distinct routes (levels in the order they ran) and each launch's index into them."""
-    from ._map_stages import staged_outcomes
-
     dtype = jnp.result_type(top.m)
     y0 = initial_state(top, jnp.asarray(flat_theta, dtype), jnp.asarray(flat_spin, dtype))
     if solver is None:
@@ -413,9 +321,40 @@ def outcome_map(
 ) -> OutcomeMap:
     r"""Simulate `top` launched from every pair of `theta0` x `spin` and classify where each ends.
 
-    Each launch is `initial_state(top, theta0, spin)`, run to `t1` in summary mode and
-    classified against the stable steady states of its Jellet $J$ (module docstring): codes
-    in `OUTCOMES`.
+    Each launch is `initial_state(top, theta0, spin)`, run to `t1` in summary mode
+    (`simulate(..., summary=True)`: only the state where the run ended is kept, so memory per
+    launch does not grow with `t1`) and classified against the analysis level, with codes in
+    `OUTCOMES`.
+
+    **Classification.** The Jellet integral $J$ of a launch is exactly conserved, so the
+    steady states it can end in are those of the analysis level for that $J$
+    (`steady_states`): the vertical states $\theta = 0, \pi$ and up to two intermediate states
+    on the branch of eq. (Exist), each stable when $W''(\theta; J) > 0$ (eq. stabilityba).
+    Energy decreases along the motion, so a launch that does not leave the table ends near a
+    stable one. The outcome of a launch is the stable state of its $J$ nearest to the final
+    tilt $\theta(t_1)$:
+
+    - `"upright"` ($\theta = 0$), `"inverted"` ($\theta = \pi$), `"intermediate"` (an
+      intermediate state; `theta_expected` holds its tilt);
+    - `"contact_lost"`: $R_n$ reached 0 (the model stops there; `docs/notes.md`, "Contact
+      loss");
+    - `"failed"`: any other failure of the solve (max steps, the $R_n$ singularity, NaN, a
+      level that cannot describe the launch), and a $J$ with no stable state.
+
+    `settled` says whether the final tilt is within `settle_tol` of that state: a launch still
+    on its way at $t_1$ is classified by the stable state it is nearest to, which in the
+    bistable groups (Ib, IIa) need not be the one it will reach. Choose `t1` long enough that
+    the map is settled where it matters (`OutcomeMap.counts()` reports the unsettled
+    fraction).
+
+    **Scale.** The launches are flattened and run in chunks of `chunk_size` (one compilation
+    per level of model); each chunk is one array sharded over every device JAX sees
+    (`jax.devices()`); on CPU devices each device's launches run in blocks of at most
+    `PER_MEMBER_BLOCK` (128), compiled with tippejax's CPU options, as in `simulate_batch`.
+    Under `jax.distributed.initialize` that is every device of every process: each process
+    simulates only the launches on its own devices (`jax.make_array_from_callback`), and the
+    results are gathered on every process. The same call runs on one CPU, on a GPU, on all
+    local devices, or on a cluster; see `examples/distributed_map.py` for the launch command.
 
     **Arguments:**
 
@@ -432,22 +371,19 @@ def outcome_map(
       comes near lifting the top off the table; from there the full model runs again from where
       the run last left it, so every contact loss is the full model's own. `om.models` names
       the routes (e.g. `"full->gyroscopic"`: a window of the full model, then the slow flow to
-      `t1`) and `om.model_index` each launch's. Measured (`benchmarks/RESULTS.md`, maps.py,
-      theta0 0.02-1.5 x spin 10-220 rad/s, t1 = 20 s): the same outcome as the full model's
-      map for every launch of the standard (IIb), IIa and III maps and of a shifted grid of
-      each, no contact loss missed, at 0.9-1.6x the full map's launches per second on 2 CPU
-      cores (0.4-0.55x its solver steps; the stages run in lock-step batches of their own, so
-      fewer steps do not all turn into time). It is not the default because it is not
-      faster where it matters: most of the cost left is the full model, for the launches
-      whose nutation (at tilts above about 0.3 rad, in the full model a mode that barely
-      decays) keeps them out of the slow flow's reach, and for the replays. With a `tolerance` (max error in
+      `t1`) and `om.model_index` each launch's. On the maps of the benchmarks it gives the
+      full model's outcome for every launch, with fewer solver steps; it is not the default
+      because it is not much faster where it matters (see the outcome maps and performance
+      pages): most of the cost left is the full model, for the launches whose nutation (at
+      tilts above about 0.3 rad, in the full model a mode that barely decays) keeps them out
+      of the slow flow's reach, and for the replays. With a `tolerance` (max error in
       theta(t), rad), each launch runs at the level
       `simulate(..., model="auto", tolerance=tolerance)` would use, in separate batches; the
       levels without translation (`"so3"`, `"routhian"`) do not see the contact loss of fast
-      launches that the full model sees (141 of 768 launches of the standard top's map, all
-      "inverted" for them), and `tolerance` bounds the error in theta(t), not this.
+      launches that the full model sees (they call those launches "inverted"), and
+      `tolerance` bounds the error in theta(t), not this.
     - `rtol`, `atol`: solver tolerances. The defaults are looser than `simulate`'s: a map needs
-      the end state, not the path (`benchmarks/maps.py` measures how many outcomes change
+      the end state, not the path (the performance page shows how many outcomes change
       against rtol 1e-9).
     - `solver`: a diffrax solver (default `default_solver(top)`).
     - `max_steps`: per launch; a launch that needs more is `"failed"`.
@@ -574,4 +510,4 @@ def outcome_map_tops(
     )
 
 
-__all__ = ["OUTCOMES", "OutcomeMap", "outcome_map", "outcome_map_tops", "stable_states"]
+__all__ = ["OUTCOMES", "OutcomeMap", "outcome_map", "outcome_map_tops"]

@@ -426,7 +426,7 @@ OUTCOME_COLOURS = ("#6baed6", "#31a354", "#fd8d3c", "#252525", "#e7298a")
 def _pole_curvatures(top: TippeTop, theta0, spin):
     from ._analysis.potential import effective_potential_d2_closed_form
     from ._invariants import jellet
-    from ._maps import stable_states
+    from ._outcome import stable_states
     from ._state import initial_state
 
     J = jellet(top, initial_state(top, theta0, spin))
@@ -450,7 +450,7 @@ def _draw_outcomes(ax, x, y, outcome, settled):
     """Categorical image of `outcome[y, x]`; unsettled cells hatched."""
     from matplotlib.colors import BoundaryNorm, ListedColormap
 
-    from ._maps import OUTCOMES
+    from ._outcome import OUTCOMES
 
     cmap = ListedColormap(OUTCOME_COLOURS)
     norm = BoundaryNorm(np.arange(-0.5, len(OUTCOMES) + 0.5), cmap.N)
@@ -468,7 +468,7 @@ def _draw_outcomes(ax, x, y, outcome, settled):
 def _outcome_handles(outcome, settled, extra=()):
     from matplotlib.patches import Patch
 
-    from ._maps import OUTCOMES
+    from ._outcome import OUTCOMES
 
     present = set(np.unique(outcome).tolist())
     handles = [

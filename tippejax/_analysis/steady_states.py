@@ -113,7 +113,7 @@ class SteadyStates(eqx.Module):
         ]
 
 
-def _branch_pieces(top: TippeTop):
+def branch_pieces(top: TippeTop):
     """Theta-intervals of the branch on which J^2 is monotone: ((lo1, hi1), (lo2, hi2))."""
     a, e = top.A / top.C, top.eps / top.R
     th = thresholds(top)
@@ -130,7 +130,7 @@ def _branch_pieces(top: TippeTop):
     return (theta_lo, split), (split, theta_hi)
 
 
-def _find_root(top: TippeTop, J, lo, hi):
+def find_branch_root(top: TippeTop, J, lo, hi):
     """Root of f(J^2, cos theta) in [lo, hi] by bisection, if the bracket changes sign."""
     dtype = jnp.result_type(top.m)
     tol = 1e-13 if dtype == jnp.float64 else 1e-6
@@ -186,10 +186,10 @@ def steady_states(top: TippeTop, J) -> SteadyStates:
 @eqx.filter_jit
 def _steady_states(top: TippeTop, J) -> SteadyStates:
     J = jnp.asarray(J, dtype=jnp.result_type(J, top.m))
-    pieces = _branch_pieces(top)
+    pieces = branch_pieces(top)
     thetas, valids = [], []
     for lo, hi in pieces:
-        theta, ok = _find_root(top, J, lo, hi)
+        theta, ok = find_branch_root(top, J, lo, hi)
         thetas.append(theta)
         valids.append(ok)
     theta_i = jnp.stack(thetas)

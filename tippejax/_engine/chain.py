@@ -1,18 +1,4 @@
-"""A run as a chain of segments: a level until its chart ends, then its fallback level.
-
-The Routhian level hands over to the SO(3) level near a pole; the full and SO(3) levels are
-one segment. A level whose chart ends with no fallback (the gyroscopic level) stops there and
-reports its `chart_end_result`; started outside its chart, it is not integrated at all.
-Contact loss either ends the run (a terminating event) or is observed and the run goes on past
-it (`stop_on_contact=False`); the inversion is observed (unless `inversion=False`). The chain
-is static (it depends on the level only), so under `jit`/`vmap` every segment is compiled once
-and a member that does not need a segment runs it with zero length.
-
-What a member does before, between and after its segments is written per member
-(`_chain_start`, `_segment_start`, `_segment_end`, `_chain_output`): `run_chain` calls them
-around `run_segment`, and `run_chain_shared` (a batch whose members share their steps, for a
-level that is one segment) vmaps them around one `run_segment_shared` for the whole batch.
-"""
+"""A run as a chain of segments: a level until its chart ends, then its fallback level."""
 
 from __future__ import annotations
 
@@ -256,65 +242,65 @@ def run_chain(
     stop_on_contact: bool,
     inversion: bool = True,
     y0=None,
+    shared_steps: bool = False,
     **segment_options,
 ) -> ChainOutput:
-    """Run `level`, then its fallbacks, from `state0` at `t0` to `t1` (see the module
-    docstring). With `inversion=False` the inversion is not watched (`t_invert` is nan): a
-    caller that needs only the motion (a fit's residuals) compiles a smaller program. `y0`:
-    the first level's own state at `t0`, for a caller that has it (default
-    `level.from_state(top, state0)`); `state0` must be its common state."""
-    chain = level_chain(level)
-    carry = _chain_start(chain[0], top, state0, t0, ts, stop_on_contact)
-    for i, lvl in enumerate(chain):
-        start = _segment_start(chain, i, top, carry, t1, y0)
-        terminating, observed = _segment_events(lvl, stop_on_contact, inversion)
-        seg = run_segment(
-            lvl, top, start.y_start, carry.t_start, start.t_stop, ts, terminating=terminating,
-            observed=observed, **segment_options,
-        )
-        carry = _segment_end(chain, i, top, carry, start, seg, ts,
-                             stop_on_contact=stop_on_contact, inversion=inversion)
-    return _chain_output(carry, stop_on_contact)
+    """Run `level`, then its fallbacks, from `state0` at `t0` to `t1`.
 
+    The Routhian level hands over to the SO(3) level near a pole; the full and SO(3) levels
+    are one segment. A level whose chart ends with no fallback (the gyroscopic level) stops
+    there and reports its `chart_end_result`; started outside its chart, it is not integrated
+    at all. Contact loss either ends the run (a terminating event) or is observed and the run
+    goes on past it (`stop_on_contact=False`); the inversion is observed (unless
+    `inversion=False`: `t_invert` is nan, and a caller that needs only the motion, a fit's
+    residuals, compiles a smaller program). The chain is static (it depends on the level
+    only), so under `jit`/`vmap` every segment is compiled once and a member that does not
+    need a segment runs it with zero length. `y0`: the first level's own state at `t0`, for a
+    caller that has it (default `level.from_state(top, state0)`); `state0` must be its common
+    state.
 
-def run_chain_shared(
-    level: AbstractLevel,
-    tops,
-    states0: State,
-    t0,
-    t1,
-    ts,
-    *,
-    stop_on_contact: bool,
-    inversion: bool = True,
-    **segment_options,
-) -> ChainOutput:
-    """`run_chain` for a batch of members (leading axis of `states0`; `tops` one top or one per
-    member, see `top_axes`) whose steps are shared: one `run_segment_shared` for all. Only for
-    a level that is one segment (no chart, no fallback: the full and SO(3) levels). Every
-    member's output is what `run_chain` gives it, to about the tolerances (its steps differ);
-    the checks before and after the segment are `run_chain`'s own, vmapped."""
+    What a member does before, between and after its segments is written per member
+    (`_chain_start`, `_segment_start`, `_segment_end`, `_chain_output`). With
+    `shared_steps=True` the run is a batch of members (the leading axis of `state0`; `top` one
+    top or one per member, see `top_axes`) whose steps are shared: those per-member parts are
+    vmapped around one `run_segment_shared` for the whole batch. Only for a level that is one
+    segment (no chart, no fallback: the full and SO(3) levels). Every member's output is then
+    what a run of its own gives it, to about the tolerances (its steps differ)."""
     chain = level_chain(level)
-    if len(chain) != 1 or level.has_chart:
+    if shared_steps and (len(chain) != 1 or level.has_chart):
         raise ValueError(
             f"shared steps run one segment; the {level.name!r} level chains segments."
         )
-    axes = top_axes(tops)
-    carry = jax.vmap(
-        lambda top, s: _chain_start(level, top, s, t0, ts, stop_on_contact), in_axes=(axes, 0)
-    )(tops, states0)
-    start = jax.vmap(
-        lambda top, c: _segment_start(chain, 0, top, c, t1), in_axes=(axes, 0)
-    )(tops, carry)
-    terminating, observed = _segment_events(level, stop_on_contact, inversion)
-    seg = run_segment_shared(
-        level, tops, start.y_start, t0, t1, ts, idle=~start.runs, terminating=terminating,
-        observed=observed, **segment_options,
-    )
-    carry = jax.vmap(
-        lambda top, c, st, sg: _segment_end(chain, 0, top, c, st, sg, ts,
-                                            stop_on_contact=stop_on_contact,
-                                            inversion=inversion),
-        in_axes=(axes, 0, 0, 0),
-    )(tops, carry, start, seg)
-    return jax.vmap(lambda c: _chain_output(c, stop_on_contact))(carry)
+    each = _each_member(top) if shared_steps else _as_one
+    carry = each(lambda top, s: _chain_start(chain[0], top, s, t0, ts, stop_on_contact))(
+        top, state0)
+    for i, lvl in enumerate(chain):
+        start = each(lambda top, c: _segment_start(chain, i, top, c, t1, y0))(top, carry)
+        terminating, observed = _segment_events(lvl, stop_on_contact, inversion)
+        events = dict(terminating=terminating, observed=observed, **segment_options)
+        if shared_steps:
+            seg = run_segment_shared(lvl, top, start.y_start, t0, t1, ts, idle=~start.runs,
+                                     **events)
+        else:
+            seg = run_segment(lvl, top, start.y_start, carry.t_start, start.t_stop, ts,
+                              **events)
+        carry = each(lambda top, c, st, sg: _segment_end(
+            chain, i, top, c, st, sg, ts, stop_on_contact=stop_on_contact,
+            inversion=inversion))(top, carry, start, seg)
+    return each(lambda top, c: _chain_output(c, stop_on_contact))(top, carry)
+
+
+def _as_one(fn):
+    """`fn` for one run, as it is."""
+    return fn
+
+
+def _each_member(top):
+    """`fn(top, *members)` vmapped over the members: `top` along `top_axes`, every other
+    argument along its leading axis."""
+
+    def each(fn):
+        return lambda top, *rest: jax.vmap(fn, in_axes=(axes,) + (0,) * len(rest))(top, *rest)
+
+    axes = top_axes(top)
+    return each

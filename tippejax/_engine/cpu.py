@@ -33,7 +33,7 @@ import jax
 CPU_COMPILER_OPTIONS = {"xla_backend_optimization_level": 1, "xla_cpu_use_fusion_emitters": False}
 """XLA compile options of tippejax's own programs on CPU devices.
 
-- LLVM optimisation level 1 (see `tippejax._batch.PER_MEMBER_BLOCK`).
+- LLVM optimisation level 1 (see `tippejax._devices.PER_MEMBER_BLOCK`).
 - XLA:CPU's element-wise loop emitter instead of its MLIR fusion emitters
   (`xla_cpu_use_fusion_emitters`): it compiles a step's many small fused loops to code that
   runs them faster, and compiles faster. peers.py's scene (1000 SO(3) tops, 20 s), ms per

@@ -1,9 +1,5 @@
-"""One segment of a run: one `diffrax.diffeqsolve` of one level, with its events.
-
-A segment integrates one level from `t0` until `t1` or a terminating event, saving at the
-times of `ts` that fall inside it (or only its end, in summary mode), and records the first
-downward crossing of each observed condition (see `watch.py`).
-"""
+"""One segment of a run: one `diffrax.diffeqsolve` of one level, with its events watched and
+located (`watch.py`, `events.py`)."""
 
 from __future__ import annotations
 
@@ -19,16 +15,9 @@ from diffrax._root_finder import use_stepsize_tol  # diffrax exports no public n
 from jaxtyping import Array, Bool, Float, PyTree
 
 from .._models.base import AbstractLevel
+from .events import EventRecords, event_root_finder, locate_observed, locate_terminating
 from .unrolled import StageLoopERK, UnrolledERK, own_stage_loop, unroll_stages, unrollable
-from .watch import (
-    STOP,
-    SharedWatchedSolver,
-    WatchedSolver,
-    ended_on_event,
-    event_root_finder,
-    locate_observed,
-    locate_terminating,
-)
+from .watch import STOP, SharedWatchedSolver, WatchedSolver, ended_on_event
 
 
 def as_event_dtype(x):
@@ -52,28 +41,8 @@ class Watch(eqx.Module):
 PACK_WIDTH = 6
 """Most components in one flat vector of a level state in a batch (see `ravel_state`): a
 user's `jax.vmap`, a GPU, and tippejax's own batches compiled with its CPU options
-(`tippejax._engine.cpu`) alike.
-
-Those CPU programs traced the state as one vector until 2026-11-29 (width 64, chosen on
-2026-11-28 when it ran the full level faster: 1.32 -> 1.10 ms per top on 2 devices). The
-engine's stage loop changed after that (`StageLoopERK`), and now width 6 is faster for the
-full level and about even for the SO(3) level. `python benchmarks/pack_width.py 7`
-(2026-11-29, the 2-core AMD EPYC of `benchmarks/RESULTS.md`): `simulate_batch`, peers.py's
-scene (1000 tops, 20 s, rtol 1e-8), each layout its own program, paired rounds, wall time
-with width 6 over wall time with one vector (medians):
-
-| | summary, 2 devices | summary, 1 device | 6 saves, 2 devices | 6 saves, 1 device |
-|---|---|---|---|---|
-| full (summary 4 + 6 against 10; saves 4 + 6 + 4 against 14) | 0.78 | 0.90 | 0.83 | 0.83 |
-| SO(3) (summary 6, the same layout; saves 6 + 4 against 10) | 0.99 | 0.96 | 0.91 | 1.07 |
-
-Two earlier runs on 2 devices gave full 0.87 and 0.76 (summary), 0.81 and 0.82 (saves),
-SO(3) with saves 0.85 and 0.93. The SO(3) level with saves on one device loses because its
-two vectors then run on two threads (1.27x the CPU time); with every core a device (the
-default) each device's threads are busy with its own shard. `outcome_map` of the full model
-(768 launches, rtol 1e-6) 0.89 in a scratch run; a fit (one record, and 4 at once) took the
-same time either way.
-"""
+(`tippejax._engine.cpu`) alike: for the full level 4 + 6 + 4, faster in a batch than the
+whole state in one vector (see the performance page)."""
 
 ONE_TOP_PACK_WIDTH = 64
 """Most components in one flat vector of a level state in a run of one top: the whole state
@@ -94,10 +63,7 @@ SHARED_PACK_WIDTH = 4
 """Most components in one flat vector of a member's state in a batch with shared steps
 (`run_segment_shared`; see `ravel_state`): SO(3) axis, omega (3 + 3), full position and
 velocity, axis, omega (4 + 3 + 3). With the members last (`MEMBER_AXIS`) every component is a
-row of the batch, and narrower vectors gave XLA:CPU smaller loops over the rows:
-`simulate_batch(..., steps="shared")`, 1000 tops of `benchmarks/shared_steps.py`'s scene, one
-device, ms per top: width 6 so3 1.14, full 1.65; width 4 so3 0.85, full 1.44; width 3 so3 0.84,
-full 1.62 (2 + 2 + 3 + 3)."""
+row of the batch, and narrower vectors give XLA:CPU smaller loops over the rows."""
 
 
 def pack_width_for(*trees, adjoint=None) -> int:
@@ -126,36 +92,19 @@ def ravel_state(y: PyTree, width: int = PACK_WIDTH):
 
     diffrax's Runge-Kutta stages combine the state leaf by leaf; with two or three leaves
     instead of the level's five or six, each step runs several times fewer (tiny) operations,
-    which on a CPU is what a step of a 10-dimensional system costs. The leaves are not all
-    concatenated into one vector because XLA:CPU runs the stage combinations of a batch of
-    some widths much slower than of others. Measured for a batch of 1000 SO(3) tops
-    (`benchmarks/peers.py`'s scene) in a plain diffrax loop, wall time per top against the
-    plain script's 6-component state: 6 + 4 1.29x, one 10-vector 1.46x, 6 + 3 + 1 1.65x,
-    9 + 1 (this function's layout before) 2.0x.
+    which on a CPU is what a step of a 10-dimensional system costs. In a batch the leaves are
+    not all concatenated into one vector because XLA:CPU runs the stage combinations of a
+    batch of some widths much slower than of others (`PACK_WIDTH`).
 
     A run of one top wants the opposite: with two or more vectors the stage combinations of a
     step are independent chains of operations, and XLA:CPU's thunk executor then runs the step
     on two threads (it runs a program sequentially only if it is a chain or all its buffers
-    are at most 512 bytes), which for steps this small costs more than it gains. Measured on
-    `benchmarks/peers.py`'s single top (full model, no body vector, 2 cores): 4 + 6 31 ms wall
-    and 61 ms CPU, one 10-vector 22.6 ms wall and CPU (the SO(3) level, one 6-vector either
-    way, 21.8 ms). In a batch of 1000 the one 10-vector costs 1.38x the SO(3) level, 4 + 6
-    1.09x; padding it to 12 or 16 does not mend that. The gyroscopic level's chain (slow flow,
-    then the full model from the hand-over) is the exception: one top ran 12 ms with the batch
-    layout and 22 ms with one vector, so `simulate` keeps the batch layout for it.
-
-    Differentiated in forward mode (each vector then carries a batch of tangents, seven for
-    the derivatives in a top's fields), one top keeps one vector too. `jax.grad` of
-    `benchmarks/gradients.py`'s scene (the standard top's 20 s run, the seven fields, default
-    adjoint: the Jacobian by forward mode) on the 2-core Intel Xeon of `benchmarks/RESULTS.md`,
-    the Jacobian's state as one vector against 4 + 3 + 3 (SO(3): 3 + 3), medians of 11
-    interleaved calls in one process, process CPU time: sum(theta) over 256 saves, full model
-    174 against 344 ms (wall 174 against 240 ms; the narrow vectors ran on two threads, one
-    vector on one), SO(3) 123 against 294 ms; t_invert (summary) full 279 against 273 ms,
-    SO(3) 294 against 313 ms (a forward solve 33-55 ms); compiling the gradient 7.7-8.1 against
-    8.1-11.1 s. (An earlier engine on a 2-core AMD EPYC, timed by wall clock, had found
-    4 + 3 + 3 faster: 95 against 121 ms for t_invert, 130 against 206 ms for 201 saves.) A
-    vmapped batch keeps `PACK_WIDTH` (64 tops: 2.7 s with it, 4.6 s with 4 + 3 + 3).
+    are at most 512 bytes), which for steps this small costs more than it gains. So one top
+    keeps its state in one vector (`ONE_TOP_PACK_WIDTH`), also when differentiated in forward
+    mode (each vector then carries a batch of tangents; `FORWARD_MODE_PACK_WIDTH`). The
+    gyroscopic level's chain (slow flow, then the full model from the hand-over) is the
+    exception: it runs faster with the batch layout, so `simulate` keeps that for it. A
+    vmapped batch keeps `PACK_WIDTH`.
     """
     leaves, treedef = jax.tree_util.tree_flatten(y)
     dtype = jnp.result_type(*leaves)
@@ -250,20 +199,48 @@ def run_segment(
     controller = diffrax.PIDController(rtol=rtol, atol=atol, norm=field.error_norm,
                                        **STEP_CONTROL)
     solver = _prepared_solver(solver, controller, adjoint)
-    watched = WatchedSolver(
-        solver,
-        watch,
-        tuple(range(len(terminating), len(names))),
-        pieces=pieces,
-        terminating=tuple(range(len(terminating))),
+    watched = WatchedSolver(solver, watch, **_event_indices(terminating, observed),
+                            pieces=pieces)
+    terms = diffrax.ODETerm(field)
+    sol = _solve(terms, watched, controller, top, y0_flat, t0, t1, ts, max_steps=max_steps,
+                 adjoint=adjoint, progress_meter=progress_meter)
+    # The watch ends the solve on the step where a terminating condition fell through zero
+    # (its result is `event_occurred`); the crossing is then located inside that step.
+    stopped = ended_on_event(sol.result, sol.solver_state)
+    solver_result = diffrax.RESULTS.where(stopped, diffrax.RESULTS.event_occurred, sol.result)
+    t_end, flat_end, fired, observed_times = _run_end(
+        watched, terms, top, sol.solver_state.records(), stopped, sol.ts[0][-1],
+        jax.tree_util.tree_map(lambda x: x[-1], sol.ys[0]), terminating, observed,
+        locate=locate, finder=event_root_finder(jnp.result_type(t0)),
     )
-    dtype = jnp.result_type(t0)
-    finder = event_root_finder(dtype)
+    return Segment(
+        ys=jax.vmap(unravel)(sol.ys[1]) if ts is not None else None,
+        y_end=unravel(flat_end),
+        t_end=t_end,
+        solver_result=solver_result,
+        fired=fired,
+        observed=observed_times,
+        num_steps=sol.stats["num_steps"],
+        # Counted by the watch, not read from diffrax's own counter (see `_WatchState.tally`).
+        num_rejected_steps=sol.stats["num_steps"] - sol.solver_state.accepted.astype(int),
+    )
+
+
+def _event_indices(terminating, observed) -> dict[str, tuple[int, ...]]:
+    """The indices of the observed and of the terminating events in a segment's watch, which
+    lists the terminating ones first (a watched solver's `observed` and `terminating`)."""
+    n = len(terminating)
+    return dict(observed=tuple(range(n, n + len(observed))), terminating=tuple(range(n)))
+
+
+def _solve(terms, watched, controller, top, y0_flat, t0, t1, ts, *, max_steps, adjoint,
+           progress_meter):
+    """The segment's `diffrax.diffeqsolve`: saving the end (and the save times `ts` inside
+    `[t0, t1]`) and the watch's final state."""
     subs = [diffrax.SubSaveAt(t1=True)]
     if ts is not None:
         subs.append(diffrax.SubSaveAt(ts=jnp.clip(ts, t0, t1)))
-    terms = diffrax.ODETerm(field)
-    sol = diffrax.diffeqsolve(
+    return diffrax.diffeqsolve(
         terms,
         watched,
         t0,
@@ -278,28 +255,28 @@ def run_segment(
         throw=False,
         progress_meter=progress_meter,
     )
-    # The watch ends the solve on the step where a terminating condition fell through zero
-    # (its result is `event_occurred`); the crossing is then located inside that step.
-    stopped = ended_on_event(sol.result, sol.solver_state)
-    records = sol.solver_state.records()
-    solver_result = diffrax.RESULTS.where(stopped, diffrax.RESULTS.event_occurred, sol.result)
-    flat_last = jax.tree_util.tree_map(lambda x: x[-1], sol.ys[0])
-    if terminating and not locate:
-        t_event, flat_event = records.last_t0, records.last_y0
-    if terminating and locate:
-        t_event, flat_event = locate_terminating(watched, terms, top, records, finder)
+
+
+def _run_end(watched: WatchedSolver, terms, top, records: EventRecords, stopped, t_last,
+             flat_last, terminating, observed, *, locate: bool, finder):
+    """Where one run's segment ended and what fired in it, from the watch's `records`: the
+    end time and flat state (at the located terminating crossing where the run `stopped` on
+    one, else its last saved time and state `t_last`, `flat_last`), which terminating event
+    fired, and the time of each observed event (nan if none before the end)."""
+    t_end, flat_end = t_last, flat_last
     if terminating:
-        t_end = jnp.where(stopped, t_event.astype(sol.ts[0].dtype), sol.ts[0][-1])
+        if locate:
+            t_event, flat_event = locate_terminating(watched, terms, top, records, finder)
+        else:
+            t_event, flat_event = records.last_t0, records.last_y0
+        t_end = jnp.where(stopped, t_event.astype(t_last.dtype), t_last)
         flat_end = jax.tree_util.tree_map(
             lambda a, b: jnp.where(stopped, a.astype(b.dtype), b), flat_event, flat_last
         )
-    else:
-        t_end, flat_end = sol.ts[0][-1], flat_last
-    y_end = unravel(flat_end)
     # Which terminating condition fired: at the located event it is (to the root finder's
     # tolerance) zero and the others are positive, so it is the smallest. Unlocated, it is the
     # smallest at the end of the step it fell in (where it is negative).
-    end_values = watch(flat_end if locate else flat_last, top)[: len(terminating)]
+    end_values = watched.watch(flat_end if locate else flat_last, top)[: len(terminating)]
     first = jnp.argmin(end_values)
     fired = {name: stopped & (first == i) for i, name in enumerate(terminating)}
     observed_times = {}
@@ -309,17 +286,7 @@ def run_segment(
         else:
             t_obs = jnp.where(records.found[i], records.step_t0[i], jnp.nan)
         observed_times[name] = jnp.where(t_obs <= t_end, t_obs, jnp.nan)
-    return Segment(
-        ys=jax.vmap(unravel)(sol.ys[1]) if ts is not None else None,
-        y_end=y_end,
-        t_end=t_end,
-        solver_result=solver_result,
-        fired=fired,
-        observed=observed_times,
-        num_steps=sol.stats["num_steps"],
-        # Counted by the watch, not read from diffrax's own counter (see `_WatchState.tally`).
-        num_rejected_steps=sol.stats["num_steps"] - sol.solver_state.accepted.astype(int),
-    )
+    return t_end, flat_end, fired, observed_times
 
 
 def _prepared_solver(solver, controller, adjoint):
@@ -344,7 +311,8 @@ def _prepared_solver(solver, controller, adjoint):
         # ("checkpointed", diffrax's own default for a bare solver); forward mode
         # (`adjoint=diffrax.ForwardMode()`) runs fastest as a plain "lax" loop. diffrax's
         # adjoints would pick "bounded" (so that `jax.jvp` can go through the checkpointed
-        # solve), which makes every step ~3x dearer; forward mode has its own adjoint instead.
+        # solve), which makes every step several times dearer; forward mode has its own
+        # adjoint instead.
         kind = "lax" if isinstance(adjoint, diffrax.ForwardMode) else "checkpointed"
         solver = eqx.tree_at(lambda s: s.scan_kind, solver, kind, is_leaf=lambda x: x is None)
     if unrollable(solver):
@@ -367,11 +335,8 @@ def top_axes(top):
 MEMBER_AXIS = -1
 """Where the members are in the leaves of a shared solve's state: LAST, each leaf `(w, N)`,
 so that each component of the batch is one contiguous row and the stages' arithmetic runs
-along the members (structure of arrays). The plain diffrax script with shared steps
-(`benchmarks/shared_steps.py`'s scene, 512 tops, one CPU device): members last 0.87 ms per
-top, members first 1.06 ms; with the field's algebra written out by components
-(`rigid_body_dynamics_by_components`) 0.55 against 1.06; on an H200 at 1e6 tops (`benchmarks/gpu.py`'s
-scene) 11.8 against 14.6 s."""
+along the members (structure of arrays), on CPUs and GPUs alike; with the field's algebra
+written out by components (`rigid_body_dynamics_by_components`) it vectorises along them."""
 
 
 def members_last(tree):
@@ -436,28 +401,30 @@ def run_segment_shared(
 ) -> Segment:
     """`run_segment` for a batch of members with shared steps: one `diffrax.diffeqsolve` whose
     state is every member's state (`y0`'s leaves have a leading member axis N; in the solve
-    the members are the last axis, `MEMBER_AXIS`), with the
-    members' field vmapped, the error norm the largest member norm, and the events watched per
-    member by `SharedWatchedSolver` (a member whose terminating event fell is frozen while
-    the others go on). `top`: one top, or one per member (see `top_axes`). `t0`, `t1` are
-    common; `idle` marks members that do not run (their segment has zero length, as in
-    `run_segment` with `t1 = t0`).
+    the members are the last axis, `MEMBER_AXIS`), with the members' field vmapped, the error
+    norm the largest member norm, and the events watched per member by `SharedWatchedSolver`
+    (a member whose terminating event fell is frozen while the others go on). `top`: one top,
+    or one per member (see `top_axes`). `t0`, `t1` are common; `idle` marks members that do
+    not run (their segment has zero length, as in `run_segment` with `t1 = t0`).
 
     Per member, the result is what `run_segment` gives (a `Segment` whose every leaf has the
-    leading axis N) to about the tolerances: the steps differ, each member's events are
-    located by `locate_terminating`/`locate_observed` on its own step, taken again for that
-    member alone. `num_steps` and `num_rejected_steps` are the shared solve's, for every
-    member. Why: under `jax.vmap` of `run_segment` each member has its own step size and the
-    while loop runs batched with selects at every step, about 2.5x the cost of one loop over
-    the whole batch (plain diffrax, 1000 SO(3) tops at spins 140-160, 20 s, rtol 1e-8)."""
-    names = terminating + observed
+    leading axis N) to about the tolerances: the steps differ, and each member's events are
+    located on its own step, taken again for that member alone (`run_segment`'s own end of a
+    run, vmapped). `num_steps` and `num_rejected_steps` are the shared solve's, for every
+    member. Under `jax.vmap` of `run_segment` instead, each member has its own step size and
+    the while loop runs batched with selects at every step, which costs several times one
+    loop over the whole batch.
+
+    A function of its own rather than a flag of `run_segment`: the state's layout (members
+    last), the field, the watch and the solver differ, and idle members need their own
+    masks."""
     # the field's algebra written out by components: with the members last it vectorises
     # along them (`AbstractLevel.by_components`)
     level = dataclasses.replace(level, by_components=True)
+    names = terminating + observed
     member0 = jax.tree_util.tree_map(lambda x: x[0], y0)
     _, unravel = ravel_state(member0, pack_width)
     y0_members = jax.vmap(lambda y: ravel_state(y, pack_width)[0])(y0)  # leaves (N, w)
-    y0_flat = members_last(y0_members)  # leaves (w, N)
     field = FlatField(level, unravel, pack_width)
     watch = Watch(level, unravel, names)
     axes = top_axes(top)
@@ -465,34 +432,13 @@ def run_segment_shared(
     controller = diffrax.PIDController(rtol=rtol, atol=atol, norm=shared_field.error_norm,
                                        **STEP_CONTROL)
     solver = _prepared_solver(solver, controller, adjoint)
-    observed_idx = tuple(range(len(terminating), len(names)))
-    terminating_idx = tuple(range(len(terminating)))
-    watched = SharedWatchedSolver(
-        solver, SharedWatch(watch, axes), observed_idx, pieces=pieces,
-        terminating=terminating_idx, idle=idle,
-    )
-    dtype = jnp.result_type(t0)
-    finder = event_root_finder(dtype)
-    subs = [diffrax.SubSaveAt(t1=True)]
-    if ts is not None:
-        subs.append(diffrax.SubSaveAt(ts=jnp.clip(ts, t0, t1)))
-    sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(shared_field),
-        watched,
-        t0,
-        t1,
-        None,
-        y0_flat,
-        top,
-        saveat=diffrax.SaveAt(subs=subs, solver_state=True),
-        stepsize_controller=controller,
-        max_steps=max_steps,
-        adjoint=adjoint,
-        throw=False,
-        progress_meter=progress_meter,
-    )
+    indices = _event_indices(terminating, observed)
+    watched = SharedWatchedSolver(solver, SharedWatch(watch, axes), **indices, pieces=pieces,
+                                  idle=idle)
+    sol = _solve(diffrax.ODETerm(shared_field), watched, controller, top,
+                 members_last(y0_members), t0, t1, ts, max_steps=max_steps, adjoint=adjoint,
+                 progress_meter=progress_meter)
     state = sol.solver_state
-    n_members = idle.shape[0]
     ended = state.stopped & ~idle  # frozen by a terminating event
     common = diffrax.RESULTS.where(sol.result == STOP, diffrax.RESULTS.successful, sol.result)
     solver_result = jax.vmap(
@@ -501,50 +447,22 @@ def run_segment_shared(
             diffrax.RESULTS.where(ended, diffrax.RESULTS.event_occurred, common),
         )
     )(ended, idle)
-    t_last = sol.ts[0][-1]
-    flat_last = members_first(jax.tree_util.tree_map(lambda x: x[-1], sol.ys[0]))
-    # Each member's events on its own step, taken again for that member alone.
-    single = WatchedSolver(solver, watch, observed_idx, pieces=pieces,
-                           terminating=terminating_idx)
-    terms = diffrax.ODETerm(field)
-    records = state.member_states()
-    per_member = lambda f: jax.vmap(f, in_axes=(axes, 0))  # noqa: E731
-
-    def where_member(mask, a, b):
-        return jax.tree_util.tree_map(
-            lambda x, y: jnp.where(mask.reshape(mask.shape + (1,) * (y.ndim - 1)),
-                                   x.astype(y.dtype), y), a, b)
-
-    t_end = jnp.broadcast_to(t_last, (n_members,))
-    flat_end = flat_last
-    if terminating:
-        if locate:
-            t_event, flat_event = per_member(
-                lambda top, rec: locate_terminating(single, terms, top, rec, finder)
-            )(top, records)
-        else:
-            t_event, flat_event = records.last_t0, records.last_y0
-        t_end = jnp.where(ended, t_event.astype(t_end.dtype), t_end)
-        flat_end = where_member(ended, flat_event, flat_end)
+    # Each member's end as a run of its own would find it, on its own step.
+    single = WatchedSolver(solver, watch, **indices, pieces=pieces)
+    finder = event_root_finder(jnp.result_type(t0))
+    t_end, flat_end, fired, observed_times = jax.vmap(
+        lambda top, records, ended, flat_last: _run_end(
+            single, diffrax.ODETerm(field), top, records, ended, sol.ts[0][-1], flat_last,
+            terminating, observed, locate=locate, finder=finder),
+        in_axes=(axes, 0, 0, 0),
+    )(top, state.member_states(), ended,
+      members_first(jax.tree_util.tree_map(lambda x: x[-1], sol.ys[0])))
+    # Idle members end where they started, with no event.
     t_end = jnp.where(idle, jnp.asarray(t0, t_end.dtype), t_end)
-    flat_end = where_member(idle, y0_members, flat_end)
-    y_end = jax.vmap(unravel)(flat_end)
-    member_watch = jax.vmap(watch, in_axes=(0, axes))
-    end_values = member_watch(flat_end if locate else flat_last, top)[:, : len(terminating)]
-    first = jnp.argmin(end_values, axis=-1)
-    fired = {name: ended & (first == i) for i, name in enumerate(terminating)}
-    observed_times = {}
-    for i, name in enumerate(observed):
-        if locate:
-            t_obs = per_member(
-                lambda top, rec, i=i: locate_observed(
-                    single, terms, top, rec, len(terminating) + i, finder
-                )
-            )(top, records)
-        else:
-            t_obs = jnp.where(records.found[:, i], records.step_t0[:, i], jnp.nan)
-        t_obs = jnp.where(idle, jnp.nan, t_obs)
-        observed_times[name] = jnp.where(t_obs <= t_end, t_obs, jnp.nan)
+    flat_end = jax.tree_util.tree_map(
+        lambda a, b: jnp.where(idle.reshape(idle.shape + (1,) * (b.ndim - 1)),
+                               a.astype(b.dtype), b), y0_members, flat_end)
+    observed_times = {name: jnp.where(idle, jnp.nan, t) for name, t in observed_times.items()}
     ys = None
     if ts is not None:
         ys = jax.vmap(jax.vmap(unravel))(  # (T, w, N) -> (N, T, w)
@@ -553,7 +471,7 @@ def run_segment_shared(
     steps = jnp.where(idle, 0, jnp.asarray(sol.stats["num_steps"], int))  # idle: none
     return Segment(
         ys=ys,
-        y_end=y_end,
+        y_end=jax.vmap(unravel)(flat_end),
         t_end=t_end,
         solver_result=solver_result,
         fired=fired,

@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._bucket import bucket as bucket  # (fit.py and problem.py take it from here)
 from .._cache import cacheable, cached_call, compile_ahead, to_device
 from .._devices import batch_sharding, shard_over
 from .._engine.cpu import own_compiler_options
@@ -48,15 +49,6 @@ def _committed(tree):
         if isinstance(x, jax.Array) and not x.committed else x,
         tree,
     )
-
-
-def bucket(n: int) -> int:
-    """The size that `n` is padded to: the next of 2^k and 3 x 2^(k-1), so that records of
-    similar lengths share one compilation (at most a third of the work is padding)."""
-    size = 16
-    while size < n:
-        size = size * 3 // 2 if size & (size - 1) == 0 else size * 4 // 3
-    return size
 
 
 class Setup:
