@@ -38,7 +38,7 @@ from ._engine.solver_choice import (
 )
 from ._engine.watch import EVENT_PIECES
 from ._invariants import energy, jellet, normal_force, slip_velocity
-from ._models.levels import LEVELS
+from ._models.levels import LEVELS, check_friction
 from ._solution import RESULTS, Solution
 from ._state import State, euler_angles, euler_rates, spin
 from ._top import TippeTop
@@ -556,6 +556,7 @@ def simulate(
         from ._auto import choose_model
 
         model = choose_model(top, y0, tolerance=tolerance)
+    check_friction(model, top)
     rtol, atol = _tolerances_for(dtype, rtol, atol)
     ts, n_save = _save_times(summary, saveat, t0, t1, dtype)
     y0 = jax.tree_util.tree_map(lambda x: _as_dtype(x, dtype), y0)
