@@ -28,9 +28,9 @@ IMPLICIT_RATE = 5.0e5
 
 def friction_rate(top: TippeTop):
     r"""Damping rate of sliding, $k g\, m (R+\epsilon)^2/A$ (1/s): the stiffness of the friction,
-    with $k$ the law's viscous coefficient at zero slip (`zero_slip_coefficient`; $\mu$ for the
+    with $k$ the law's viscous coefficient at zero slip (`stiffness_coefficient`; $\mu$ for the
     viscous law)."""
-    k = top.friction.zero_slip_coefficient()
+    k = top.friction.stiffness_coefficient()
     return k * top.g * top.m * (top.R + top.eps) ** 2 / top.A
 
 

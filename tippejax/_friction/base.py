@@ -121,6 +121,14 @@ class AbstractFriction(eqx.Module):
         the viscous law, $\mu/\delta$-like for a regularised Coulomb law. It sets the stiffness
         of sliding (`tj.friction_rate`)."""
 
+    def stiffness_coefficient(self) -> Float[Array, "*batch"]:
+        r"""The equivalent viscous coefficient at zero slip in the motion of a spinning top
+        (s/m), which sets the default solver (`tj.friction_rate`, `tj.default_solver`).
+
+        `zero_slip_coefficient` by default; a law whose drilling softens the sliding friction
+        (`CoulombContensou`) gives its coefficient at zero slip while the contact drills."""
+        return self.zero_slip_coefficient()
+
     @abc.abstractmethod
     def _rules(self, values, xp) -> list:
         """(failed, message) for every rule on the law's own fields (`values` in field order)."""

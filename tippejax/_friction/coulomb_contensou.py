@@ -15,6 +15,11 @@ PRESSURES = ("hertz", "ellipse")
 PATCH_FRACTION = 0.1
 """The largest patch radius a `TippeTop` accepts, as a fraction of its ball's radius."""
 
+REFERENCE_DRILLING_RATE = 100.0
+"""The drilling rate (rad/s) at which `CoulombContensou.stiffness_coefficient` takes the slope
+of the law at zero slip: a spinning tippe top's (the launches of the literature spin at
+100-200 rad/s about the axis)."""
+
 _SERIES_FROM = 2.0
 """From this $u$ on, the Hertz profiles are summed as series in $1/u^2$ (their closed forms
 lose digits to cancellation at large $u$)."""
@@ -62,7 +67,10 @@ def hertz_profiles(u):
     torque_in = (3 * math.pi / 128) * (8.0 - 8.0 * u2 + 3.0 * u2**2)
     u_mid = jnp.where(inside | far, 1.5, u)
     u2 = u_mid**2
-    arc, root = jnp.arcsin(1.0 / u_mid), jnp.sqrt(u2 - 1.0)
+    # arcsin(1/u) = arctan(1/sqrt(u^2 - 1)), with u^2 - 1 = (u - 1)(u + 1): accurate values and
+    # derivatives near u = 1, where 1 - 1/u^2 would lose digits.
+    root = jnp.sqrt((u_mid - 1.0) * (u_mid + 1.0))
+    arc = jnp.arctan2(1.0, root)
     force_mid = 3.0 / (16.0 * u_mid) * ((4.0 * u2 - u2**2) * arc + (u2 + 2.0) * root)
     torque_mid = 3.0 / 64.0 * ((3.0 * u2**2 - 8.0 * u2 + 8.0) * arc + (6.0 - 3.0 * u2) * root)
     u_far = jnp.where(far, u, _SERIES_FROM)
@@ -180,7 +188,28 @@ class CoulombContensou(AbstractFriction):
         return (-scale * slip_x, -scale * slip_y,
                 -self.mu * rho**2 * torque * drilling_rate / spin)
 
+    def _slope_at_zero_slip(self, drilling_rate):
+        delta = self.slip_scale
+        if self.pressure == "ellipse":
+            return self.mu / jnp.sqrt((self.drilling_radius * drilling_rate) ** 2 + delta**2)
+        spin = jnp.sqrt((self.patch_radius * drilling_rate) ** 2 + delta**2)
+        return self.mu * hertz_profiles(delta / spin)[0] / delta
+
     def zero_slip_coefficient(self):
-        # At v = 0, omega_n = 0 the regularised speeds are equal (u = 1) for the Hertz law.
-        factor = 1.0 if self.pressure == "ellipse" else 9 * math.pi / 32
-        return factor * self.mu / self.slip_scale
+        r"""The slope at zero slip and zero drilling (s/m): $\tfrac{9\pi}{32}\mu/\delta$ for
+        the Hertz law (there the regularised speeds are equal, $u = 1$), $\mu/\delta$ for the
+        ellipse."""
+        return self._slope_at_zero_slip(jnp.zeros_like(self.mu))
+
+    def stiffness_coefficient(self):
+        r"""The slope at zero slip while the contact drills at `REFERENCE_DRILLING_RATE` (s/m).
+
+        Drilling softens the sliding friction: at zero slip the slope is
+        $\mu\varphi_F'(0)/\sqrt{\rho^2\omega_n^2 + \delta^2}$ ($\varphi_F'(0) = 3\pi/8$ for the
+        Hertz law, 1 for the ellipse with $R_b$ for $\rho$), which does not depend on $\delta$
+        while $\rho|\omega_n| \gg \delta$. A spinning top therefore meets the regularised
+        bound `zero_slip_coefficient` only where it stops drilling, and an explicit solver is
+        the cheaper at small slip scales (`benchmarks/RESULTS.md`, friction_solvers.py). A top
+        that drills much slower is stiffer than this says: pass `solver=diffrax.Kvaerno5()` if
+        its steps run into `max_steps`."""
+        return self._slope_at_zero_slip(REFERENCE_DRILLING_RATE * jnp.ones_like(self.mu))
