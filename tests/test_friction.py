@@ -254,6 +254,23 @@ def test_top_with_a_law():
     assert [float(x) for x in jax.tree_util.tree_leaves(tj.default_top())][-1] == 0.3
 
 
+def test_stiffness_for_the_solver_choice():
+    """A Contensou law's stiffness is its slope at zero slip while the contact drills (the
+    regularised bound needs omega_n -> 0 too), so a spinning Contensou top runs an explicit
+    solver even at a small slip_scale; pure Coulomb friction near rolling is as stiff as
+    1/slip_scale says."""
+    from tippejax._friction.coulomb_contensou import REFERENCE_DRILLING_RATE
+
+    for law in (laws()["hertz"], laws()["ellipse"]):
+        slope = jax.jacfwd(lambda v, law=law: law.force_and_torque(
+            v, jnp.asarray(REFERENCE_DRILLING_RATE))[0])(jnp.zeros(2))
+        np.testing.assert_allclose(float(law.stiffness_coefficient()), -float(slope[0, 0]),
+                                   rtol=1e-9)
+        assert float(law.stiffness_coefficient()) < 1e-3 * float(law.zero_slip_coefficient())
+    assert isinstance(tj.default_solver(lg_top(laws(1e-5)["hertz"])), diffrax.Dopri8)
+    assert isinstance(tj.default_solver(lg_top(tj.Coulomb(MU, 1e-5))), diffrax.Kvaerno5)
+
+
 def test_friction_rate_asks_the_law():
     top = lg_top(tj.Coulomb(0.3, 1e-3))
     viscous = tj.TippeTop(**LG, mu=0.3 / 1e-3)
@@ -451,3 +468,28 @@ def test_coulomb_inversion_time_grows_like_one_over_slip_scale():
     assert times[0] < times[1] < times[2]
     # each tenfold smaller slip_scale: several times longer (about 1/delta)
     assert times[2] / times[0] > 4.0
+
+
+def test_float32_run_agrees_with_float64(runs):
+    top, ref = runs["hertz", "full"]
+    top32 = top.astype(jnp.float32)
+    y0 = jax.tree_util.tree_map(lambda x: x.astype(jnp.float32),
+                                tj.initial_state(top, theta=0.1, spin=180.0))
+    sol = tj.simulate(top32, y0, t1=T1, model="full", saveat=SAVES, solver=diffrax.Tsit5(),
+                      max_steps=100_000)
+    assert sol.theta.dtype == jnp.float32
+    assert np.max(np.abs(np.asarray(sol.theta) - np.asarray(ref.theta))) < 1e-3
+    assert np.max(np.diff(np.asarray(sol.energy, dtype=float))) <= 1e-6 * float(ref.energy[0])
+
+
+def test_vmap_over_a_batch_of_one_law(runs):
+    """A batch of tops with one law and batched parameters runs under jax.vmap; the member
+    with the fixture's parameters gives its run."""
+    top, ref = runs["hertz", "so3"]
+    tops = top.replace(mu=[0.3, 0.1])
+    y0 = tj.initial_state(top, theta=0.1, spin=180.0)
+    theta = jax.vmap(lambda t: tj.simulate(t, y0, t1=T1, model="so3", saveat=SAVES, rtol=1e-9,
+                                           atol=1e-12, solver=diffrax.Tsit5(),
+                                           max_steps=100_000).theta)(tops)
+    np.testing.assert_allclose(np.asarray(theta[0]), np.asarray(ref.theta), rtol=0, atol=1e-9)
+    assert np.max(np.abs(np.asarray(theta[1] - theta[0]))) > 1e-4  # mu matters
