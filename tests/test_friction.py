@@ -443,7 +443,7 @@ def test_contensou_inversion_time_converges_in_slip_scale():
     times = [_inversion_time(tj.CoulombContensou(MU, RHO, delta), 1.3)
              for delta in (1e-4, 1e-5, 1e-6)]  # (the default solver, explicit: Dopri8)
     assert 0.8 < times[0] < 1.2
-    assert abs(times[1] - times[0]) < 1e-5 and abs(times[2] - times[1]) < 1e-5
+    assert abs(times[1] - times[0]) < 1e-6 and abs(times[2] - times[1]) < 1e-6
 
 
 def test_coulomb_inversion_time_does_not_converge_in_slip_scale():
