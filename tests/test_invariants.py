@@ -287,3 +287,53 @@ def test_slip_velocity_vanishes_at_relative_equilibrium(top, theta0):
     # Any spin about the axis on top of it makes the contact point slip.
     y_slip = tj.State(position=zero, velocity=zero, axis=axis, omega=omega + 1.0 * axis, body=body)
     assert np.abs(np.asarray(tj.slip_velocity(top, y_slip))).max() > 0.1 * float(top.R) * np.sin(theta0)
+
+
+# ---------------- every friction law ----------------
+
+LG_TOP = dict(m=0.006, R=0.015, eps=0.003, A=8e-7, C=7e-7)
+LAW_TOPS = [
+    tj.TippeTop(**LG_TOP, friction=tj.Coulomb(0.3, 1e-3)),
+    tj.TippeTop(**LG_TOP, friction=tj.CoulombContensou(0.3, 5e-4, 1e-4)),
+    tj.TippeTop(**LG_TOP, friction=tj.CoulombContensou(0.3, 5e-4, 1e-4, pressure="ellipse")),
+]
+LAW_IDS = ["coulomb", "hertz", "ellipse"]
+
+
+@pytest.mark.parametrize("model", ["full", "so3"])
+@pytest.mark.parametrize("top", LAW_TOPS, ids=LAW_IDS)
+def test_energy_rate_is_the_power_of_the_friction_law(top, model):
+    """Along each level's field, dE/dt = R_n (f . v_Q + m omega_n): the power of the law's
+    force at the contact point and of its drilling torque, <= 0 where R_n >= 0; and the Jellet
+    changes at `jellet_rate`, zero for a law without drilling torque."""
+    from tippejax._models.levels import LEVELS
+
+    level = LEVELS[model]
+    states = _state(*_random_euler(9, translation=model == "full"))
+
+    @jax.jit
+    def rates(state):
+        y = level.from_state(top, state)
+        dy = level.vector_field(0.0, y, top)
+        energy_rate = jax.jvp(lambda s: tj.energy(top, level.to_state(top, s), model=model),
+                              (y,), (dy,))[1]
+        jellet_rate = jax.jvp(lambda s: tj.jellet(top, level.to_state(top, s)), (y,), (dy,))[1]
+        return energy_rate, jellet_rate
+
+    for i in range(N_STATES):
+        state = jax.tree_util.tree_map(lambda x, i=i: x[i], states)
+        energy_rate, jellet_rate = rates(state)
+        rn = float(tj.normal_force(top, state, model=model))
+        v_q = tj.slip_velocity(top, state, model=model)[:2]
+        w_n = state.omega[2]
+        f, m = top.friction.force_and_torque(v_q, w_n)
+        power = rn * float(jnp.dot(f, v_q) + m * w_n)
+        np.testing.assert_allclose(float(energy_rate), power, rtol=1e-9,
+                                   atol=1e-12 * float(tj.energy(top, state)))
+        if rn >= 0:
+            assert power <= 0.0
+        expected = float(tj.jellet_rate(top, state, model=model))
+        np.testing.assert_allclose(float(jellet_rate), expected, rtol=1e-9,
+                                   atol=1e-12 * abs(float(tj.jellet(top, state))))
+        if not top.friction.has_drilling_torque:
+            assert expected == 0.0

@@ -341,7 +341,16 @@ def test_routhian_terms_from_sympy(routhian_sympy, top):
 # ---------------- the component form of the rigid-body algebra ----------------
 
 
-@pytest.mark.parametrize("top", TOPS, ids=TOP_IDS)
+LG_TOP = dict(m=0.006, R=0.015, eps=0.003, A=8e-7, C=7e-7)
+LAW_TOPS = [  # Leine & Glocker's top with each friction law besides the viscous one
+    tj.TippeTop(**LG_TOP, friction=tj.Coulomb(0.3, 1e-3)),
+    tj.TippeTop(**LG_TOP, friction=tj.CoulombContensou(0.3, 5e-4, 1e-4)),
+    tj.TippeTop(**LG_TOP, friction=tj.CoulombContensou(0.3, 5e-4, 1e-4, pressure="ellipse")),
+]
+
+
+@pytest.mark.parametrize("top", TOPS + LAW_TOPS,
+                         ids=TOP_IDS + ["LG-coulomb", "LG-hertz", "LG-ellipse"])
 @pytest.mark.parametrize("name", ["full", "so3"])
 def test_levels_by_components_equal_the_vector_form(top, name):
     """`by_components=True` (the shared-step batch's form, the algebra written out by

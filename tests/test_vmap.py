@@ -156,6 +156,7 @@ def public_calls(top, states):
         "euler_rates": (tj.euler_rates, (y,)),
         "spin": (ti.spin, (y,)),
         "jellet": (tj.jellet, (top, y)),
+        "jellet_rate": (tj.jellet_rate, (top.replace(friction=tj.CoulombContensou(0.3, 5e-4, 1e-4)), y)),
         "energy": (tj.energy, (top, y)),
         "energy_so3": (lambda t, s: tj.energy(t, s, model="so3"), (top, y)),
         "normal_force": (tj.normal_force, (top, y)),
@@ -214,7 +215,7 @@ def test_public_api_is_covered(public_calls):
     "name",
     [
         "TippeTop", "from_ratios", "state_from_euler", "initial_state", "euler_angles",
-        "euler_rates", "spin", "jellet", "energy", "energy_so3", "normal_force",
+        "euler_rates", "spin", "jellet", "jellet_rate", "energy", "energy_so3", "normal_force",
         "normal_force_so3", "normal_force_denominator", "slip_velocity", "full_vector_field",
         "so3_vector_field", "routhian_vector_field", "routhian_from_state", "state_from_routhian",
         "routhian_rates", "routhian_normal_force", "effective_potential",

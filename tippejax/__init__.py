@@ -42,9 +42,14 @@ from ._engine import fibre as _fibre  # noqa: F401  (GyroscopicLevel(projection=
 from ._engine.cpu import compiler_options as compiler_options
 from ._engine.solver_choice import default_solver as default_solver, friction_rate as friction_rate
 from ._fit import FIT_RESULTS as FIT_RESULTS, FitResult as FitResult, fit as fit
+from ._friction.base import AbstractFriction as AbstractFriction
+from ._friction.coulomb import Coulomb as Coulomb
+from ._friction.coulomb_contensou import CoulombContensou as CoulombContensou
+from ._friction.viscous import Viscous as Viscous
 from ._invariants import (
     energy as energy,
     jellet as jellet,
+    jellet_rate as jellet_rate,
     normal_force as normal_force,
     normal_force_denominator as _normal_force_denominator,
     slip_velocity as slip_velocity,

@@ -49,6 +49,7 @@ import numpy as np
 from ._analysis.groups import classify
 from ._analysis.potential import effective_potential_derivative
 from ._engine.solver_choice import STIFF_RATE, friction_rate
+from ._friction.viscous import Viscous
 from ._invariants import jellet
 from ._models.levels import LEVELS
 from ._state import State
@@ -88,6 +89,9 @@ MEASURED = {
 """Per group, regime and level: (worst theta error in rad, median cost relative to the full
 model); for the gyroscopic level over the scenes it accepts (`inf`: it stopped on one, or
 accepted none). A group and regime not listed keeps the full model."""
+
+MEASURED_FRICTION = Viscous
+"""The friction law `MEASURED` was measured for; for any other law auto keeps the full model."""
 
 COST_MARGIN = 0.9
 """A cheaper level is used only if its measured cost is below this fraction of the full model's.
@@ -147,12 +151,15 @@ def choose_model(top: TippeTop, y0: State, *, tolerance: float | None) -> str:
     (`accepts`: `in_chart` of the launch); a launch outside its chart would run in the full
     model from the start (`"gyroscopic->full"`). On the way it may still hand over to the full
     model where the slow manifold repels or balance is lost. A group and regime the benchmark
-    did not measure, and traced arguments (no regime can be read), keep the full model.
+    did not measure, a friction law other than the viscous one (`MEASURED_FRICTION`), and
+    traced arguments (no regime can be read), keep the full model.
     """
     if tolerance is None:
         return "full"
     if not tolerance > 0:
         raise ValueError(f"tolerance must be a positive error in theta (rad), got {tolerance}.")
+    if not isinstance(top.friction, MEASURED_FRICTION):  # (no measured error for this law)
+        return "full"
     try:
         regime = launch_regime(top, y0)
         group = str(classify(top))

@@ -10,6 +10,7 @@ from ._models._rigid_body import (
     centre_of_mass_velocity,
     contact_vector,
     contact_velocity,
+    friction_per_normal_force,
     rigid_body_dynamics,
 )
 from ._state import State
@@ -38,7 +39,8 @@ def jellet(top: TippeTop, y: State) -> Float[Array, "*batch"]:
     r"""The Jellet integral $J = -L\cdot q$ (eqs. Jellet, jello).
 
     $J = C n (R\cos\theta - \epsilon) + A\dot\varphi R\sin^2\theta$; exactly conserved by the full,
-    SO(3) and Routhian models whatever the friction law.
+    SO(3) and Routhian models under any friction *force*. A drilling torque (a Contensou law)
+    changes it at the rate `jellet_rate`.
     """
 
     def one(y):
@@ -49,12 +51,44 @@ def jellet(top: TippeTop, y: State) -> Float[Array, "*batch"]:
     return _batched(one, y)
 
 
+def jellet_rate(top: TippeTop, y: State, *, model: str = "full") -> Float[Array, "*batch"]:
+    r"""The rate of change of the Jellet integral, $\dot J = M(R - \epsilon\cos\theta)$.
+
+    With $J = -L\cdot q$, $\dot L = q\times F + M e_Z$ and $\dot q = \epsilon\,\omega\times a$
+    (which is orthogonal to $L$), $\dot J = -M\,q\cdot e_Z = M(R - \epsilon\cos\theta)$, where
+    $M = R_n m(v_Q, \omega_n)$ is the friction law's drilling torque about the contact normal.
+    Zero for a law without drilling torque (the viscous and Coulomb laws: $J$ is conserved);
+    for a Contensou law it gives the balance $J(t) - J(0) = \int_0^t M(R - \epsilon\cos
+    \theta)\,dt$ (`docs/friction.md`). `model` as in `normal_force` (the level's $R_n$ and
+    $v_Q$: `"full"`, or `"so3"`/`"routhian"` without the horizontal velocity).
+
+    **Arguments:**
+
+    - `top`: the `TippeTop`.
+    - `y`: a `State` (or a batch of them, leading axes).
+    - `model`: `"full"` (default), `"so3"` or `"routhian"`.
+
+    **Returns:** $\dot J$ (kg m^2/s^2), one per state.
+    """
+    _check_model(model)
+
+    def one(y):
+        velocity = _friction_velocity(y, model)
+        rn = rigid_body_dynamics(top, y.axis, y.omega, velocity)[0]
+        _, drilling = friction_per_normal_force(top, y.axis, y.omega, velocity)
+        return rn * drilling * (top.R - top.eps * y.axis[2])
+
+    return _batched(one, y)
+
+
 def energy(top: TippeTop, y: State, *, model: str = "full") -> Float[Array, "*batch"]:
     r"""Total energy $E = \tfrac12 m |v_O|^2 + \tfrac12\omega\cdot I\omega + m g h$ (Sec. 2.1).
 
     $v_O = (\dot x, \dot y, \dot h)$, $h = R - \epsilon\cos\theta$. For `model="so3"` or
     `"routhian"` the horizontal velocity is dropped ($E'$ of the Lagrangian $L'$). Along every
-    model's flow $\dot E = R_f\cdot v_Q = -\mu R_n |v_Q|^2 \le 0$ (eq. derE) while $R_n \ge 0$.
+    model's flow $\dot E = R_n(f\cdot v_Q + m\,\omega_n) \le 0$ while $R_n \ge 0$, for every
+    friction law (force $R_n f$, drilling torque $R_n m$); $-\mu R_n |v_Q|^2$ for the viscous law
+    (eq. derE).
     """
     _check_model(model)
 

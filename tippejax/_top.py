@@ -1,4 +1,4 @@
-"""The tippe top: an eccentric sphere on a hard table with viscous sliding friction."""
+"""The tippe top: an eccentric sphere on a hard table, with a law of friction at the contact."""
 
 from __future__ import annotations
 
@@ -8,28 +8,32 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from ._friction.base import (
+    AbstractFriction,
+    array_module,
+    as_float as _as_float,
+    broadcast_fields,
+    checked,
+    is_traced as _is_traced,
+)
+from ._friction.viscous import Viscous
+
 _FIELDS = ("m", "R", "eps", "A", "C", "g", "mu")
+"""The fields of a top with the viscous law (`mu` is the law's, `TippeTop.mu`)."""
+
+_BODY_FIELDS = _FIELDS[:-1]
+"""The top's own fields; the law's are in `TippeTop.friction`."""
+
+_DEFAULT_MU = 0.3
 
 
-def _is_traced(x) -> bool:
-    return isinstance(x, jax.core.Tracer)
-
-
-def _as_float(x):
-    if _is_traced(x):
-        if not jnp.issubdtype(x.dtype, jnp.floating):
-            x = x.astype(jnp.result_type(float))
-        return x
-    if isinstance(x, (jax.Array, np.ndarray)) and jnp.issubdtype(x.dtype, jnp.floating):
-        return jnp.asarray(x)
-    return jnp.asarray(x, dtype=jnp.result_type(float))
-
-
-def _checks(m, R, eps, A, C, g, mu):
-    """(predicate-of-failure, message) for every rule a top must obey. Works on numpy and jax."""
-    xp = jnp if any(_is_traced(v) for v in (m, R, eps, A, C, g, mu)) else np
+def _checks(m, R, eps, A, C, g, mu=None):
+    """(predicate-of-failure, message) for every rule a top must obey (with the viscous law of
+    coefficient `mu`, unless None). Works on numpy and jax."""
+    values = (m, R, eps, A, C, g) if mu is None else (m, R, eps, A, C, g, mu)
+    xp = array_module(*values)
     checks = []
-    for name, value in zip(_FIELDS, (m, R, eps, A, C, g, mu)):
+    for name, value in zip(_FIELDS, values):
         checks.append(
             (~xp.isfinite(value), f"TippeTop.{name} must be finite (got NaN or inf).")
         )
@@ -39,7 +43,10 @@ def _checks(m, R, eps, A, C, g, mu):
         (A <= 0, "TippeTop.A (transverse moment of inertia) must be > 0."),
         (C <= 0, "TippeTop.C (axial moment of inertia) must be > 0."),
         (g <= 0, "TippeTop.g (gravitational acceleration) must be > 0."),
-        (mu < 0, "TippeTop.mu (viscous friction coefficient, s/m) must be >= 0."),
+    ]
+    if mu is not None:
+        checks.append((mu < 0, "TippeTop.mu (viscous friction coefficient, s/m) must be >= 0."))
+    checks += [
         (
             (eps <= 0) | (eps >= R),
             "TippeTop.eps (offset of the centre of mass from the centre of the sphere) "
@@ -54,17 +61,31 @@ def _checks(m, R, eps, A, C, g, mu):
     return checks
 
 
+def _is_default_mu(mu) -> bool:
+    if mu is _DEFAULT_MU:
+        return True
+    if _is_traced(mu):
+        return False
+    value = np.asarray(mu)
+    return value.ndim == 0 and value.dtype.kind in "fiu" and float(value) == _DEFAULT_MU
+
+
 class TippeTop(eqx.Module):
-    r"""Physical parameters of an eccentric-sphere tippe top.
+    r"""Physical parameters of an eccentric-sphere tippe top and its law of friction.
 
     A sphere of radius $R$ and mass $m$ whose centre of mass $O$ is a distance $\epsilon$ from
     the geometric centre, with moments of inertia $A = B$ (transverse) and $C$ (axial) about $O$,
-    on a horizontal table under gravity $g$, with the viscous sliding friction
-    $\mathbf R_f = -\mu R_n \mathbf v_Q$ (eq. viscfric; $\mu$ in s/m).
+    on a horizontal table under gravity $g$. The table pushes on the top at the contact point
+    $Q$ with $R_n(e_Z + f)$ and a drilling torque $R_n m\,e_Z$, where $f, m$ come from the
+    friction law (`friction`, an `AbstractFriction`). The default is the paper's viscous law
+    $\mathbf R_f = -\mu R_n \mathbf v_Q$ (eq. viscfric; $\mu$ in s/m): `mu=0.3` means
+    `friction=tj.Viscous(mu=0.3)`. Other laws (`tj.Coulomb`, `tj.CoulombContensou`, with a
+    dimensionless $\mu$) run at the full and SO(3) levels (`docs/friction.md`).
 
-    Every field is a JAX array, so a `TippeTop` can be passed through `jax.jit`, batched with
-    `jax.vmap` (give every field a leading batch axis, or build the tops inside `vmap`), and
-    differentiated with respect to any field.
+    Every field is a JAX array (the law's too), so a `TippeTop` can be passed through
+    `jax.jit`, batched with `jax.vmap` (give every field a leading batch axis, or build the
+    tops inside `vmap`), and differentiated with respect to any field. A batch holds one law
+    class with batched parameters (`top.replace(mu=[...])`).
 
     Invalid parameters raise `ValueError` at construction for concrete values, and an
     `equinox` runtime error when the top is built inside `jax.jit` from traced values.
@@ -77,7 +98,10 @@ class TippeTop(eqx.Module):
     - `A`: transverse moment of inertia about the centre of mass (kg m^2), > 0.
     - `C`: axial moment of inertia (kg m^2), > 0, with $C \le 2A$.
     - `g`: gravitational acceleration (m/s^2), > 0. Default 9.81.
-    - `mu`: viscous friction coefficient (s/m), >= 0. Default 0.3.
+    - `mu`: viscous friction coefficient (s/m), >= 0, of the default law `tj.Viscous(mu)`.
+      Default 0.3.
+    - `friction`: the friction law (keyword only), any `AbstractFriction`; give it or `mu`,
+      not both. Default `tj.Viscous(mu)`.
     """
 
     m: Float[Array, "*batch"]
@@ -86,7 +110,7 @@ class TippeTop(eqx.Module):
     A: Float[Array, "*batch"]
     C: Float[Array, "*batch"]
     g: Float[Array, "*batch"]
-    mu: Float[Array, "*batch"]
+    friction: AbstractFriction
 
     def __init__(
         self,
@@ -96,86 +120,105 @@ class TippeTop(eqx.Module):
         A: ArrayLike,
         C: ArrayLike,
         g: ArrayLike = 9.81,
-        mu: ArrayLike = 0.3,
+        mu: ArrayLike = _DEFAULT_MU,
+        *,
+        friction: AbstractFriction | None = None,
     ):
-        values = [_as_float(v) for v in (m, R, eps, A, C, g, mu)]
-        traced = any(_is_traced(v) for v in values)
-        shapes = [jnp.shape(v) for v in values]
-        if len(set(shapes)) > 1:
-            # A sweep of one field (mu=[...]) makes a batch of tops: every field gets its shape.
-            try:
-                shape = np.broadcast_shapes(*shapes)
-            except ValueError:
-                got = ", ".join(f"{k}: {sh}" for k, sh in zip(_FIELDS, shapes))
+        if friction is not None:
+            if not isinstance(friction, AbstractFriction):
+                raise TypeError(
+                    "TippeTop.friction must be a friction law (tj.Viscous, tj.Coulomb, "
+                    f"tj.CoulombContensou, ...), got {type(friction).__name__}."
+                )
+            if not _is_default_mu(mu):
                 raise ValueError(
-                    "TippeTop: the fields' shapes do not broadcast to one batch shape "
-                    f"({got}). Give every field the same shape, or scalars."
-                ) from None
-            values = [jnp.broadcast_to(v, shape) for v in values]
-        if not traced:
-            np_values = [np.asarray(v) for v in values]
-            for failed, message in _checks(*np_values):
-                if np.any(failed):
-                    got = ", ".join(
-                        f"{k}={np.asarray(v).tolist()}" for k, v in zip(_FIELDS, np_values)
-                    )
-                    raise ValueError(f"{message} Got {got}.")
+                    "TippeTop: give mu (the viscous law's coefficient, s/m) or friction (a "
+                    "law with its own mu), not both."
+                )
+        body = [_as_float(v) for v in (m, R, eps, A, C, g)]
+        if friction is None:
+            # mu is checked here, with the top's messages, then again by Viscous.
+            values = broadcast_fields("TippeTop", _FIELDS, [*body, _as_float(mu)])
+            values = checked("TippeTop", _FIELDS, values, _checks)
+            body, friction = values[:-1], Viscous(values[-1])
         else:
-            checks = _checks(*values)
-            failed = jnp.stack([jnp.any(f) for f, _ in checks])
-            index = jnp.argmax(failed)
-            messages = tuple(msg for _, msg in checks)
-            # Attach the check to every field, so that whichever field a computation uses
-            # carries it (an unused `error_if` output would be dropped by XLA).
-            values = [
-                eqx.branched_error_if(v, jnp.any(failed), index, messages) for v in values
-            ]
-        self.m, self.R, self.eps, self.A, self.C, self.g, self.mu = values
+            law_leaves, law_tree = jax.tree_util.tree_flatten(friction)
+            names = (*_BODY_FIELDS, *(f"friction.{k}" for k in friction._array_field_names()))
+            values = broadcast_fields("TippeTop", names, [*body, *law_leaves])
+            n = len(body)
+
+            def rules(*v):
+                law = jax.tree_util.tree_unflatten(law_tree, list(v[n:]))
+                return _checks(*v[:n]) + law.ball_rules(v[1], array_module(*v))
+
+            values = checked("TippeTop", names, values, rules)
+            body = values[:n]
+            friction = jax.tree_util.tree_unflatten(law_tree, list(values[n:]))
+        self.m, self.R, self.eps, self.A, self.C, self.g = body
+        self.friction = friction
+
+    @property
+    def mu(self) -> Float[Array, "*batch"]:
+        """The friction law's coefficient $\\mu$ (`friction.mu`; s/m for the viscous law,
+        dimensionless for the Coulomb laws)."""
+        return self.friction.mu
 
     @property
     def batch_shape(self) -> tuple[int, ...]:
         """Shape of the batch of tops (`()` for one top)."""
-        return tuple(np.broadcast_shapes(*(jnp.shape(getattr(self, k)) for k in _FIELDS)))
+        return tuple(np.broadcast_shapes(*(jnp.shape(x) for x in jax.tree_util.tree_leaves(self))))
 
     def replace(self, **changes) -> TippeTop:
         r"""The same top with some fields changed, checked like a new `TippeTop`.
 
         `top.replace(mu=0.1)`; `top.replace(mu=np.linspace(0.05, 1.0, 20))` is a batch of 20
-        tops (the other fields broadcast), ready for `simulate_batch` or `jax.vmap`. Besides the
-        fields `m, R, eps, A, C, g, mu`, the ratios may be given: `A_over_C` sets $A = (A/C)\,C$
-        at the top's $C$, `eps_over_R` sets $\epsilon = (\epsilon/R)\,R$ at its $R$ (after
-        any new `C` or `R`).
+        tops (the other fields broadcast), ready for `simulate_batch` or `jax.vmap`. `mu`
+        replaces the friction law's coefficient (whatever the law); `friction=` replaces the
+        law. Besides the fields `m, R, eps, A, C, g, mu, friction`, the ratios may be given:
+        `A_over_C` sets $A = (A/C)\,C$ at the top's $C$, `eps_over_R` sets
+        $\epsilon = (\epsilon/R)\,R$ at its $R$ (after any new `C` or `R`).
         """
-        allowed = (*_FIELDS, "A_over_C", "eps_over_R")
+        allowed = (*_FIELDS, "friction", "A_over_C", "eps_over_R")
         unknown = sorted(set(changes) - set(allowed))
         if unknown:
             raise ValueError(
                 f"TippeTop.replace: unknown field(s) {unknown}; the fields are {allowed}."
             )
-        for ratio, field in (("A_over_C", "A"), ("eps_over_R", "eps")):
+        for ratio, field in (("A_over_C", "A"), ("eps_over_R", "eps"), ("mu", "friction")):
             if ratio in changes and field in changes:
                 raise ValueError(f"TippeTop.replace: give {ratio} or {field}, not both.")
-        values = {k: changes.get(k, getattr(self, k)) for k in _FIELDS}
+        values = {k: changes.get(k, getattr(self, k)) for k in _BODY_FIELDS}
         if "A_over_C" in changes:
             values["A"] = _as_float(changes["A_over_C"]) * _as_float(values["C"])
         if "eps_over_R" in changes:
             values["eps"] = _as_float(changes["eps_over_R"]) * _as_float(values["R"])
-        return TippeTop(**values)
+        friction = changes.get("friction", self.friction)
+        if type(friction) is Viscous:  # (the law `mu=` means: the top's own messages)
+            return TippeTop(**values, mu=changes.get("mu", friction.mu))
+        if "mu" in changes:
+            friction = friction.replace(mu=changes["mu"])
+        return TippeTop(**values, friction=friction)
 
     def __repr__(self) -> str:
         try:
-            values = {k: np.asarray(getattr(self, k)) for k in _FIELDS}
+            values = {k: np.asarray(getattr(self, k)) for k in _BODY_FIELDS}
+            law = repr(self.friction)
         except Exception:  # noqa: BLE001 - traced fields have no values to show
             return super().__repr__()
-        if all(v.ndim == 0 for v in values.values()):
+        viscous = type(self.friction) is Viscous
+        if viscous:
+            values["mu"] = np.asarray(self.friction.mu)
+        if self.batch_shape == ():
             body = ", ".join(f"{k}={v.item():.6g}" for k, v in values.items())
-            return f"TippeTop({body})"
+            return f"TippeTop({body})" if viscous else f"TippeTop({body}, friction={law})"
         parts = []
         for k, v in values.items():
-            if np.all(v == v.flat[0]):
+            if v.size and np.all(v == v.flat[0]):
                 parts.append(f"{k}={v.flat[0].item():.6g}")
             else:
                 parts.append(f"{k}={np.array2string(v, precision=6, threshold=8)}")
+        if not viscous:
+            parts.append(f"friction={law}")
         return f"TippeTop(batch_shape={self.batch_shape}, {', '.join(parts)})"
 
     @classmethod
@@ -186,14 +229,16 @@ class TippeTop(eqx.Module):
         *,
         m: ArrayLike = 0.02,
         R: ArrayLike = 0.025,
-        mu: ArrayLike = 0.3,
+        mu: ArrayLike = _DEFAULT_MU,
         g: ArrayLike = 9.81,
         C: ArrayLike | None = None,
+        friction: AbstractFriction | None = None,
     ) -> TippeTop:
         r"""Build a top from the two ratios that fix its group, $A/C$ and $\epsilon/R$.
 
         $C = 0.4\, m R^2$ (a homogeneous sphere) unless given; $A = (A/C)\, C$,
-        $\epsilon = (\epsilon/R)\, R$.
+        $\epsilon = (\epsilon/R)\, R$. `mu` (the viscous law's, s/m) or `friction` (any
+        law) as in `TippeTop`.
         """
         m_ = _as_float(m)
         R_ = _as_float(R)
@@ -206,6 +251,7 @@ class TippeTop(eqx.Module):
             C=C_,
             g=g,
             mu=mu,
+            friction=friction,
         )
 
     @property

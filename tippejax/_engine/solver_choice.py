@@ -27,8 +27,11 @@ IMPLICIT_RATE = 5.0e5
 
 
 def friction_rate(top: TippeTop):
-    r"""Damping rate of sliding, $\mu g\, m (R+\epsilon)^2/A$ (1/s): the stiffness of the friction."""
-    return top.mu * top.g * top.m * (top.R + top.eps) ** 2 / top.A
+    r"""Damping rate of sliding, $k g\, m (R+\epsilon)^2/A$ (1/s): the stiffness of the friction,
+    with $k$ the law's viscous coefficient at zero slip (`stiffness_coefficient`; $\mu$ for the
+    viscous law)."""
+    k = top.friction.stiffness_coefficient()
+    return k * top.g * top.m * (top.R + top.eps) ** 2 / top.A
 
 
 def is_traced(x) -> bool:

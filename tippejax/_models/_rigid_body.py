@@ -3,9 +3,12 @@ r"""Mechanics shared by the full and SO(3) models: contact kinematics and the no
 The top touches the table at $Q$, with $q = \vec{OQ} = \epsilon a - R e_Z$. The centre of mass is
 at height $h = R - \epsilon a_Z$ (so $h = R - \epsilon\cos\theta$), the angular momentum about it is
 $L = I\omega = A\omega + (C - A)(\omega\cdot a)a$, and the contact force is
-$F = R_n e_Z + R_f$ with $R_f = -\mu R_n v_Q$ (eq. viscfric). The equations of motion are
+$F = R_n(e_Z + f)$ with the friction law's force per unit normal force $f(v_Q, \omega_n)$
+($f = -\mu v_Q$ for the paper's law, eq. viscfric), plus its drilling torque $R_n m\,e_Z$ about
+$Q$ ($\omega_n = \omega\cdot e_Z$). The equations of motion are
 
-$$m\ddot{\mathbf r}_O = F - m g e_Z,\qquad \dot L = q\times F,\qquad \dot a = \omega\times a.$$
+$$m\ddot{\mathbf r}_O = F - m g e_Z,\qquad \dot L = q\times F + R_n m\,e_Z,\qquad
+\dot a = \omega\times a.$$
 
 $R_n$ is not a state variable: it is fixed by the contact constraint, i.e. by the vertical Newton
 equation $m\ddot h = R_n - m g$ solved together with the other equations. Since $\dot\omega$ is
@@ -39,6 +42,14 @@ def centre_of_mass_velocity(top: TippeTop, axis, omega, velocity):
     return jnp.concatenate([velocity, (-top.eps * axis_dot[2])[None]])
 
 
+def friction_per_normal_force(top: TippeTop, axis, omega, velocity):
+    r"""The friction law's force per unit normal force $f$ (horizontal, 2-vector) and drilling
+    torque per unit normal force $m$ (m) at this state: `top.friction` at the slip velocity
+    $v_Q$ and the drilling rate $\omega_n = \omega\cdot e_Z$."""
+    v_q = contact_velocity(top, axis, omega, velocity)
+    return top.friction.force_and_torque(v_q[:2], omega[2])
+
+
 def contact_velocity(top: TippeTop, axis, omega, velocity):
     r"""Slip velocity $v_Q = v_O + \omega\times q$ of the contact point (horizontal).
 
@@ -57,7 +68,8 @@ def rigid_body_dynamics(top: TippeTop, axis, omega, velocity):
 
     Writing $\dot\omega = \dot\omega_0 + R_n\, I^{-1}\tau_1$ with
     $\dot\omega_0 = -(C-A)/A\,(\omega\cdot a)(\omega\times a)$ (gyroscopic term) and
-    $\tau_1 = q\times(e_Z - \mu v_Q)$ (torque per unit normal force), and
+    $\tau_1 = q\times(e_Z + f) + m\,e_Z$ (torque per unit normal force, with the friction
+    law's $f(v_Q, \omega_n)$ and $m(v_Q, \omega_n)$, which do not depend on $R_n$), and
     $\ddot h = -\epsilon\ddot a_Z = \ddot h_0 + R_n \ddot h_1$, the vertical Newton equation gives
 
     $$R_n = \frac{g + \ddot h_0}{1/m - \ddot h_1}.$$
@@ -71,8 +83,11 @@ def rigid_body_dynamics(top: TippeTop, axis, omega, velocity):
     axis_dot = jnp.cross(omega, axis)
     q = contact_vector(top, axis)
     v_q = contact_velocity(top, axis, omega, velocity)
-    force_per_rn = e_z(axis.dtype) - top.mu * v_q
+    friction, drilling = top.friction.force_and_torque(v_q[:2], omega[2])
+    force_per_rn = jnp.concatenate([friction, jnp.ones_like(drilling)[None]])
     torque_per_rn = jnp.cross(q, force_per_rn)
+    if top.friction.has_drilling_torque:
+        torque_per_rn = torque_per_rn.at[2].add(drilling)
     omega_dot_0 = -(top.C - top.A) / top.A * n * axis_dot
     omega_dot_1 = inverse_inertia(top, axis, torque_per_rn)
     h_ddot_0 = -top.eps * (jnp.cross(omega_dot_0, axis)[2] + jnp.cross(omega, axis_dot)[2])
@@ -118,8 +133,10 @@ def rigid_body_dynamics_by_components(top: TippeTop, axis, omega, velocity):
     # v_Q = v_O + omega x q, horizontal (v_O's vertical part cancels omega x q's)
     vx = velocity[..., 0] + (w1 * q2 - w2 * q1)
     vy = velocity[..., 1] + (w2 * q0 - w0 * q2)
-    fx, fy = -top.mu * vx, -top.mu * vy  # e_Z - mu v_Q, whose Z component is 1
-    t0, t1, t2 = q1 - q2 * fy, q2 * fx - q0, q0 * fy - q1 * fx  # tau_1 = q x (e_Z - mu v_Q)
+    fx, fy, drilling = top.friction.components(vx, vy, w2)  # f; e_Z + f has Z component 1
+    t0, t1, t2 = q1 - q2 * fy, q2 * fx - q0, q0 * fy - q1 * fx  # q x (e_Z + f)
+    if top.friction.has_drilling_torque:
+        t2 = t2 + drilling  # tau_1 = q x (e_Z + f) + m e_Z
     k0 = -(C - A) / A * n
     o00, o01, o02 = k0 * d0, k0 * d1, k0 * d2  # omega_dot_0
     k1 = (1.0 / C - 1.0 / A) * (a0 * t0 + a1 * t1 + a2 * t2)

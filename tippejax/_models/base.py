@@ -29,6 +29,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PyTree
 
+from .._friction.base import AbstractFriction
+from .._friction.viscous import Viscous
 from .._state import State
 from .._top import TippeTop
 
@@ -61,6 +63,9 @@ class AbstractLevel(eqx.Module):
     - `chart_end_result`: for a level with a chart and no fallback, the name of the `RESULTS`
       member the run reports when the chart ends (the run stops there; a state outside the
       chart at `t0` is not integrated).
+    - `friction_laws`: the friction laws (`AbstractFriction` subclasses) the level is derived
+      for; `takes_friction` asks it. Default: the viscous law alone (the Routhian and
+      gyroscopic reductions use its form); the full and SO(3) levels take every law.
 
     **Static option:** `body` (default True), see below.
     """
@@ -70,6 +75,7 @@ class AbstractLevel(eqx.Module):
     has_chart: ClassVar[bool] = False
     chart_end_result: ClassVar[str | None] = None
     slow_flow: ClassVar[bool] = False
+    friction_laws: ClassVar[tuple[type[AbstractFriction], ...]] = (Viscous,)
     body: bool = eqx.field(static=True, default=True, kw_only=True)
     r"""Whether the level carries the body vector (`State.body`, and with it $\psi$). The full
     and SO(3) levels carry it as 4 more state components (`full.spin_frame_rates`); without it
@@ -97,6 +103,10 @@ class AbstractLevel(eqx.Module):
     @abc.abstractmethod
     def conditions(self, top: TippeTop, y: PyTree) -> Conditions:
         """Event conditions of a single level state."""
+
+    def takes_friction(self, friction: AbstractFriction) -> bool:
+        """Whether the level's equations hold for this friction law (`friction_laws`)."""
+        return isinstance(friction, self.friction_laws)
 
     def in_chart(self, top: TippeTop, state: State) -> Array:
         """Whether `state` can be represented in this level's coordinates."""

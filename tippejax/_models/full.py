@@ -4,10 +4,12 @@ State $(x, y, \dot x, \dot y, a, \omega)$ and, for $\psi$, the body vector in th
 `SpinFrame` (a slowly turning frame vector and the spin angle, see below). Regular at
 $\theta = 0, \pi$.
 
-$$\dot{\mathbf r} = v,\quad m\dot v = -\mu R_n v_{Q,\text{hor}},\quad \dot a = \omega\times a,
-\quad I\dot\omega = q\times F - (C-A)(\omega\cdot a)\,\omega\times a,$$
-with $R_n$ from the contact constraint (see `rigid_body_dynamics`) and
-$v_Q = v_O + \omega\times q$ including the horizontal velocity.
+$$\dot{\mathbf r} = v,\quad m\dot v = R_n f,\quad \dot a = \omega\times a,
+\quad I\dot\omega = q\times F + R_n m\,e_Z - (C-A)(\omega\cdot a)\,\omega\times a,$$
+with the friction law's force $f$ (horizontal; $f = -\mu v_Q$ for the paper's law) and
+drilling torque $m$ per unit normal force at $(v_Q, \omega\cdot e_Z)$, $F = R_n(e_Z + f)$,
+$R_n$ from the contact constraint (see `rigid_body_dynamics`) and
+$v_Q = v_O + \omega\times q$ including the horizontal velocity. Takes every friction law.
 """
 
 from __future__ import annotations
@@ -17,15 +19,22 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from .._friction.base import AbstractFriction
 from .._state import State
 from .._top import TippeTop
 from ._rigid_body import rigid_body_algebra, rigid_body_dynamics
 from .base import AbstractLevel, Conditions
 
 
+def translation_rate(top: TippeTop, normal_force, omega, v_q):
+    r"""$\dot v = R_n f(v_Q, \omega_n)/m$: the horizontal acceleration of the centre of mass."""
+    friction, _ = top.friction.force_and_torque(v_q[:2], omega[..., 2])
+    return normal_force * friction / top.m
+
+
 def _single(top: TippeTop, y: State) -> State:
     normal_force, omega_dot, v_q, _ = rigid_body_dynamics(top, y.axis, y.omega, y.velocity)
-    velocity_dot = -top.mu * normal_force * v_q[:2] / top.m
+    velocity_dot = translation_rate(top, normal_force, y.omega, v_q)
     return State(
         position=y.velocity,
         velocity=velocity_dot,
@@ -90,7 +99,7 @@ def pole_linearisation(top: TippeTop, J, *, north: bool = True) -> Array:
         axis = jnp.stack([z[1], z[4], jnp.asarray(sign, dtype)])
         omega = jnp.stack([z[2], z[5], omega_z])
         normal_force, omega_dot, v_q, _ = rigid_body_dynamics(top, axis, omega, velocity)
-        velocity_dot = -top.mu * normal_force * v_q[:2] / top.m
+        velocity_dot = translation_rate(top, normal_force, omega, v_q)
         axis_dot = jnp.cross(omega, axis)
         return jnp.stack([velocity_dot[0], axis_dot[0], omega_dot[0],
                           velocity_dot[1], axis_dot[1], omega_dot[1]])
@@ -140,10 +149,12 @@ class FullLevelState(eqx.Module):
 
 class FullLevel(AbstractLevel):
     """The full model with translation; the common `State`, with the body vector carried as a
-    frame vector and a spin angle (`spin_frame_rates`), so that it does not set the steps."""
+    frame vector and a spin angle (`spin_frame_rates`), so that it does not set the steps.
+    Takes every friction law."""
 
     name = "full"
     friction_model = "full"
+    friction_laws = (AbstractFriction,)
 
     def from_state(self, top, state):
         if not self.body:
@@ -166,7 +177,7 @@ class FullLevel(AbstractLevel):
         frame_dot, angle_dot = spin_frame_rates(y.axis, y.omega, y.frame)
         return FullLevelState(
             position=y.velocity,
-            velocity=-top.mu * normal_force * v_q[:2] / top.m,
+            velocity=translation_rate(top, normal_force, y.omega, v_q),
             axis=cross_(y.omega, y.axis),
             omega=omega_dot,
             frame=frame_dot,

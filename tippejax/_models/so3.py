@@ -4,8 +4,11 @@ As in Sec. 2.2 (Routhian reduction), the horizontal velocity of the centre of ma
 the friction force and in $R_n$ ($R'_n$); the vertical motion of the centre of mass (the
 $m\epsilon^2\sin^2\theta\,\dot\theta^2$ term of $L'$) is kept. In vector form this is the full model
 with $v_O = (0, 0, \dot h)$: state $(a, \omega)$ (+ the body vector for $\psi$, carried as a frame
-vector and a spin angle, `full.spin_frame_rates`), regular at the poles. The Jellet $J$ is conserved exactly and the energy
-$E' = T_{\rm rot} + \tfrac12 m\dot h^2 + m g h$ never increases: $\dot E' = -\mu R_n |v_Q|^2$.
+vector and a spin angle, `full.spin_frame_rates`), regular at the poles. For a friction force alone the Jellet $J$ is conserved exactly; the energy
+$E' = T_{\rm rot} + \tfrac12 m\dot h^2 + m g h$ never increases:
+$\dot E' = R_n(f\cdot v_Q + m\,\omega_n) \le 0$ ($-\mu R_n|v_Q|^2$ for the viscous law). Takes
+every friction law; under a drilling torque $m$ the Jellet is not conserved,
+$\dot J = R_n m(R - \epsilon\cos\theta)$.
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from .._friction.base import AbstractFriction
 from .._state import State
 from .._top import TippeTop
 from ._rigid_body import rigid_body_algebra, rigid_body_dynamics
@@ -65,6 +69,7 @@ class SO3Level(AbstractLevel):
 
     name = "so3"
     friction_model = "so3"
+    friction_laws = (AbstractFriction,)
 
     def from_state(self, top, state):
         if not self.body:

@@ -18,7 +18,7 @@ from .._engine.segment import PACK_WIDTH, pack_width_for
 from .._engine.sensitivity import ForwardSensitivities
 from .._engine.solver_choice import IMPLICIT_RATE, STIFF_RATE, default_solver, friction_rate
 from .._engine.watch import EVENT_PIECES
-from .._models.levels import LEVELS
+from .._models.levels import LEVELS, check_friction
 from .._outcome import classify_program
 from .._solution import RESULTS, Solution
 from .._state import State
@@ -160,6 +160,7 @@ def simulate(
     dtype = jnp.result_type(top.m)
     if model == "auto":
         model = choose_model(top, y0, tolerance=tolerance)
+    check_friction(model, top)
     rtol, atol = tolerances_for(dtype, rtol, atol)
     ts, n_save = save_times(summary, saveat, t0, t1, dtype)
     y0 = jax.tree_util.tree_map(lambda x: as_dtype(x, dtype), y0)
