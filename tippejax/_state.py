@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from ._plausibility import warn_if_implausible_spin
 from ._top import TippeTop
 
 
@@ -222,6 +223,8 @@ def initial_state(
             if not np.all(np.isfinite(value)):
                 raise ValueError(f"initial_state: {name} must be finite (got NaN or inf).")
         check_theta0("initial_state: theta", theta)
+        if not any(isinstance(v, jax.core.Tracer) for v in (top.m, top.R, top.C, top.g)):
+            warn_if_implausible_spin(top.m, top.R, top.C, top.g, spin)
     args = [jnp.asarray(x, dtype=dtype) for x in raw]
     if not concrete:  # (concrete values were checked above; no runtime check to compile)
         args = [
