@@ -19,6 +19,7 @@ from jaxtyping import Array, Float
 from ._custom_types import RealScalarLike
 from ._engine.solver_choice import is_traced
 from ._engine.watch import EVENT_PIECES
+from ._errors import result_error_if
 from ._simulate import MODELS, simulate
 from ._solution import RESULTS
 from ._state import State
@@ -142,7 +143,7 @@ def inversion_time(
                 "(pass throw=False to get nan instead)."
             )
         return t_invert
-    return sol.result.error_if(t_invert, failed)
+    return result_error_if(t_invert, sol.result, failed)
 
 
 __all__ = ["inversion_time"]

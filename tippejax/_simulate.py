@@ -37,6 +37,7 @@ from ._engine.solver_choice import (
     is_traced,
 )
 from ._engine.watch import EVENT_PIECES
+from ._errors import error_if, result_error_if
 from ._invariants import energy, jellet, normal_force, slip_velocity
 from ._models.levels import LEVELS
 from ._solution import RESULTS, Solution
@@ -391,7 +392,7 @@ def _check_saveat(saveat, t0, t1, dtype):
             )
     else:
         bad = (ts[0] < t0) | (ts[-1] > t1) | jnp.any(jnp.diff(ts) < 0)
-        ts = eqx.error_if(ts, bad, "saveat must be non-decreasing and lie within [t0, t1].")
+        ts = error_if(ts, bad, "saveat must be non-decreasing and lie within [t0, t1].")
     return ts
 
 
@@ -565,7 +566,7 @@ def simulate(
             raise ValueError(_STATE_MESSAGE)
     else:
         defect = _state_defect(y0)
-        y0 = eqx.error_if(y0, ~(defect < _STATE_TOL), _STATE_MESSAGE)
+        y0 = error_if(y0, ~(defect < _STATE_TOL), _STATE_MESSAGE)
     guard_stiff = solver is None and not _concrete(top)
     if solver is None:
         solver = default_solver(top, slow_flow=LEVELS[model].slow_flow)
@@ -781,7 +782,7 @@ def _raise_if_failed(sol: Solution, on_contact_loss: str, top: TippeTop | None =
     failed = sol.result != allowed[0]
     for code in allowed[1:]:
         failed = failed & (sol.result != code)
-    return sol.result.error_if(sol, failed)
+    return result_error_if(sol, sol.result, failed)
 
 
 __all__ = ["simulate", "MODELS"]

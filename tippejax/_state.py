@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from ._errors import error_if
 from ._plausibility import warn_if_implausible_spin
 from ._top import TippeTop
 
@@ -228,10 +229,10 @@ def initial_state(
     args = [jnp.asarray(x, dtype=dtype) for x in raw]
     if not concrete:  # (concrete values were checked above; no runtime check to compile)
         args = [
-            eqx.error_if(v, ~jnp.isfinite(v), f"initial_state: {name} must be finite (got NaN or inf).")
+            error_if(v, ~jnp.isfinite(v), f"initial_state: {name} must be finite (got NaN or inf).")
             for name, v in zip(names, args)
         ]
-        args[0] = eqx.error_if(
+        args[0] = error_if(
             args[0], (args[0] < 0) | (args[0] > jnp.pi), "initial_state: theta must lie in [0, pi]."
         )
     theta, spin_, theta_dot, phi_dot, phi, psi, vx, vy = args

@@ -8,6 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from ._errors import branched_error_if
+
 _FIELDS = ("m", "R", "eps", "A", "C", "g", "mu")
 
 
@@ -52,6 +54,25 @@ def _checks(m, R, eps, A, C, g, mu):
         ),
     ]
     return checks
+
+
+def _describe_failure(failed, values, most: int = 3) -> str:
+    """Which members broke a rule, and their values: short, whatever the batch's size."""
+    failed = np.asarray(failed)
+
+    def show(v) -> str:
+        return ", ".join(f"{k}={float(x):.6g}" for k, x in zip(_FIELDS, v))
+
+    if failed.ndim == 0:
+        return f"Got {show(values)}."
+    where = np.argwhere(failed)
+    members = []
+    for index in where[:most]:
+        index = tuple(int(i) for i in index)
+        members.append(f"[{', '.join(map(str, index))}]: {show(v[index] for v in values)}")
+    more = f"; and {len(where) - most} more" if len(where) > most else ""
+    return (f"{len(where)} of the batch's {failed.size} tops (shape {failed.shape}) break it; "
+            f"at index {'; '.join(members)}{more}.")
 
 
 class TippeTop(eqx.Module):
@@ -116,10 +137,7 @@ class TippeTop(eqx.Module):
             np_values = [np.asarray(v) for v in values]
             for failed, message in _checks(*np_values):
                 if np.any(failed):
-                    got = ", ".join(
-                        f"{k}={np.asarray(v).tolist()}" for k, v in zip(_FIELDS, np_values)
-                    )
-                    raise ValueError(f"{message} Got {got}.")
+                    raise ValueError(f"{message} {_describe_failure(failed, np_values)}")
         else:
             checks = _checks(*values)
             failed = jnp.stack([jnp.any(f) for f, _ in checks])
@@ -128,7 +146,7 @@ class TippeTop(eqx.Module):
             # Attach the check to every field, so that whichever field a computation uses
             # carries it (an unused `error_if` output would be dropped by XLA).
             values = [
-                eqx.branched_error_if(v, jnp.any(failed), index, messages) for v in values
+                branched_error_if(v, jnp.any(failed), index, messages) for v in values
             ]
         self.m, self.R, self.eps, self.A, self.C, self.g, self.mu = values
 
