@@ -476,3 +476,54 @@ def test_steady_states_large_jellet_near_theta_c():
         if len(states) != 1 or abs(states[0][0] - root) > 1e-9:
             missed.append((float(J), root, states))
     assert not missed, missed
+
+
+# --------------------------------------------------------------------------------------------
+# SteadyStates as a researcher reads it: a table, rows, and the spin of each state
+# --------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("group", ["IIb", "III"])
+def test_steady_states_table_rows_and_spin(group):
+    """`rows()` gives each state's spin, and it is the spin of a relative equilibrium of that J.
+
+    Independent check of the spin: on a relative equilibrium (rolling without slipping)
+    $\\dot\\varphi = RJ/D$, so with the row's spin $n$ the Jellet formula
+    $J = Cn(R\\cos\\theta - \\epsilon) + A\\dot\\varphi R\\sin^2\\theta$ (eq. Jellet) must give
+    back the J the states were found for; at the poles $J = Cn(R\\cos\\theta - \\epsilon)$."""
+    top = _top(group)
+    p = _params(top)
+    m, R, eps, A, C, g = (p[k] for k in ("m", "R", "eps", "A", "C", "g"))
+    y0 = tj.initial_state(top, 0.1, 100.0)
+    J = float(tj.jellet(top, y0))
+    ss = tj.steady_states(top, J)
+    rows = ss.rows()
+    assert [r["state"] for r in rows[:2]] == ["vertical", "vertical"]
+    assert len(rows) == 2 + len(ss.intermediate)
+    for r in rows:
+        x = np.cos(r["theta"])
+        D = R**2 * A * (1 - x**2) + C * (R * x - eps) ** 2
+        phi_dot = R * J / D if r["state"] == "intermediate" else 0.0
+        J_back = C * r["spin"] * (R * x - eps) + A * phi_dot * R * (1 - x**2)
+        assert J_back == pytest.approx(J, rel=1e-12)
+        # W'' > 0 and a linearly stable vector field go together (Sec. 4, App. B)
+        assert r["routes_agree"], r
+        assert (r["max_real_so3"] < 0) == r["stable"]
+    for r in rows[2:]:
+        assert r["route_spread"] < 1e-8 * np.max(np.abs(r["eigenvalues_so3"]))
+    text = repr(ss)
+    assert text == ss.table() == str(ss)
+    for r in rows:
+        assert f"{r['theta']:.6g}" in text and f"{r['spin']:.6g}" in text
+    assert text.count("unstable") == sum(not r["stable"] for r in rows)
+    # a batch prints its shapes, and rows() says why it cannot make a table
+    batch = jax.vmap(lambda j: tj.steady_states(top, j))(jnp.array([0.5 * J, J]))
+    assert "f64[2" in repr(batch) or "f32[2" in repr(batch)
+    with pytest.raises(ValueError, match="one top"):
+        batch.rows()
+
+
+def test_steady_states_document_their_fields():
+    doc = tj.SteadyStates.__doc__
+    for name in ("intermediate", "vertical_d2W", "intermediate_spin", "table()"):
+        assert name in doc

@@ -77,3 +77,24 @@ def test_solution_and_batch_message():
 def test_classify_refuses_a_dict():
     with pytest.raises(ValueError, match="classify takes a tippejax.TippeTop, got dict"):
         tj.classify({"A": 1.0, "C": 1.0})
+
+
+def test_a_solution_prints_its_events_and_says_when_it_is_on_its_way():
+    """`print(sol)` gives the level, result, events and outcome; a run that has not settled
+    says so next to the outcome, so that "inverted" is not read as "turned over"."""
+    top = tj.default_top()
+    y0 = tj.initial_state(top, 0.1, 100.0)
+    sol = tj.simulate(top, y0, 8.0, summary=True)
+    text = repr(sol)
+    assert text.startswith("Solution(model='full', result='successful'")
+    assert f"t_invert={float(sol.t_invert):.6g} s" in text
+    assert "outcome='inverted'" in text and "on its way" not in text
+    # slow friction: at t1 the top is still rising
+    slow = top.replace(mu=0.05)
+    sol = tj.simulate(slow, tj.initial_state(slow, 0.1, 100.0), 8.0, summary=True)
+    assert not bool(sol.settled)
+    assert "(on its way: not settled by t_final)" in repr(sol)
+    assert "theta_end=" in repr(sol)
+    batch = jax.vmap(lambda s: tj.simulate(top, tj.initial_state(top, 0.1, s), 1.0,
+                                           summary=True))(jnp.array([50.0, 60.0]))
+    assert "f64[2" in repr(batch)

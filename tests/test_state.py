@@ -1,6 +1,7 @@
 """Vector state <-> ZXZ Euler angles, and initial_state."""
 
 import re
+import warnings
 
 import equinox as eqx
 import internal as ti
@@ -260,3 +261,37 @@ def test_initial_state_in_degrees_is_a_value_error(theta):
     """Concrete values are checked in Python: a ValueError naming radians, not a jit error."""
     with pytest.raises(ValueError, match=r"theta must lie in \[0, pi\].*radians.*np\.deg2rad"):
         tj.initial_state(tj.default_top(), theta, 100.0)
+
+
+def test_implausible_spin_warns_with_the_rpm_hint_and_still_runs():
+    top = tj.default_top()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        tj.initial_state(top, 0.1, 600.0)  # fast, but a real top's spin: no warning
+        tj.initial_state(top, 0.1, -600.0)
+    with pytest.warns(UserWarning, match=r"rpm, pass 3000 \* 2 \* pi / 60 = 314\.159 rad/s"):
+        y0 = tj.initial_state(top, 0.1, 3000.0)
+    assert float(tj.euler_rates(y0)[2]) == pytest.approx(3000.0)  # warned, not refused
+    with pytest.warns(UserWarning, match="spin of 3000"):
+        tj.initial_state(top, [0.1, 0.2], [100.0, 3000.0])
+
+
+@pytest.mark.parametrize(
+    "fields, match",
+    [
+        (dict(m=20.0), "mean density"),  # kilograms for a 25 mm ball
+        (dict(R=25.0, eps=7.5), "mean density"),  # millimetres as metres
+        (dict(g=981.0), "g = 981"),
+        (dict(C=5e-2, A=4.5e-2), "exceeds m R"),
+    ],
+)
+def test_implausible_tops_warn(fields, match):
+    from tippejax._plausibility import warn_if_implausible_top
+
+    values = dict(m=0.02, R=0.025, eps=0.0075, A=4.5e-6, C=5e-6, g=9.81) | fields
+    with pytest.warns(UserWarning, match=match):
+        warn_if_implausible_top(**values)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        warn_if_implausible_top(m=0.02, R=0.025, eps=0.0075, A=4.5e-6, C=5e-6, g=9.81)
+        warn_if_implausible_top(m=0.006, R=0.015, eps=0.003, A=8e-7, C=7e-7, g=9.81)  # LG 2003

@@ -270,3 +270,22 @@ def test_repr_shows_values():
     assert "f64[]" not in text
     batch = repr(top.replace(mu=[0.1, 0.2]))
     assert "batch_shape=(2,)" in batch and "mu=[0.1 0.2]" in batch and "m=0.02" in batch
+
+
+def test_a_batch_with_invalid_members_names_them_briefly():
+    """One bad corner of a large sweep: the message names the members and stays short."""
+    top = tj.default_top()
+    ratios = np.linspace(0.3, 2.0, 171)[:, None] * np.ones((1, 97))
+    ratios[100, 7] = 0.9 * 0.5 + 1e-17  # noise-level values print as numbers, not 17 digits
+    with pytest.raises(ValueError) as info:
+        top.replace(A_over_C=ratios)
+    message = str(info.value)
+    assert len(message) < 1000
+    bad = np.argwhere(ratios < 0.5)
+    assert f"{len(bad)} of the batch's {ratios.size} " in message
+    assert f"[{bad[0][0]}, {bad[0][1]}]" in message and "more" in message
+    assert "4.500000000000001" not in message
+    one = np.full(5, 0.9)
+    one[3] = 0.4
+    with pytest.raises(ValueError, match=r"1 of the batch's 5 .* at index \[3\]: .*A=2e-06"):
+        top.replace(A_over_C=one)

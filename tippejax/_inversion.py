@@ -1,11 +1,4 @@
-r"""`inversion_time`: when a top first turns over, as a differentiable function of the top.
-
-The inversion is the first upward crossing of $\theta = \pi/2$, the first time $t^*$ at which
-the symmetry axis's vertical component $a_Z = \cos\theta$ falls through zero. `simulate`
-already locates it inside the solve (`sol.t_invert`, see `tippejax/_engine/watch.py`); this
-module runs it in summary mode (no save grid, so memory does not grow with the run) and
-decides what a failed solve means for the crossing.
-"""
+"""`inversion_time`: when a top first turns over, as a differentiable function of the top."""
 
 from __future__ import annotations
 
@@ -19,6 +12,7 @@ from jaxtyping import Array, Float
 from ._custom_types import RealScalarLike
 from ._engine.solver_choice import is_traced
 from ._engine.watch import EVENT_PIECES
+from ._errors import result_error_if
 from ._simulate import MODELS, simulate
 from ._solution import RESULTS
 from ._state import State
@@ -64,17 +58,25 @@ def inversion_time(
 
     **For design, use `model="gyroscopic"`.** With the full (or SO(3), Routhian) model, $t^*$
     as a function of any parameter is a staircase: the crossing is made by the nutation, so
-    $t^*$ moves by one step of about a nutation period (~0.05 s for the standard top) each time
-    a parameter change makes an earlier or later nutation cycle reach $\pi/2$, and between steps
-    it follows that one cycle. Its exact gradient is then the slope of one stair, not the trend
-    an optimiser needs: standard top, $\theta_0 = 0.1$, $n_0 = 100$ rad/s, $dt^*/d\mu = -14.2$
-    against $-20.5$ over $\pm 1\%$ of $\mu$, and $dt^*/dA$ 1.75x smaller than the trend. The
-    gyroscopic level's $t^*$ is the crossing of the nutation-averaged $\theta$: smooth, and its
-    gradient is the trend ($-21.42$ against $-21.42$ over $\pm 1\%$; $dt^*/dA$ within 0.3%).
-    Where the slow manifold repels before the crossing (fast spins) the run continues in the
-    full model and its $t^*$ is the full model's again (`simulate(...).model` says
-    `"gyroscopic->full"`). The full-model gradient remains the right tool for the sensitivity
-    of one actual run's crossing (fitting a recorded inversion), not for shaping the top.
+    $t^*$ moves by about one nutation period each time a parameter change makes an earlier or
+    later nutation cycle reach $\pi/2$, and between steps it follows that one cycle. Its exact
+    gradient is then the slope of one stair, not the trend an optimiser needs. The gyroscopic
+    level's $t^*$ is the crossing of the nutation-averaged $\theta$: smooth, and its gradient
+    is the trend. Where the slow manifold repels before the crossing (fast spins) the run
+    continues in the full model and its $t^*$ is the full model's again
+    (`simulate(...).model` says `"gyroscopic->full"`). The full-model gradient remains the right
+    tool for the sensitivity of one actual run's crossing (fitting a recorded inversion), not
+    for shaping the top.
+
+    **Accuracy.** The derivative is that of the computed $t^*$, so it is as accurate as the
+    solve: at the default `rtol` expect agreement with the exact derivative to a few parts in
+    $10^5$, and tighten `rtol` (with `atol`) for more (the gradients suite measures it: see
+    the performance page).
+
+    **Same crossing as `simulate`.** This runs `simulate` in summary mode, which does not carry
+    the body vector ($\psi$). `simulate(...).t_invert` with its save grid carries it, so the
+    two solves take different steps and their $t^*$ agree to the solve's tolerance, not to
+    rounding; `simulate(..., summary=True).t_invert` is the same computation as this one.
 
     **Failures.** Only the run up to $t^*$ matters: a solve that fails *after* the crossing
     (say a contact loss when the top lands on its stem) still returns $t^*$. A solve that
@@ -82,7 +84,9 @@ def inversion_time(
     gyroscopic balance, a very stiff top under trace: the `RESULTS` of `simulate`) cannot say
     whether or when the top inverts. With `throw=True` (default) that raises: a `RuntimeError`
     with the `RESULTS` message for concrete arguments, an equinox runtime error under
-    `jit`/`vmap` (any failing member raises). With `throw=False` it returns nan, the same as
+    `jit`/`vmap` (any failing member raises), also under `jax.grad`, `jax.jacfwd` and their
+    `jit` and `vmap` (where errors are turned into values, `EQX_ON_ERROR=nan`, the derivative
+    is nan). With `throw=False` it returns nan, the same as
     "no inversion by `t1`"; to tell them apart use
     `tj.simulate(top, y0, t1, summary=True, throw=False).result`. A contact loss always ends
     the run (`on_contact_loss="stop"`): past it the model describes no real top.
@@ -100,9 +104,8 @@ def inversion_time(
     - `solver`: any diffrax solver with an error estimate (default `default_solver(top)`).
     - `max_steps`: maximum number of solver steps per segment.
     - `adjoint`: how the solve is differentiated, passed to `simulate`: by default from
-      its forward-mode Jacobian, for `jax.grad` and `jax.jacfwd`/`jax.jvp` alike (about 4x a
-      solve for the seven fields of a top, `benchmarks/RESULTS.md`, gradients.py); or a
-      diffrax adjoint (`diffrax.RecursiveCheckpointAdjoint()`: reverse mode through the
+      its forward-mode Jacobian, for `jax.grad` and `jax.jacfwd`/`jax.jvp` alike (a few
+      solves' cost for the seven fields of a top); or a diffrax adjoint (`diffrax.RecursiveCheckpointAdjoint()`: reverse mode through the
       solve's steps; `diffrax.ForwardMode()`: forward mode).
     - `throw`: raise where the solve failed before a crossing (see above).
     - `tolerance`: for `model="auto"`, the largest acceptable error in $\theta(t)$ (rad).
@@ -142,7 +145,7 @@ def inversion_time(
                 "(pass throw=False to get nan instead)."
             )
         return t_invert
-    return sol.result.error_if(t_invert, failed)
+    return result_error_if(t_invert, sol.result, failed)
 
 
 __all__ = ["inversion_time"]

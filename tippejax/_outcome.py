@@ -8,11 +8,8 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._analysis.potential import effective_potential_d2_closed_form
 from ._analysis.steady_states import branch_pieces, find_branch_root
-from ._solution import RESULTS
+from ._solution import OUTCOMES, RESULTS
 from ._top import TippeTop
-
-OUTCOMES = ("upright", "inverted", "intermediate", "contact_lost", "failed")
-"""Outcome codes of `outcome_map` and `sol.outcome`: `tj.OUTCOMES[int(om.outcome[i, j])]`."""
 
 UPRIGHT, INVERTED, INTERMEDIATE, CONTACT_LOST, FAILED = range(len(OUTCOMES))
 

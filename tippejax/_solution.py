@@ -9,6 +9,10 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 
+OUTCOMES = ("upright", "inverted", "intermediate", "contact_lost", "failed")
+"""Outcome codes of `outcome_map` and `sol.outcome`: `tj.OUTCOMES[int(om.outcome[i, j])]`."""
+
+
 class RESULTS(eqxi.Enumeration):
     """Outcome of a simulation. `successful` is the empty message."""
 
@@ -127,6 +131,10 @@ def attach_message(enumeration) -> None:
 attach_message(RESULTS)
 
 
+class _NotOne(Exception):
+    """A solution that is not one concrete run (batched or traced): no summary."""
+
+
 class Solution(eqx.Module):
     r"""A simulated trajectory, sampled at the save times `ts`.
 
@@ -163,7 +171,8 @@ class Solution(eqx.Module):
       Jellet $J$ nearest to the tilt where the run ended, classified as `tj.outcome_map` does
       (`tippejax/_maps.py`); "contact_lost" when $R_n$ reached 0, "failed" for any other
       failure. `tj.OUTCOMES[int(sol.outcome)]` is its name.
-    - `settled`: the final tilt is within 0.1 rad of that state. A run still on its way at
+    - `settled`: the final tilt is within 0.1 rad of that state (`print(sol)` says "on its
+      way" for a run that is not). A run still on its way at
       `t1` is classified by the state it is nearest to; only `outcome == inverted` with
       `settled` says that the top turned over and stayed there. (`t_invert`, the first upward
       crossing of $\pi/2$, is no proof of inversion: a Group III top or a top that settles on
@@ -200,6 +209,41 @@ class Solution(eqx.Module):
         """The message of `result`: a `str`, or a numpy array of `str` for a batch
         (`"successful"` where the run succeeded). Same as `tj.RESULTS.message(sol.result)`."""
         return result_message(self.result)
+
+    def __repr__(self) -> str:
+        try:
+            return self._summary()
+        except _NotOne:
+            return eqx.tree_pformat(self)
+
+    __str__ = __repr__
+
+    def _summary(self) -> str:
+        """One run's summary: the level, the result, its events and where it ended."""
+        leaves = [self.t_final, self.t_invert, self.theta]
+        if any(isinstance(x, jax.core.Tracer) for x in leaves) or np.ndim(self.t_final) != 0:
+            raise _NotOne
+        ts, theta = np.asarray(self.ts), np.asarray(self.theta)
+
+        def seconds(x) -> str:
+            x = float(x)
+            return "nan" if np.isnan(x) else f"{x:.6g} s"
+
+        parts = [f"model={self.model!r}", f"result={result_message(self.result)!r}",
+                 f"t_final={seconds(self.t_final)}", f"saves={ts.size}",
+                 f"t_invert={seconds(self.t_invert)}",
+                 f"t_contact_loss={seconds(self.t_contact_loss)}"]
+        if self.outcome is not None:
+            name = OUTCOMES[int(self.outcome)]
+            if self.settled is not None and not bool(self.settled) and name in (
+                    "upright", "inverted", "intermediate"):
+                name += " (on its way: not settled by t_final)"
+            parts.append(f"outcome={name!r}")
+        finite = np.isfinite(theta)
+        if finite.any():
+            parts.append(f"theta_end={float(theta[finite][-1]):.6g} rad")
+        parts.append(f"steps={int(self.num_steps)}")
+        return "Solution(" + ", ".join(parts) + ")"
 
     @property
     def succeeded(self):

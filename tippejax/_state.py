@@ -15,6 +15,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from ._errors import error_if
+from ._plausibility import warn_if_implausible_spin
 from ._top import TippeTop
 
 
@@ -222,13 +224,15 @@ def initial_state(
             if not np.all(np.isfinite(value)):
                 raise ValueError(f"initial_state: {name} must be finite (got NaN or inf).")
         check_theta0("initial_state: theta", theta)
+        if not any(isinstance(v, jax.core.Tracer) for v in (top.m, top.R, top.C, top.g)):
+            warn_if_implausible_spin(top.m, top.R, top.C, top.g, spin)
     args = [jnp.asarray(x, dtype=dtype) for x in raw]
     if not concrete:  # (concrete values were checked above; no runtime check to compile)
         args = [
-            eqx.error_if(v, ~jnp.isfinite(v), f"initial_state: {name} must be finite (got NaN or inf).")
+            error_if(v, ~jnp.isfinite(v), f"initial_state: {name} must be finite (got NaN or inf).")
             for name, v in zip(names, args)
         ]
-        args[0] = eqx.error_if(
+        args[0] = error_if(
             args[0], (args[0] < 0) | (args[0] > jnp.pi), "initial_state: theta must lie in [0, pi]."
         )
     theta, spin_, theta_dot, phi_dot, phi, psi, vx, vy = args

@@ -17,6 +17,7 @@ from ._friction.base import (
     is_traced as _is_traced,
 )
 from ._friction.viscous import Viscous
+from ._plausibility import warn_if_implausible_top
 
 _FIELDS = ("m", "R", "eps", "A", "C", "g", "mu")
 """The fields of a top with the viscous law (`mu` is the law's, `TippeTop.mu`)."""
@@ -154,6 +155,8 @@ class TippeTop(eqx.Module):
             values = checked("TippeTop", names, values, rules)
             body = values[:n]
             friction = jax.tree_util.tree_unflatten(law_tree, list(values[n:]))
+        if not any(_is_traced(v) for v in body):
+            warn_if_implausible_top(*body)
         self.m, self.R, self.eps, self.A, self.C, self.g = body
         self.friction = friction
 

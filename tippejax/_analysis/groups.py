@@ -23,7 +23,7 @@ GROUPS = ("Ia", "Ib", "IIa", "IIb", "IIc", "III")
 
 
 class Thresholds(eqx.Module):
-    r"""Thresholds of a top (nan where undefined).
+    r"""Thresholds of a top (nan where undefined), with $a = A/C$ and $e = \epsilon/R$.
 
     - `n1`: $|n_0|$ above which $\theta = 0$ is unstable (eq. n1); Groups II, III.
     - `n2`: $|n_\pi|$ above which $\theta = \pi$ is stable (eq. n2); Groups I, II.
@@ -62,10 +62,20 @@ _THRESHOLD_FIELDS = ("n1", "n2", "J1", "J2", "theta_c", "x_b", "theta_b")
 def thresholds(top: TippeTop) -> Thresholds:
     r"""The thresholds $n_1, n_2, J_1, J_2, \theta_c, x_b, \theta_b$ of a top (closed forms).
 
+    With $a = A/C$ (inertia ratio) and $e = \epsilon/R$ (eccentricity),
+
     $$n_1 = \sqrt{\frac{m g\epsilon}{C(a - 1 + e)}}(1 - e),\qquad
       n_2 = \sqrt{\frac{m g\epsilon}{C(1 + e - a)}}(1 + e),$$
-    $$x_b = \frac{e}{1-a} - \frac{1}{1-a}\frac{\sqrt3}{3}\sqrt{a}\sqrt{1 - a - e^2}.$$
-    Works on batched tops and under `jit`/`grad`.
+    $$x_b = \frac{e}{1-a} - \frac{1}{1-a}\frac{\sqrt3}{3}\sqrt{a}\sqrt{1 - a - e^2}$$
+    (eqs. n1, n2, eqbif), $J_1 = C(R-\epsilon)n_1$, $J_2 = C(R+\epsilon)n_2$ and
+    $\cos\theta_c = e/(1-a)$. The thresholds do not depend on the friction law. Works on
+    batched tops and under `jit`/`grad`.
+
+    **Arguments:**
+
+    - `top`: a `TippeTop` (one, or a batch).
+
+    **Returns:** a `Thresholds` (see there for each field and the groups where it is defined).
     """
     a, e = top.A / top.C, top.eps / top.R
     nan = jnp.nan

@@ -16,6 +16,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Complex, Float
 
@@ -63,33 +64,45 @@ def branch_jellet(top: TippeTop, theta) -> Array:
 class SteadyStates(eqx.Module):
     r"""Steady states of a top for one Jellet value (fields for one top; batch with `vmap`).
 
+    `print(ss)` shows a table of the states (for concrete values of one top), the same as
+    `ss.table()`; `ss.intermediate` lists the filled intermediate states as `(theta, stable)`.
+
     Vertical states, index 0 for $\theta = 0$ and 1 for $\theta = \pi$:
 
     - `vertical_theta`: $(0, \pi)$; `vertical_spin`: $n_0 = J/(C(R-\epsilon))$,
-      $n_\pi = -J/(C(R+\epsilon))$.
-    - `vertical_stable`: $W'' > 0$ at the pole (eqs. cond_n1, stabpi_muniet0).
+      $n_\pi = -J/(C(R+\epsilon))$ (eq. jello).
+    - `vertical_d2W`: $W''$ at the pole; `vertical_stable`: $W'' > 0$ (eqs. cond_n1,
+      stabpi_muniet0).
     - `vertical_eigenvalues_so3` (4 each), `vertical_eigenvalues_full` (6 each): non-trivial
       eigenvalues of the SO(3) and full vector fields linearised at the pole (a regular chart).
 
     Intermediate states, up to two slots (`intermediate_valid` says which are filled; empty slots
     hold nan):
 
-    - `intermediate_theta`, `intermediate_d2W` ($W''$), `intermediate_g` ($g(\cos\theta_0)$),
-      `intermediate_stable` ($W'' > 0$).
+    - `intermediate_theta`, `intermediate_spin` ($n = J(R\cos\theta_0 - \epsilon)/D$ on the
+      relative equilibrium, $D = R^2 A\sin^2\theta_0 + C(R\cos\theta_0 - \epsilon)^2$),
+      `intermediate_d2W` ($W''$, eq. stabilityba), `intermediate_g` ($g(\cos\theta_0)$, eq.
+      eq:defg), `intermediate_stable` ($W'' > 0$).
     - `intermediate_eigenvalues_reduced` (3): autodiff Jacobian of the reduced system.
     - `intermediate_eigenvalues_polynomial` (3): the corrected characteristic polynomial.
     - `intermediate_eigenvalues_so3` (3), `intermediate_eigenvalues_full` (5): vector fields
       linearised in the co-rotating frame.
+
+    The reduced Jacobian, the polynomial and the SO(3) field describe the same model (translation
+    dropped in the friction), so their three eigenvalues agree; the full model has two more
+    modes (the translation) and eigenvalues of its own. `table()` reports both.
     """
 
     jellet: Float[Array, ""]
     vertical_theta: Float[Array, "2"]
     vertical_spin: Float[Array, "2"]
+    vertical_d2W: Float[Array, "2"]
     vertical_stable: Bool[Array, "2"]
     vertical_eigenvalues_so3: Complex[Array, "2 4"]
     vertical_eigenvalues_full: Complex[Array, "2 6"]
     intermediate_valid: Bool[Array, "2"]
     intermediate_theta: Float[Array, "2"]
+    intermediate_spin: Float[Array, "2"]
     intermediate_d2W: Float[Array, "2"]
     intermediate_g: Float[Array, "2"]
     intermediate_stable: Bool[Array, "2"]
@@ -101,8 +114,6 @@ class SteadyStates(eqx.Module):
     @property
     def intermediate(self) -> list[tuple[float, bool]]:
         """The filled intermediate states as a list of `(theta, stable)` (concrete values only)."""
-        import numpy as np
-
         valid = np.asarray(self.intermediate_valid)
         return [
             (float(t), bool(s))
@@ -111,6 +122,116 @@ class SteadyStates(eqx.Module):
             )
             if v
         ]
+
+    def rows(self) -> list[dict]:
+        """The states as a list of dicts, one per state (concrete values of one top only).
+
+        Keys: `state` ("vertical" or "intermediate"), `theta` (rad), `spin` (rad/s), `d2W`,
+        `stable` (by $W'' > 0$), `eigenvalues_so3`, `eigenvalues_full` (numpy arrays),
+        `max_real_so3`, `max_real_full` (the largest real part: negative for a
+        linearly stable state), `routes_agree` (whether the sign of every route's largest real
+        part agrees with `stable`) and, for intermediate states, `eigenvalues_reduced`,
+        `eigenvalues_polynomial` and `route_spread`: the largest distance between the
+        eigenvalues of the reduced Jacobian, the polynomial and the SO(3) field, matched
+        in sorted order (the three describe one model; rounding-level when they agree).
+        """
+        _check_concrete_single(self, "rows")
+        out = []
+        for i in range(2):
+            ev_so3 = np.asarray(self.vertical_eigenvalues_so3[i])
+            ev_full = np.asarray(self.vertical_eigenvalues_full[i])
+            stable = bool(self.vertical_stable[i])
+            out.append(dict(
+                state="vertical", theta=float(self.vertical_theta[i]),
+                spin=float(self.vertical_spin[i]), d2W=float(self.vertical_d2W[i]),
+                stable=stable, eigenvalues_so3=ev_so3, eigenvalues_full=ev_full,
+                max_real_so3=float(np.max(ev_so3.real)),
+                max_real_full=float(np.max(ev_full.real)),
+                routes_agree=_signs_agree(stable, ev_so3, ev_full),
+            ))
+        for i in range(2):
+            if not bool(self.intermediate_valid[i]):
+                continue
+            ev = {k: np.asarray(getattr(self, f"intermediate_eigenvalues_{k}")[i])
+                  for k in ("reduced", "polynomial", "so3", "full")}
+            stable = bool(self.intermediate_stable[i])
+            spread = max(_eigen_distance(ev["so3"], ev["reduced"]),
+                         _eigen_distance(ev["so3"], ev["polynomial"]))
+            out.append(dict(
+                state="intermediate", theta=float(self.intermediate_theta[i]),
+                spin=float(self.intermediate_spin[i]), d2W=float(self.intermediate_d2W[i]),
+                stable=stable, eigenvalues_so3=ev["so3"], eigenvalues_full=ev["full"],
+                eigenvalues_reduced=ev["reduced"], eigenvalues_polynomial=ev["polynomial"],
+                max_real_so3=float(np.max(ev["so3"].real)),
+                max_real_full=float(np.max(ev["full"].real)),
+                routes_agree=_signs_agree(stable, *ev.values()), route_spread=spread,
+            ))
+        return out
+
+    def table(self) -> str:
+        """The states as a text table: theta, spin, $W''$, stability, and the largest real
+        part of the eigenvalues by each route with their agreement (see `rows`)."""
+        d2w = "W''"
+        lines = [f"steady states at J = {float(self.jellet):.6g} kg m^2/s",
+                 f"  {'state':<13}{'theta (rad)':>12}{'spin (rad/s)':>14}{d2w:>12}  "
+                 f"{'stable':<9}{'max Re so3':>12}{'max Re full':>13}  routes"]
+        for row in self.rows():
+            if row["state"] == "intermediate":
+                routes = "agree" if row["routes_agree"] else "DISAGREE"
+                routes += f" (spread {row['route_spread']:.1e})"
+            else:
+                routes = "agree" if row["routes_agree"] else "DISAGREE"
+            lines.append(
+                f"  {row['state']:<13}{row['theta']:>12.6g}{row['spin']:>14.6g}"
+                f"{row['d2W']:>12.4g}  {'stable' if row['stable'] else 'unstable':<9}"
+                f"{row['max_real_so3']:>12.4g}{row['max_real_full']:>13.4g}  {routes}"
+            )
+        if not np.asarray(self.intermediate_valid).any():
+            lines.append("  (no intermediate state at this J)")
+        return "\n".join(lines)
+
+    def __repr__(self) -> str:
+        if _is_concrete_single(self):
+            return self.table()
+        return eqx.tree_pformat(self)
+
+    __str__ = __repr__
+
+
+def _is_concrete_single(ss: SteadyStates) -> bool:
+    leaves = jax.tree_util.tree_leaves(ss)
+    return (not any(isinstance(x, jax.core.Tracer) for x in leaves)
+            and jnp.ndim(ss.jellet) == 0)
+
+
+def _check_concrete_single(ss: SteadyStates, what: str) -> None:
+    if not _is_concrete_single(ss):
+        raise ValueError(
+            f"SteadyStates.{what}() needs the concrete steady states of one top and one J "
+            "(call it outside jax.jit/vmap; for a batch, index one member first)."
+        )
+
+
+def _signs_agree(stable: bool, *eigenvalue_sets) -> bool:
+    """Whether every route's largest real part has the sign that `stable` implies. A real
+    part within rounding of 0 (a neutral direction, at a threshold) agrees either way."""
+    for ev in eigenvalue_sets:
+        if ev.size == 0 or not np.all(np.isfinite(ev)):
+            return False
+        worst = float(np.max(ev.real))
+        scale = float(np.max(np.abs(ev))) or 1.0
+        if abs(worst) <= 1e-9 * scale:
+            continue
+        if (worst < 0) != stable:
+            return False
+    return True
+
+
+def _eigen_distance(a, b) -> float:
+    """The largest distance between two sets of eigenvalues matched in sorted order."""
+    a = np.sort_complex(np.asarray(a))
+    b = np.sort_complex(np.asarray(b))
+    return float(np.max(np.abs(a - b))) if a.shape == b.shape else float("inf")
 
 
 def branch_pieces(top: TippeTop):
@@ -220,15 +341,20 @@ def _steady_states(top: TippeTop, J) -> SteadyStates:
     vertical_full = jnp.stack(
         [vector_field_eigenvalues(top, p, J, model="full", pole=True) for p in (poles[0], poles[1])]
     )
+    x = jnp.cos(safe)
+    lever = top.R * x - top.eps
+    spin_i = J * lever / (top.R**2 * top.A * (1.0 - x**2) + top.C * lever**2)
     return SteadyStates(
         jellet=J,
         vertical_theta=poles,
         vertical_spin=jnp.stack([J / (top.C * (top.R - top.eps)), -J / (top.C * (top.R + top.eps))]),
+        vertical_d2W=vertical_d2w,
         vertical_stable=vertical_d2w > 0,
         vertical_eigenvalues_so3=vertical_so3,
         vertical_eigenvalues_full=vertical_full,
         intermediate_valid=valid,
         intermediate_theta=theta_i,
+        intermediate_spin=mask(spin_i),
         intermediate_d2W=mask(d2w),
         intermediate_g=mask(g),
         intermediate_stable=valid & (d2w > 0),

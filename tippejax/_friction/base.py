@@ -11,6 +11,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from .._errors import branched_error_if
+
 
 def is_traced(x) -> bool:
     return isinstance(x, jax.core.Tracer)
@@ -43,24 +45,45 @@ def broadcast_fields(owner: str, names, values):
     return [jnp.broadcast_to(v, shape) for v in values]
 
 
+def describe_failure(failed, names, values, most: int = 3) -> str:
+    """Which members broke a rule, and their values: short, whatever the batch's size."""
+    failed = np.asarray(failed)
+
+    def show(index) -> str:
+        return ", ".join(
+            f"{k}={float(np.broadcast_to(v, failed.shape)[index]):.6g}"
+            for k, v in zip(names, values))
+
+    if failed.ndim == 0:
+        return f"Got {show(())}."
+    where = np.argwhere(failed)
+    members = [f"[{', '.join(str(int(i)) for i in index)}]: {show(tuple(index))}"
+               for index in where[:most]]
+    more = f"; and {len(where) - most} more" if len(where) > most else ""
+    return (f"{len(where)} of the batch's {failed.size} (shape {failed.shape}) break it; at "
+            f"index {'; '.join(members)}{more}.")
+
+
 def checked(owner: str, names, values, checks):
     """`values` after the rules `checks(*values)` (a list of (failed, message)).
 
-    Concrete values that break a rule raise `ValueError` with the message and the values;
-    traced ones carry an `equinox` runtime check, attached to every value so that whichever
-    one a computation uses keeps it (an unused `error_if` output would be dropped)."""
+    Concrete values that break a rule raise `ValueError` with the message and the offending
+    members' values (the first few of a batch); traced ones carry a runtime check, attached to
+    every value so that whichever one a computation uses keeps it, also under differentiation
+    (`tippejax._errors`)."""
     if not any(is_traced(v) for v in values):
         np_values = [np.asarray(v) for v in values]
         for failed, message in checks(*np_values):
             if np.any(failed):
-                got = ", ".join(f"{k}={v.tolist()}" for k, v in zip(names, np_values))
-                raise ValueError(f"{message} Got {got}.")
+                failed = np.broadcast_to(failed, np.broadcast_shapes(
+                    np.shape(failed), *(np.shape(v) for v in np_values)))
+                raise ValueError(f"{message} {describe_failure(failed, names, np_values)}")
         return list(values)
     rules = checks(*values)
     failed = jnp.stack([jnp.any(f) for f, _ in rules])
     index = jnp.argmax(failed)
     messages = tuple(msg for _, msg in rules)
-    return [eqx.branched_error_if(v, jnp.any(failed), index, messages) for v in values]
+    return [branched_error_if(v, jnp.any(failed), index, messages) for v in values]
 
 
 def finite_rules(owner: str, names, values, xp):

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -10,6 +9,7 @@ import numpy as np
 from .._bucket import bucket
 from .._cache import to_device
 from .._engine.solver_choice import is_traced
+from .._errors import error_if
 from .._state import State
 from .._top import TippeTop
 
@@ -99,7 +99,7 @@ def _check_saveat(saveat, t0, t1, dtype):
             )
     else:
         bad = (ts[0] < t0) | (ts[-1] > t1) | jnp.any(jnp.diff(ts) < 0)
-        ts = eqx.error_if(ts, bad, "saveat must be non-decreasing and lie within [t0, t1].")
+        ts = error_if(ts, bad, "saveat must be non-decreasing and lie within [t0, t1].")
     return ts
 
 
@@ -156,11 +156,11 @@ def save_times(summary, saveat, t0, t1, dtype):
 
 def checked_state(y0: State) -> State:
     """`y0`, checked to be a valid state (`_state_defect`): a `ValueError` for a concrete
-    state, an `eqx.error_if` at run time for a traced one."""
+    state, a runtime check (`tippejax._errors`) for a traced one."""
     if concrete(y0):  # (checked in numpy: no device program)
         defect = _state_defect(jax.tree_util.tree_map(np.asarray, y0), xp=np)
         if not float(defect) < _STATE_TOL:
             raise ValueError(_STATE_MESSAGE)
         return y0
     defect = _state_defect(y0)
-    return eqx.error_if(y0, ~(defect < _STATE_TOL), _STATE_MESSAGE)
+    return error_if(y0, ~(defect < _STATE_TOL), _STATE_MESSAGE)

@@ -18,6 +18,7 @@ from .._engine.segment import PACK_WIDTH, pack_width_for
 from .._engine.sensitivity import ForwardSensitivities
 from .._engine.solver_choice import IMPLICIT_RATE, STIFF_RATE, default_solver, friction_rate
 from .._engine.watch import EVENT_PIECES
+from .._errors import result_error_if
 from .._models.levels import LEVELS, check_friction
 from .._outcome import classify_program
 from .._solution import RESULTS, Solution
@@ -311,4 +312,4 @@ def _raise_if_failed(sol: Solution, on_contact_loss: str, top: TippeTop | None =
     failed = sol.result != allowed[0]
     for code in allowed[1:]:
         failed = failed & (sol.result != code)
-    return sol.result.error_if(sol, failed)
+    return result_error_if(sol, sol.result, failed)
