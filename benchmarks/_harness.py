@@ -62,13 +62,14 @@ def machine_line() -> str:
     import jax
     import scipy
 
-    c = cpu()
-    devices = jax.devices()
+    c, devices = cpu(), jax.devices()
+    name = " ".join(re.sub(r"\((R|TM)\)|\bCPU\b|\bProcessor\b", "", c["name"]).split())
+    n = len(devices)
     return (
-        f"{c['name']}, {c['cores']} cores @ {c['ghz']:.2f} GHz; python "
-        f"{platform.python_version()}, jax {jax.__version__}, diffrax {diffrax.__version__}, "
-        f"equinox {equinox.__version__}, numpy {np.__version__}, scipy {scipy.__version__}; "
-        f"{len(devices)} {devices[0].platform} device(s)"
+        f"{name}, {c['cores']} cores @ {c['ghz']:.2f} GHz; python {platform.python_version()}, "
+        f"jax {jax.__version__}, diffrax {diffrax.__version__}, equinox {equinox.__version__}, "
+        f"numpy {np.__version__}, scipy {scipy.__version__}; {n} {devices[0].platform} "
+        f"device{'s' if n > 1 else ''}"
     )
 
 
