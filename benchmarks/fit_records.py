@@ -4,7 +4,7 @@ Every record is a tippe top's tilt theta(t) as a camera would see it: sampled at
 Gaussian noise, sometimes a gap. The clean signal comes from `tests/vector_reference.py`
 (Newton-Euler in vector form, DOP853; no tippejax physics), so a fit that recovers the parameters
 is not recovering its own integrator's output. tippejax is imported only for `classify` and
-`thresholds` (group of a top, turn-over threshold n1).
+`thresholds` (group of a top, turn-over threshold n1), each checked against the closed forms.
 
 How a record is drawn (record i of seed s uses its own generator, `default_rng([s, i])`, so
 `draw_records(10, s)` is the first 10 of `draw_records(60, s)`):
@@ -40,18 +40,16 @@ The Cramer-Rao bound: Fisher F = J^T J / sigma^2 over the non-NaN samples, J = d
 central differences of the independent integrator (relative steps 1e-6 for mu and eps, 1e-7 for
 spin, absolute 1e-5 rad/s for theta_dot), all 1 + 2 n_free solves in one batch with one shared
 DOP853 step sequence at rtol 1e-10, so that the differences are those of one smooth map (they
-converge as the steps shrink; `--check-crb` re-computes every bound with 10x smaller steps and
-with rtol 1e-12). The clean data use rtol 1e-12. crb = sqrt(diag(F^-1)).
+converge as the steps shrink). The clean data use rtol 1e-12. crb = sqrt(diag(F^-1)).
 
 Records are cached under ~/.cache/tippejax-bench/ (one .npz per record, keyed by seed, record
 index, VERSION and a hash of this file and of the integrator); nothing there is committed.
 
-Run: `python benchmarks/fit_records.py --n 60 --seed 0` prints the table of records.
+`python benchmarks/fitting.py --records` prints the table of records.
 """
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
 import math
@@ -109,18 +107,10 @@ def _n1(p):
     return math.sqrt(p["m"] * p["g"] * p["eps"] / (p["C"] * (a - 1.0 + e))) * (1.0 - e)
 
 
-def _tj():
-    try:
-        import tippejax as tj
-    except Exception as err:  # noqa: BLE001 - the package may be mid-edit; say so and go on
-        print(f"fit_records: tippejax not importable ({type(err).__name__}: {err}); groups and "
-              "n1 from the paper's closed forms instead", file=sys.stderr)
-        return None
-    return tj
-
-
-def _draw_top(rng, group, tj):
+def _draw_top(rng, group):
     """Draw top parameters in `group` (rejection on A/C, eps/R); returns (params, n1)."""
+    import tippejax as tj
+
     for _ in range(100):
         k = 256
         a = rng.uniform(0.5, 1.6, k)
@@ -129,18 +119,11 @@ def _draw_top(rng, group, tj):
         R = rng.uniform(0.010, 0.030, k)
         C = 0.4 * m * R**2 * rng.uniform(0.8, 1.2, k)
         mu = np.exp(rng.uniform(math.log(0.05), math.log(2.0), k))
-        groups = _classify_numpy(a, e)
-        if tj is not None:
-            top = tj.TippeTop(m=m, R=R, eps=e * R, A=a * C, C=C, g=9.81, mu=mu)
-            tj_groups = np.asarray(tj.classify(top)).astype(object)
-            n1 = np.asarray(tj.thresholds(top).n1, float)
-            if np.any(tj_groups != groups):
-                raise AssertionError("tj.classify disagrees with the paper's closed forms")
-            groups = tj_groups
-        else:
-            n1 = np.array([_n1(dict(m=m[i], g=9.81, eps=e[i] * R[i], C=C[i], A=a[i] * C[i],
-                                    R=R[i])) if groups[i] in GROUPS else np.nan
-                           for i in range(k)])
+        top = tj.TippeTop(m=m, R=R, eps=e * R, A=a * C, C=C, g=9.81, mu=mu)
+        groups = np.asarray(tj.classify(top)).astype(object)
+        n1 = np.asarray(tj.thresholds(top).n1, float)
+        if np.any(groups != _classify_numpy(a, e)):
+            raise AssertionError("tj.classify disagrees with the paper's closed forms")
         ok = np.nonzero((groups == group) & (n1 < N1_MAX))[0]
         if ok.size:
             i = ok[0]
@@ -204,7 +187,7 @@ def cramer_rao(jac, sigma, mask, *, covariance=False):
     return (std, cov) if covariance else std
 
 
-def _draw_one(seed, index, tj, max_crb_rel):
+def _draw_one(seed, index, max_crb_rel):
     rng = np.random.default_rng([seed, index])
     group = GROUPS[index % len(GROUPS)]
     rejected = {"solver_failed": 0, "contact_lost_before_3s": 0, "crb_above_max": 0}
@@ -212,7 +195,7 @@ def _draw_one(seed, index, tj, max_crb_rel):
     upright = bool(rng.uniform() < UPRIGHT_FRACTION)
     has_gap = bool(rng.uniform() < GAP_FRACTION)
     for attempt in range(200):
-        params, n1 = _draw_top(rng, group, tj)
+        params, n1 = _draw_top(rng, group)
         spin_factor = math.exp(rng.uniform(math.log(1.5), math.log(8.0)))
         spin = spin_factor * n1
         if upright:
@@ -341,21 +324,20 @@ def draw_records(n: int, seed: int, *, max_crb_rel: float | None = MAX_CRB_REL, 
         raise ValueError(f"n must be a non-negative int, got {n!r}")
     if not isinstance(seed, int):
         raise ValueError(f"seed must be an int, got {seed!r}")
-    tj = None
-    records = []
+    records, warned = [], False
     for index in range(n):
         path = _cache_path(seed, index, max_crb_rel)
         if cache and path.exists():
             records.append({**_load(path), "from_cache": True})
             continue
-        if tj is None:
-            tj = _tj() or False
+        if not warned:
+            warned = True
             if not vr.HAVE_NUMBA:
                 print("fit_records: numba is not installed, so the reference integrator runs "
                       "as plain Python, about 100x slower (a record can take many minutes); "
                       "`pip install -e \".[bench]\"` installs it", file=sys.stderr)
         t0 = time.perf_counter()
-        rec = _draw_one(seed, index, tj or None, max_crb_rel)
+        rec = _draw_one(seed, index, max_crb_rel)
         rec["seconds"] = time.perf_counter() - t0
         if cache:
             _save(path, rec)
@@ -364,91 +346,3 @@ def draw_records(n: int, seed: int, *, max_crb_rel: float | None = MAX_CRB_REL, 
         if verbose:
             print(f"  record {index}: {rec['group']}, {rec['seconds']:.2f} s", file=sys.stderr)
     return records
-
-
-# ----------------------------------------------------------------------------------------------
-# Command line
-# ----------------------------------------------------------------------------------------------
-
-
-def _table(records):
-    head = ("  #  group  launch        rate Hz  length s  noise rad  spin/n1  n1 rad/s  mu s/m  "
-            "eps/R  A/C   gap  t_inv   crb/|truth|: mu, eps, spin[, theta_dot]")
-    lines = [head]
-    for r in records:
-        p = r["params"]
-        launch = (f"up thd={r['launch']['theta_dot']:.2f}" if r["upright"]
-                  else f"th0={r['launch']['theta0']:.3f}")
-        crb = ", ".join(f"{r['crb_rel'][k]:.1e}" for k in r["free"])
-        t_inv = f"{r['t_invert']:5.2f}" if r["t_invert"] is not None else "  -  "
-        lost = f" lost@{r['t_contact_loss']:.1f}" if r["contact_lost"] else ""
-        lines.append(
-            f"{r['index']:3d}  {r['group']:4s}  {launch:13s} {r['rate_hz']:7.1f}  "
-            f"{r['length_s']:8.2f}  {r['sigma']:9.4f}  {r['spin_over_n1']:7.2f}  {r['n1']:8.1f}  "
-            f"{p['mu']:6.3f}  {p['eps'] / p['R']:5.3f}  {p['A'] / p['C']:4.2f}  "
-            f"{'yes' if r['gap'] else ' no'}  {t_inv}   {crb}{lost}")
-    return "\n".join(lines)
-
-
-def check_crb(records):
-    """Largest relative change of each record's bound when the FD solves use rtol 1e-12, and when
-    the FD steps are 10x smaller (at rtol 1e-10): the bound's own numerical error."""
-    rows = []
-    for r in records:
-        mask = np.isfinite(r["theta_obs"])
-        base = np.array([r["crb"][k] for k in r["free"]])
-        out = []
-        for kw in (dict(rtol=1e-12), dict(step_scale=0.1)):
-            _, jac = sensitivities(r["params"], r["launch"], r["free"], r["ts"], **kw)
-            out.append(float(np.max(np.abs(cramer_rao(jac, r["sigma"], mask) / base - 1))))
-        rows.append(out)
-    return np.array(rows)
-
-
-def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--n", type=int, default=60)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--no-cache", action="store_true")
-    parser.add_argument("--max-crb-rel", type=float, default=MAX_CRB_REL,
-                        help="redraw records whose bound exceeds this fraction (<= 0: keep all)")
-    parser.add_argument("--check-crb", action="store_true",
-                        help="recompute every bound at rtol 1e-12 and with halved FD steps")
-    args = parser.parse_args(argv)
-    t0 = time.perf_counter()
-    cut = args.max_crb_rel if args.max_crb_rel > 0 else None
-    records = draw_records(args.n, args.seed, max_crb_rel=cut, cache=not args.no_cache,
-                           verbose=True)
-    elapsed = time.perf_counter() - t0
-    print(_table(records))
-    groups = {g: sum(r["group"] == g for r in records) for g in GROUPS}
-    print(f"\n{len(records)} records, groups {groups}, upright {sum(r['upright'] for r in records)}, "
-          f"with gap {sum(r['gap'] is not None for r in records)}, contact lost (cut) "
-          f"{sum(r['contact_lost'] for r in records)}, inverted (theta > pi/2) "
-          f"{sum(r['t_invert'] is not None for r in records)}")
-    made = [r["seconds"] for r in records if not r.get("from_cache")]
-    if args.check_crb:
-        t1 = time.perf_counter()
-        changes = check_crb(records)
-        print(f"bound re-computed with FD solves at rtol 1e-12: largest relative change "
-              f"{changes[:, 0].max():.2e} (median {np.median(changes[:, 0]):.1e}); with FD steps "
-              f"10x smaller: {changes[:, 1].max():.2e} (median {np.median(changes[:, 1]):.1e}); "
-              f"{time.perf_counter() - t1:.1f} s")
-    rej = {k: sum(r["rejected"][k] for r in records) for k in records[0]["rejected"]}
-    print(f"draws rejected before these records were kept: {rej}")
-    for g in GROUPS:
-        kept = [r for r in records if r["group"] == g]
-        drawn = sum(r["attempts"] for r in kept)
-        print(f"  group {g}: kept {len(kept)} of {drawn} draws; bound > cut: "
-              f"{sum(r['rejected']['crb_above_max'] for r in kept)}")
-    floor = [r["sigma"] / math.sqrt(np.isfinite(r["theta_obs"]).sum()) for r in records]
-    print(f"noise / sqrt(N) per record: min {min(floor):.1e}, median {np.median(floor):.1e} rad "
-          "(numerical error inside a fit should stay well below this)")
-    print(f"integration error of the FD solves (rtol {RTOL_FD:g}) against the data (rtol "
-          f"{RTOL_DATA:g}): max {max(r['fd_data_gap'] for r in records):.1e} rad")
-    print(f"wall {elapsed:.1f} s; generation of the {len(made)} records not cached: "
-          f"{sum(made):.1f} s (median {np.median(made) if made else float('nan'):.2f} s/record)")
-
-
-if __name__ == "__main__":
-    main()

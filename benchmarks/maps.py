@@ -1,479 +1,330 @@
-"""Outcome maps: launches per second, memory per launch, and what a cheaper level or a looser
-tolerance changes in the map.
+"""maps: outcome maps: launches per second, memory per launch, what a cheaper level or another
+tolerance changes in a map, maps of 1e5 launches and over two processes.
 
-    python benchmarks/maps.py [--n-theta 24 --n-spin 32 --t1 20] [--no-processes] [--auto-only]
+Standard top (group IIb) unless said, theta0 = linspace(0.02, 1.5, 24) x spin = linspace(10,
+220, 32) = 768 launches, 20 s, float64. Times: the second call (compiled), wall clock.
 
-Writes its section of benchmarks/RESULTS.md. Measured in one run on one machine:
-
-1. Cost of one map of the standard top (theta0 x spin, t1), as `tj.outcome_map` runs it
-   (summary outputs, classification), against the simplest alternatives a user has: the same
-   launches through `tj.simulate_batch` (summary mode, no classification) and a Python loop of
-   jitted `tj.simulate` calls (a sample of launches, scaled).
-2. Outcomes that change with the level of model (so3, routhian against full) and with the
-   tolerance (rtol 1e-6, the map's default, against 1e-9): the error between levels on the
-   question a map asks, measured.
-3. Memory per launch: XLA's memory analysis of the compiled chunk for two chunk sizes (the
-   slope is the memory per launch), and the process's peak RSS.
-4. Two processes with `jax.distributed` (examples/distributed_map.py) against one.
-5. `model="auto"` (the gyroscopic level where it holds, the full model where it does not, in
-   batches of their own) against the full model on the standard, IIa and III tops: launches
-   per second, agreement of the outcomes, missed contact losses (`--auto-only`: this alone).
+    python benchmarks/maps.py --cost
 """
 
 from __future__ import annotations
 
-import argparse
 import os
-import resource
 import socket
 import subprocess
 import sys
 import time
 
-import equinox as eqx
+import _harness as h
 import jax
+import jax.numpy as jnp
 import numpy as np
-from jax.sharding import Mesh
 
 import tippejax as tj
-from tippejax._maps import _run_chunk
-
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _common import machine_line, random_top, table, write_section  # noqa: E402
-
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
-def timed_map(**kwargs):
-    start = time.perf_counter()
-    om = tj.outcome_map(**kwargs)
-    first = time.perf_counter() - start
-    start = time.perf_counter()
-    om = tj.outcome_map(**kwargs)
-    return om, first, time.perf_counter() - start
+def grid(args):
+    n_theta, n_spin = (3, 4) if args.smoke else (args.n_theta, args.n_spin)
+    return (
+        np.linspace(0.02, 1.5, n_theta),
+        np.linspace(10.0, 220.0, n_spin),
+        2.0 if args.smoke else args.t1,
+    )
 
 
-def memory_per_launch(top, t1):
-    fields, static = eqx.partition(top, eqx.is_array)
-    fields = jax.tree_util.tree_map(np.asarray, fields)
-    options = ("full", 1e-6, 1e-9, tj.default_solver(top), 200_000, 0.1)
+def second_call(fn):
+    fn()
+    wall, _, out = h.call(fn)
+    return out, wall
+
+
+def moves(ref, other) -> str:
+    diff = ref != other
+    out = {}
+    for a, b in zip(ref[diff], other[diff]):
+        key = f"{tj.OUTCOMES[int(a)]} -> {tj.OUTCOMES[int(b)]}"
+        out[key] = out.get(key, 0) + 1
+    return ", ".join(f"{k} {v}" for k, v in sorted(out.items(), key=lambda kv: -kv[1])) or "none"
+
+
+def cost(args):
+    """`outcome_map` against `simulate_batch` and a loop of `simulate`; other levels and
+    tolerances against the reference map; memory per launch."""
+    top, (theta0, spin, t1) = tj.default_top(), grid(args)
+    n, kw = theta0.size * spin.size, dict(summary=True, throw=False, rtol=1e-6, atol=1e-9)
+    maps = {
+        label: second_call(lambda k=k: tj.outcome_map(top, theta0, spin, t1=t1, **k))
+        for label, k in (
+            ("full, rtol 1e-6", dict(model="full")),
+            ("full, rtol 1e-9", dict(model="full", rtol=1e-9, atol=1e-12)),
+            ("so3, rtol 1e-6", dict(model="so3")),
+            ("routhian, rtol 1e-6", dict(model="routhian")),
+        )
+    }
+    ref, t_map = maps["full, rtol 1e-6"]
+    _, t_batch = second_call(lambda: tj.simulate_batch(top, theta0, spin, t1, **kw))
+
+    def one(a, b):
+        return tj.simulate(top, tj.initial_state(top, a, b), t1, **kw).theta
+
+    sample = [
+        (a, b) for a in theta0[:: max(1, theta0.size // 4)] for b in spin[:: max(1, spin.size // 4)]
+    ]
+    loop = jax.jit(one)
+    jax.block_until_ready(loop(0.1, 100.0))
+    t_loop = sum(h.call(lambda a=a, b=b: loop(a, b))[0] for a, b in sample) / len(sample) * n
+    times = {
+        "tj.simulate_batch, summary (no classification)": t_batch,
+        f"loop of jitted tj.simulate ({len(sample)} launches, scaled)": t_loop,
+    }
+    times |= {f"tj.outcome_map ({label})": wall for label, (_, wall) in maps.items()}
+    rows = [f"{k} | {w:.2f} | {n / w:.1f} | {w / t_map:.2f}" for k, w in times.items()]
+    out_ref = np.asarray(ref.outcome)
+    agree = "; ".join(
+        f"{label} {int((np.asarray(om.outcome) != out_ref).sum())} of {n} ({moves(out_ref, np.asarray(om.outcome))})"
+        for label, (om, _) in list(maps.items())[1:]
+    )
     sizes = {}
-    for n in (256, 1024):
-        x = np.full(n, 0.1)
-        mesh = Mesh(np.array(jax.devices()[:1]), ("launch",))
-        compiled = _run_chunk.lower(fields, static, x, x + 100.0, np.float64(t1), options,
-                                    mesh).compile()
-        # equinox's Compiled wraps jax's (its `.compiled`), which has the memory analysis
-        mem = getattr(compiled, "compiled", compiled).memory_analysis()
-        sizes[n] = (mem.temp_size_in_bytes + mem.argument_size_in_bytes
-                    + mem.output_size_in_bytes)
-    slope = (sizes[1024] - sizes[256]) / (1024 - 256)
-    return sizes, slope
+    for k in (256, 1024):
+        mem = (
+            jax.jit(jax.vmap(one))
+            .lower(jnp.full(k, 0.1), jnp.full(k, 100.0))
+            .compile()
+            .memory_analysis()
+        )
+        sizes[k] = mem.temp_size_in_bytes + mem.argument_size_in_bytes + mem.output_size_in_bytes
+    h.write(
+        "maps.py --cost",
+        "Cost of a map, and what a cheaper level or another tolerance changes",
+        f"""
+{theta0.size} x {spin.size} launches, t1 = {t1:g} s. The reference map (full, rtol 1e-6): {", ".join(f"{k} {v}" for k, v in ref.counts().items())}.
+
+{h.table("run | wall s | launches/s | vs outcome_map", rows)}
+
+Outcomes that differ from the reference map: {agree}. Memory per launch (XLA's memory analysis of a compiled batch of summary solves, a map's chunk without its classification): {sizes[256] / 1e6:.2f} MB for 256 launches, {sizes[1024] / 1e6:.2f} MB for 1024: **{(sizes[1024] - sizes[256]) / 768e3:.1f} kB per launch**, whatever t1; a map runs in chunks (`chunk_size`).
+""",
+        args,
+    )
 
 
-SCALE_SCRIPT = """
+SCALE = """
 import sys, time
 import numpy as np
 import tippejax as tj
 n, t1 = int(sys.argv[1]), float(sys.argv[2])
-top = tj.default_top()
-def rss():  # peak RSS of this process (VmHWM: reset at exec, unlike ru_maxrss)
+def rss():  # peak RSS of this process (VmHWM)
     with open("/proc/self/status") as f:
-        return next(int(line.split()[1]) for line in f if line.startswith("VmHWM")) / 1024
+        return next(int(x.split()[1]) for x in f if x.startswith("VmHWM")) / 1024
 side = int(round(n ** 0.5))
 th, sp = np.linspace(0.02, 1.5, side), np.linspace(10.0, 220.0, side)
-start = time.perf_counter()
-tj.outcome_map(top, th[:64], sp[:64], t1=t1, model="full")  # one chunk of 4096 (compiles)
-one = rss()
-first = time.perf_counter() - start
-start = time.perf_counter()
-om = tj.outcome_map(top, th, sp, t1=t1, model="full")
-wall = time.perf_counter() - start
-print(side * side, first, one, wall, rss(), om.counts()["failed"])
+tj.outcome_map(tj.default_top(), th[:64], sp[:64], t1=t1, model="full")  # one chunk: compiles
+one, start = rss(), time.perf_counter()
+om = tj.outcome_map(tj.default_top(), th, sp, t1=t1, model="full")
+print('{"n": %d, "wall": %f, "rss_one": %f, "rss": %f, "failed": %d}'
+      % (side * side, time.perf_counter() - start, one, rss(), om.counts()["failed"]))
 """
 
 
-def scale_run(n, t1):
-    """A map of ~n launches in a fresh process: time and peak RSS after one chunk and at the end."""
-    out = subprocess.run([sys.executable, "-c", SCALE_SCRIPT, str(n), str(t1)],
-                         capture_output=True, text=True, check=True).stdout.split()
-    size, first, rss_one, wall, rss_end, failed = out[-6:]
-    return int(size), float(first), float(rss_one), float(wall), float(rss_end), int(failed)
+def scale(args):
+    """A map of 1e5 launches in a fresh process: time, and peak memory after one chunk and at
+    the end."""
+    n, t1 = (400, 0.2) if args.smoke else (args.launches, 0.5)
+    r = h.fresh_process(SCALE, str(n), str(t1))
+    h.write(
+        "maps.py --scale",
+        "Many launches",
+        f"""
+{r["n"]} launches (theta0 x spin over the ranges above), t1 = {t1:g} s, in a fresh process: {r["wall"]:.1f} s ({r["n"] / r["wall"]:.0f} launches/s, {r["failed"]} failed). Peak RSS {r["rss_one"]:.0f} MB after one chunk (with compilation), {r["rss"]:.0f} MB at the end: memory is bounded by the chunk, not the number of launches.
+""",
+        args,
+    )
 
 
-def two_processes(n_theta, n_spin, t1):
-    script = os.path.join(ROOT, "examples", "distributed_map.py")
+def processes(args):
+    """`examples/distributed_map.py` in two CPU processes (gloo collectives) against one."""
+    script = os.path.join(os.path.dirname(h.HERE), "examples", "distributed_map.py")
+    n_theta, n_spin, t1 = (2, 4, 1.0) if args.smoke else (8, 16, 12.0)
+    size = f"--n-theta {n_theta} --n-spin {n_spin} --t1 {t1:g}".split()
     with socket.socket() as s:
         s.bind(("localhost", 0))
         port = s.getsockname()[1]
-    common = ["--n-theta", str(n_theta), "--n-spin", str(n_spin), "--t1", str(t1)]
-    env = dict(os.environ, JAX_PLATFORMS="cpu")
-    start = time.perf_counter()
+    start, tmp = time.perf_counter(), os.environ.get("TMPDIR", "/tmp")
     procs = [
         subprocess.Popen(
-            [sys.executable, script, "--coordinator", f"localhost:{port}", "--num-processes", "2",
-             "--process-id", str(pid), "--out", f"/tmp/tippejax_map{pid}.npz", *common],
-            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+            [
+                sys.executable,
+                script,
+                "--coordinator",
+                f"localhost:{port}",
+                "--num-processes",
+                "2",
+                "--process-id",
+                str(i),
+                "--out",
+                os.path.join(tmp, f"map{i}.npz"),
+                *size,
+            ],
+            env=dict(os.environ, JAX_PLATFORMS="cpu", TIPPEJAX_HOST_DEVICES="1"),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
         )
-        for pid in (0, 1)
+        for i in (0, 1)
     ]
-    outs = [p.communicate()[0] for p in procs]
+    outs = [q.communicate()[0] for q in procs]
     wall = time.perf_counter() - start
-    line = [ln for ln in outs[0].splitlines() if "launches/s" in ln]
-    return wall, (line[0] if line else outs[0][-500:])
+    line = next((x for x in outs[0].splitlines() if "launches/s" in x), outs[0][-300:])
+    th, sp = np.linspace(0.05, 1.5, n_theta), np.linspace(15.0, 200.0, n_spin)
+    _, t_one = second_call(lambda: tj.outcome_map(tj.default_top(), th, sp, t1=t1, model="full"))
+    h.write(
+        "maps.py --processes",
+        "Two processes",
+        f"""
+`examples/distributed_map.py {" ".join(size)}`, two CPU processes with one device each: {line.strip()}; the whole command {wall:.1f} s (two interpreters, two compilations). The same map in this process after compilation: {t_one:.2f} s ({th.size * sp.size / t_one:.1f} launches/s). On one machine a second process buys nothing; this shows the code path across processes.
+""",
+        args,
+    )
 
 
 GROUP_TOPS = {"standard": None, "IIa": (0.69, 0.38), "III": (1.6, 0.2)}
-"""The tops of the auto maps: the standard top (Group IIb) and the representatives of groups
-IIa and III of `tippejax map --group`."""
-
-ROUNDS = 3
-"""Interleaved timing rounds (full map, auto map) after the compiling calls; medians."""
-
-
-def group_top(name):
-    if GROUP_TOPS[name] is None:
-        return tj.default_top()
-    a, e = GROUP_TOPS[name]
-    return tj.TippeTop.from_ratios(a, e, m=0.02, R=0.025, mu=0.3)
-
-
-def changes(ref, other):
-    """{"reference -> this": count} of the launches whose outcome differs."""
-    moves = {}
-    for a, b in zip(ref[ref != other], other[ref != other]):
-        key = f"{tj.OUTCOMES[int(a)]} -> {tj.OUTCOMES[int(b)]}"
-        moves[key] = moves.get(key, 0) + 1
-    return moves
 
 
 def compare(full, auto):
-    """Agreement of two maps' outcomes, what changed, and the contact losses."""
     f, a = np.asarray(full.outcome), np.asarray(auto.outcome)
     lost = tj.OUTCOMES.index("contact_lost")
-    both = (f == lost) & (a == lost)
-    dt = np.abs(np.asarray(auto.t_contact_loss) - np.asarray(full.t_contact_loss))[both]
     return dict(
-        n=f.size, agree=float(np.mean(f == a)), moves=changes(f, a),
-        losses=int(np.sum(f == lost)), missed=int(np.sum((f == lost) & (a != lost))),
+        n=f.size,
+        agree=float(np.mean(f == a)),
+        moves=moves(f, a),
+        losses=int(np.sum(f == lost)),
+        missed=int(np.sum((f == lost) & (a != lost))),
         extra=int(np.sum((f != lost) & (a == lost))),
-        dt_loss=float(dt.max()) if dt.size else float("nan"),
     )
 
 
-def auto_maps(n_theta, n_spin, t1):
-    """`outcome_map(model="auto")` (staged: gyroscopic level where it holds, full model where it
-    does not) against `model="full"` on the standard, IIa and III tops, in one process: launches
-    per second (medians of interleaved rounds after compilation), agreement, changed outcomes,
-    missed contact losses, the routes the launches took; and agreement on a second, shifted
-    grid (other theta0 and spin values) of each top."""
-    theta0 = np.linspace(0.02, 1.5, n_theta)
-    spin = np.linspace(10.0, 220.0, n_spin)
-    shifted = (np.linspace(0.05, 1.45, max(2, n_theta - 5)),
-               np.linspace(14.0, 215.0, max(2, n_spin - 5)))
-    rows = []
-    for name in GROUP_TOPS:
-        top = group_top(name)
-        kw = dict(top=top, theta0=theta0, spin=spin, t1=t1)
-        start = time.perf_counter()
-        tj.outcome_map(**kw, model="full")
-        compile_full = time.perf_counter() - start
-        start = time.perf_counter()
-        tj.outcome_map(**kw, model="auto")
-        compile_auto = time.perf_counter() - start
-        secs = {"full": [], "auto": []}
-        maps = {}
-        for _ in range(ROUNDS):
-            for model in ("full", "auto"):
-                start = time.perf_counter()
-                maps[model] = tj.outcome_map(**kw, model=model)
-                secs[model].append(time.perf_counter() - start)
-        wall = {k: float(np.median(v)) for k, v in secs.items()}
-        row = dict(map=name, group=str(tj.classify(top)), **compare(maps["full"], maps["auto"]),
-                   wall_full=wall["full"], wall_auto=wall["auto"],
-                   first_full=compile_full, first_auto=compile_auto)
-        auto = maps["auto"]
-        index = np.asarray(auto.model_index)
-        row["routes"] = {r: int(np.sum(index == k)) for k, r in enumerate(auto.models)}
-        steps_full = int(np.sum(np.asarray(maps["full"].num_steps)))
-        steps_auto = int(np.sum(np.asarray(auto.num_steps)))
-        row["steps"] = (steps_full, steps_auto)
-        th, sp = shifted
-        other = compare(tj.outcome_map(top, th, sp, t1=t1, model="full"),
-                        tj.outcome_map(top, th, sp, t1=t1, model="auto"))
-        row["shifted"] = other
-        rows.append(row)
-        print("auto", {k: v for k, v in row.items() if k != "routes"}, flush=True)
-    return rows, shifted
+def auto(args):
+    """`outcome_map(model="auto")` against `model="full"` on the standard, IIa and III tops:
+    launches per second, agreement, missed contact losses; and on a shifted grid."""
+    theta0, spin, t1 = grid(args)
+    shifted = (
+        np.linspace(0.05, 1.45, max(2, theta0.size - 5)),
+        np.linspace(14.0, 215.0, max(2, spin.size - 5)),
+    )
+    rows, route_rows = [], []
+    for name, ratios in list(GROUP_TOPS.items())[: 1 if args.smoke else None]:
+        top = (
+            tj.default_top()
+            if ratios is None
+            else tj.TippeTop.from_ratios(*ratios, m=0.02, R=0.025, mu=0.3)
+        )
+        fns = {
+            m: lambda m=m: tj.outcome_map(top, theta0, spin, t1=t1, model=m)
+            for m in ("full", "auto")
+        }
+        timed = h.interleaved(fns, 1 if args.smoke else 3)
+        (tf, full), (ta, am) = timed["full"], timed["auto"]
+        c = compare(full, am)
+        sh = compare(*(tj.outcome_map(top, *shifted, t1=t1, model=m) for m in ("full", "auto")))
+        rows.append(
+            [
+                f"{name} ({tj.classify(top)})",
+                f"{c['n'] / tf.wall:.0f}",
+                f"{c['n'] / ta.wall:.0f}",
+                f"**{tf.wall / ta.wall:.2f}x**",
+                f"{100 * c['agree']:.2f}%",
+                f"{c['missed']} of {c['losses']}",
+                c["extra"],
+                f"{100 * sh['agree']:.2f}%, missed {sh['missed']} of {sh['losses']}",
+            ]
+        )
+        index = np.asarray(am.model_index)
+        routes = {r: int(np.sum(index == k)) for k, r in enumerate(am.models)}
+        route_rows.append(
+            [
+                name,
+                "; ".join(
+                    f"{k} {100 * v / index.size:.0f}%"
+                    for k, v in sorted(routes.items(), key=lambda kv: -kv[1])
+                ),
+                f"{np.sum(np.asarray(am.num_steps)) / np.sum(np.asarray(full.num_steps)):.2f}",
+                c["moves"],
+            ]
+        )
+    h.write(
+        "maps.py --auto",
+        '`model="auto"` maps against full-model maps',
+        f"""
+theta0 = linspace(0.02, 1.5, {theta0.size}) x spin = linspace(10, 220, {spin.size}), t1 = {t1:g} s, rtol 1e-6; tops: the standard top and `TippeTop.from_ratios(0.69, 0.38)` (IIa), `(1.6, 0.2)` (III), mu 0.3. Launches/s: median of {1 if args.smoke else 3} interleaved rounds. Missed: contact losses of the full map the auto map lacks; extra: the reverse. Shifted grid: theta0 in [0.05, 1.45] x spin in [14, 215], other launches.
 
+{h.table(["map", "full launches/s", "auto launches/s", "speed", "agreement", "missed losses", "extra losses", "shifted grid"], rows)}
 
-def auto_random(n_tops, t1, seed=0):
-    """The auto map against the full map on seeded random tops (none of them tuned on):
-    A/C in [0.6, 1.7], eps/R in [0.03, 0.4], mu log-uniform in [0.05, 1] s/m, each on a random
-    12 x 16 grid of launches (theta0 in [0.02, 1.5], spin in [0.5, 8] x its n1, or n2 in group
-    I). Agreement and missed contact losses per top; the time of both maps (one call each
-    after a compiling call, so a rough ratio)."""
-    rng = np.random.default_rng(seed)
-    rows = []
-    for _ in range(n_tops):
-        top, a_c, e_r, mu, n_ref = random_top(rng)
-        theta0 = np.sort(rng.uniform(0.02, 1.5, 12))
-        spin = np.sort(rng.uniform(0.5, 8.0, 16)) * n_ref
-        maps, secs = {}, {}
-        for model in ("full", "auto"):
-            tj.outcome_map(top, theta0, spin, t1=t1, model=model)
-            start = time.perf_counter()
-            maps[model] = tj.outcome_map(top, theta0, spin, t1=t1, model=model)
-            secs[model] = time.perf_counter() - start
-        row = dict(group=str(tj.classify(top)), A_over_C=a_c, eps_over_R=e_r, mu=mu,
-                   spins=(float(spin[0]), float(spin[-1])),
-                   **compare(maps["full"], maps["auto"]),
-                   speed=secs["full"] / secs["auto"])
-        rows.append(row)
-        print("random", row, flush=True)
-    return rows
+{h.table(["map", "routes of the auto map", "solver steps auto / full", "outcomes changed"], route_rows)}
 
-
-def random_text(rows, t1, seed):
-    """The section of RESULTS.md on the random tops."""
-    table_rows = [[r["group"], f"{r['A_over_C']:.2f}", f"{r['eps_over_R']:.2f}",
-                   f"{r['mu']:.2f}", f"{r['spins'][0]:.0f}-{r['spins'][1]:.0f}",
-                   f"{100 * r['agree']:.1f}%", f"{r['missed']} of {r['losses']}",
-                   str(r["extra"]), f"{r['speed']:.2f}x"] for r in rows]
-    n = sum(r["n"] for r in rows)
-    agree = sum(r["agree"] * r["n"] for r in rows) / n
-    return f"""### `model="auto"` on random tops
-
-`python benchmarks/maps.py --auto-random {len(rows)}` (seed {seed}): {len(rows)} seeded random tops, A/C in [0.6, 1.7], eps/R in [0.03, 0.4], mu log-uniform in [0.05, 1] s/m, each on a random grid of 12 tilts in [0.02, 1.5] x 16 spins in [0.5, 8] x n1 (n2 in group I), t1 = {t1:g} s; the auto map against the full map. Speed: one call each after a compiling call (rough).
-
-{table(["group", "A/C", "eps/R", "mu", "spins (rad/s)", "agreement", "missed losses", "extra losses", "speed"], table_rows)}
-
-Over all {n} launches: {100 * agree:.2f}% the same outcome, {sum(r['missed'] for r in rows)} of {sum(r['losses'] for r in rows)} contact losses missed, {sum(r['extra'] for r in rows)} extra.
-
-"""
-
-
-def auto_text(rows, shifted, n_theta, n_spin, t1):
-    """The section of RESULTS.md on the auto maps."""
-    n = rows[0]["n"]
-    table_rows = []
-    for r in rows:
-        table_rows.append([
-            f"{r['map']} ({r['group']})",
-            f"{n / r['wall_full']:.0f}", f"{n / r['wall_auto']:.0f}",
-            f"**{r['wall_full'] / r['wall_auto']:.2f}x**",
-            f"{100 * r['agree']:.2f}% ({int(round((1 - r['agree']) * r['n']))} differ)",
-            f"{r['missed']} of {r['losses']}", f"{r['extra']}",
-            f"{r['dt_loss']:.1e}",
-            f"{100 * r['shifted']['agree']:.2f}%, missed {r['shifted']['missed']} of "
-            f"{r['shifted']['losses']}",
-        ])
-    change_rows = [[r["map"], ", ".join(f"{k} {v}" for k, v in r["moves"].items()) or "none",
-                    ", ".join(f"{k} {v}" for k, v in r["shifted"]["moves"].items()) or "none"]
-                   for r in rows]
-    route_rows = []
-    for r in rows:
-        total = sum(r["routes"].values())
-        ordered = sorted(r["routes"].items(), key=lambda kv: -kv[1])
-        route_rows.append([r["map"], "; ".join(f"{k} {100 * v / total:.0f}%" for k, v in ordered),
-                           f"{r['steps'][1] / r['steps'][0]:.2f}",
-                           f"{r['first_full']:.0f} / {r['first_auto']:.0f}"])
-    th, sp = shifted
-    return f"""### `model="auto"`: the gyroscopic level where it holds, the full model where it does not
-
-`python benchmarks/maps.py --n-theta {n_theta} --n-spin {n_spin} --t1 {t1:g}` (this section alone: `--auto-only`). Three tops: the standard top, and the representatives of groups IIa and III of `tippejax map --group` (`TippeTop.from_ratios(0.69, 0.38)` and `(1.6, 0.2)`, mu = 0.3), theta0 = linspace(0.02, 1.5, {n_theta}) x spin = linspace(10, 220, {n_spin}) = {n} launches each, t1 = {t1:g} s, rtol 1e-6 (the map's default). `outcome_map(model="auto")` (`tolerance=None`) runs each launch in stages, each stage a compacted batch of its own (`tippejax/_map_stages.py`): full-model windows until the gyroscopic level accepts the state, the slow flow until it must hand back (the slow manifold repels, balance is lost, or the nutation the run carries comes near lifting the top), then the full model again from where the run last left it. Launches/s: median of {ROUNDS} interleaved rounds (full map, auto map) after the compiling calls, wall time, same process. Agreement: launches with the same outcome as the full model's map; missed: contact losses of the full model's map that the auto map does not have; extra: the reverse; |dt loss|: largest difference in `t_contact_loss` where both lose contact. Shifted grid: theta0 = linspace({th[0]:g}, {th[-1]:g}, {th.size}) x spin = linspace({sp[0]:g}, {sp[-1]:g}, {sp.size}), a second grid of other launches (no tuning was done on it).
-
-{table(["map", "full launches/s", "auto launches/s", "speed", "agreement", "missed losses", "extra losses", "max abs dt loss (s)", "shifted grid"], table_rows)}
-
-Outcomes that changed (full map -> auto map), on the benchmark grid and on the shifted grid:
-
-{table(["map", "benchmark grid", "shifted grid"], change_rows)}
-
-Routes (the levels in the order they ran; a `full` after `gyroscopic` is a replay), the solver steps of the auto map against the full map's (all stages, all members), and the first calls (compilation included, s, full / auto):
-
-{table(["map", "routes", "steps auto / full", "first call full / auto (s)"], route_rows)}
-
-Targets of issue 19: >= 99% agreement on each map (met on {sum(r['agree'] >= 0.99 for r in rows)} of 3, and on {sum(r['shifted']['agree'] >= 0.99 for r in rows)} of 3 shifted grids), 0 missed contact losses ({sum(r['missed'] for r in rows) + sum(r['shifted']['missed'] for r in rows)} missed in all six maps), >= 20x launches/s (not met: {min(r['wall_full'] / r['wall_auto'] for r in rows):.1f}-{max(r['wall_full'] / r['wall_auto'] for r in rows):.1f}x). What the auto map still spends is the full model: the launches tilted beyond about 0.3 rad carry more nutation than the slow flow may be given (0.25 rad), and in the full model most of it is a mode in which the centre of mass rolls round with the contact point and which barely decays (standard top at 200 rad/s: -0.06/s, against the SO(3) model's -5.1/s), so they stay in the full model for seconds; and every run the slow stage hands back is replayed in the full model from where it left it, through the rise (the contact-loss region and the fast inverting launches). In an earlier version, giving the slow stage launches with up to 0.4 rad of nutation gained about 10% in speed on the standard map but missed 35 of its 141 contact losses; restarting the full model at the hand-over from the slow state with the carried nutation, instead of replaying, missed 37 (module docstring of `tippejax/_map_stages.py`). The steps fall more than the time because each stage is a lock-step batch: a chunk costs its longest member's steps. So `outcome_map` keeps `model="full"` as its default.
-"""
-
-
-def main(argv=None) -> int:
-    p = argparse.ArgumentParser()
-    p.add_argument("--n-theta", type=int, default=24)
-    p.add_argument("--n-spin", type=int, default=32)
-    p.add_argument("--t1", type=float, default=20.0)
-    p.add_argument("--no-processes", action="store_true")
-    p.add_argument("--scale", type=int, default=100_000, help="launches of the scale run (0: skip)")
-    p.add_argument("--scale-t1", type=float, default=0.5)
-    p.add_argument("--auto-random", type=int, default=0, metavar="K",
-                   help="only the auto map against the full map on K seeded random tops, printed")
-    p.add_argument("--auto-only", action="store_true",
-                   help="only the auto maps against the full maps (standard, IIa, III), printed")
-    args = p.parse_args(argv)
-    begin = time.perf_counter()
-    if args.auto_random:
-        rows = auto_random(args.auto_random, args.t1)
-        print(random_text(rows, args.t1, 0))
-        return 0
-    if args.auto_only:
-        rows, shifted = auto_maps(args.n_theta, args.n_spin, args.t1)
-        print(auto_text(rows, shifted, args.n_theta, args.n_spin, args.t1))
-        return 0
-    auto_rows, auto_shifted = auto_maps(args.n_theta, args.n_spin, args.t1)
-    top = tj.default_top()
-    theta0 = np.linspace(0.02, 1.5, args.n_theta)
-    spin = np.linspace(10.0, 220.0, args.n_spin)
-    n = theta0.size * spin.size
-    base = dict(top=top, theta0=theta0, spin=spin, t1=args.t1)
-
-    runs = {}
-    for label, kw in [
-        ("full, rtol 1e-6 (map default)", dict(model="full")),
-        ("full, rtol 1e-9", dict(model="full", rtol=1e-9, atol=1e-12)),
-        ("so3, rtol 1e-6", dict(model="so3")),
-        ("routhian, rtol 1e-6", dict(model="routhian")),
-    ]:
-        om, first, second = timed_map(**base, **kw)
-        runs[label] = (om, first, second)
-        print(f"{label}: first {first:.1f} s, second {second:.1f} s, {n / second:.1f} launches/s")
-    ref, _, t_map = runs["full, rtol 1e-6 (map default)"]
-
-    start = time.perf_counter()
-    tj.simulate_batch(top, theta0, spin, args.t1, summary=True, rtol=1e-6, atol=1e-9)
-    start = time.perf_counter()
-    tj.simulate_batch(top, theta0, spin, args.t1, summary=True, rtol=1e-6, atol=1e-9)
-    t_batch = time.perf_counter() - start
-
-    sample = [(theta0[i], spin[j]) for i in range(0, theta0.size, max(1, theta0.size // 4))
-              for j in range(0, spin.size, max(1, spin.size // 4))]
-    one = jax.jit(lambda th, sp: tj.simulate(top, tj.initial_state(top, th, sp), args.t1,
-                                             summary=True, throw=False, rtol=1e-6, atol=1e-9))
-    jax.block_until_ready(one(0.1, 100.0))
-    start = time.perf_counter()
-    for th, sp in sample:
-        jax.block_until_ready(one(th, sp))
-    t_loop = (time.perf_counter() - start) / len(sample) * n
-
-    rows = [
-        ["tj.outcome_map (full, rtol 1e-6)", f"{t_map:.2f}", f"{n / t_map:.1f}", "1.00"],
-        ["tj.simulate_batch, summary (no classification)", f"{t_batch:.2f}",
-         f"{n / t_batch:.1f}", f"{t_batch / t_map:.2f}"],
-        [f"loop of jitted tj.simulate ({len(sample)} launches, scaled)", f"{t_loop:.2f}",
-         f"{n / t_loop:.1f}", f"{t_loop / t_map:.2f}"],
-    ]
-    for label, (om, first, second) in runs.items():
-        if label.startswith("full, rtol 1e-6"):
-            continue
-        rows.append([f"tj.outcome_map ({label})", f"{second:.2f}", f"{n / second:.1f}",
-                     f"{second / t_map:.2f}"])
-
-    ref_out = np.asarray(ref.outcome)
-    agree_rows = []
-    for label, (om, _, second) in runs.items():
-        if label.startswith("full, rtol 1e-6"):
-            continue
-        out = np.asarray(om.outcome)
-        diff = out != ref_out
-        settled_both = np.asarray(om.settled) & np.asarray(ref.settled)
-        moves = {}
-        for a, b in zip(ref_out[diff], out[diff]):
-            key = f"{tj.OUTCOMES[int(a)]} -> {tj.OUTCOMES[int(b)]}"
-            moves[key] = moves.get(key, 0) + 1
-        agree_rows.append([
-            label, f"{int(diff.sum())} / {n} ({100 * diff.mean():.1f}%)",
-            f"{int((diff & settled_both).sum())}",
-            ", ".join(f"{k} {v}" for k, v in sorted(moves.items(), key=lambda kv: -kv[1]))
-            or "-",
-            f"{second / t_map:.2f}",
-        ])
-
-    lost = np.asarray(ref.outcome) == tj.OUTCOMES.index("contact_lost")
-    reduced = [label for label in runs if not label.startswith("full")]
-    seen = {label: int((np.asarray(runs[label][0].outcome)[lost]
-                        == tj.OUTCOMES.index("contact_lost")).sum()) for label in reduced}
-    contact_text = (
-        f"The full model loses contact in {int(lost.sum())} launches of this grid (spins "
-        f"{spin[lost.any(axis=0)].min():.0f}-{spin[lost.any(axis=0)].max():.0f} rad/s); the levels "
-        "without translation see " + ", ".join(f"{seen[k]} of them ({k})" for k in reduced)
-        + ". Where a map asks whether the top leaves the table, only the full model answers it: "
-        "`model=\"auto\"` with a `tolerance` chooses its level by the error in theta(t), which "
-        "does not measure this; `model=\"auto\"` without one (below) hands every run that comes "
-        "near a contact loss to the full model. Away from contact loss the cheaper levels give "
-        "the same outcomes, and cost no less here."
+Targets: >= 99% agreement, 0 missed contact losses, >= 20x launches/s.
+""",
+        args,
     )
 
-    sizes, slope = memory_per_launch(top, args.t1)
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
-    scale_text = "not run (--scale 0)"
-    if args.scale:
-        size, first, rss_one, wall, rss_end, failed = scale_run(args.scale, args.scale_t1)
-        scale_text = (
-            f"{size} launches (theta0 x spin over the same ranges), t1 = {args.scale_t1:g} s, "
-            f"chunks of 4096, in a fresh process: {wall:.1f} s ({size / wall:.0f} launches/s; "
-            f"{failed} failed). Peak RSS {rss_one:.0f} MB after one chunk (with compilation), "
-            f"{rss_end:.0f} MB at the end ({rss_end - rss_one:+.0f} MB over {-(-size // 4096)} chunks): "
-            "memory is bounded by the chunk, not the number of launches."
+def auto_random(args):
+    """The auto map against the full map on seeded random tops nobody tuned on."""
+    rng, rows = np.random.default_rng(0), []
+    k, shape = (1, (3, 4)) if args.smoke else (args.tops, (12, 16))
+    for _ in range(k):
+        top, a_c, e_r, mu, n_ref = h.random_top(rng)
+        theta0, spin = (
+            np.sort(rng.uniform(0.02, 1.5, shape[0])),
+            np.sort(rng.uniform(0.5, 8.0, shape[1])) * n_ref,
         )
-
-    counts = ref.counts()
-    proc_text = "not run (--no-processes)"
-    if not args.no_processes:
-        wall, line = two_processes(8, 16, 12.0)
-        one_proc = tj.outcome_map(top, np.linspace(0.05, 1.5, 8), np.linspace(15.0, 200.0, 16),
-                                  t1=12.0, model="full")
-        start = time.perf_counter()
-        tj.outcome_map(top, np.linspace(0.05, 1.5, 8), np.linspace(15.0, 200.0, 16), t1=12.0,
-                       model="full")
-        t_one = time.perf_counter() - start
-        del one_proc
-        proc_text = (
-            f"`examples/distributed_map.py`, 8 x 16 launches, t1 = 12 s, two CPU processes (one "
-            f"device each, gloo collectives) on this 2-core machine: {line.strip()}; whole "
-            f"command {wall:.1f} s (two interpreters, two compilations). The same map in this "
-            f"process after compilation: {t_one:.2f} s ({128 / t_one:.1f} launches/s). On one "
-            "machine a second process buys nothing (XLA's CPU backend already runs a batch on "
-            "both cores); the run shows that the sharded code path is the same across "
-            "processes, and `tests/test_maps.py` checks its map equals the one-process map."
+        (full, tf), (am, ta) = (
+            second_call(
+                lambda m=m: tj.outcome_map(
+                    top, theta0, spin, t1=2.0 if args.smoke else args.t1, model=m
+                )
+            )
+            for m in ("full", "auto")
         )
+        c = compare(full, am)
+        rows.append(
+            [
+                str(tj.classify(top)),
+                f"{a_c:.2f}",
+                f"{e_r:.2f}",
+                f"{mu:.2f}",
+                f"{spin[0]:.0f}-{spin[-1]:.0f}",
+                f"{100 * c['agree']:.1f}%",
+                f"{c['missed']} of {c['losses']}",
+                c["extra"],
+                f"{tf / ta:.2f}x",
+            ]
+        )
+    h.write(
+        "maps.py --auto-random",
+        '`model="auto"` on random tops',
+        f"""
+{k} seeded random tops (`_harness.random_top`, seed 0), each on a random grid of {shape[0]} tilts in [0.02, 1.5] x {shape[1]} spins in [0.5, 8] x n1 (n2 in group I), t1 = {args.t1:g} s; one call each after a compiling call (a rough speed).
 
-    body = f"""## maps.py: outcome maps at scale
+{h.table(["group", "A/C", "eps/R", "mu", "spins (rad/s)", "agreement", "missed losses", "extra losses", "speed"], rows)}
+""",
+        args,
+    )
 
-`python benchmarks/maps.py --n-theta {args.n_theta} --n-spin {args.n_spin} --t1 {args.t1:g}` ({time.perf_counter() - begin:.0f} s). {machine_line()}. Standard top (Group IIb), theta0 = linspace(0.02, 1.5, {args.n_theta}) x spin = linspace(10, 220, {args.n_spin}) = {n} launches, t1 = {args.t1:g} s, float64, one process. Times: second call (compiled), wall.
 
-Outcomes of the reference map (full, rtol 1e-6): {", ".join(f"{k} {v}" for k, v in counts.items())}.
+def options(prs):
+    prs.add_argument("--n-theta", type=int, default=24)
+    prs.add_argument("--n-spin", type=int, default=32)
+    prs.add_argument("--t1", type=float, default=20.0)
+    prs.add_argument("--launches", type=int, default=100_000, help="--scale")
+    prs.add_argument("--tops", type=int, default=12, help="--auto-random")
 
-### Cost
 
-{table(["run", "wall s", "launches/s", "vs outcome_map"], rows)}
-
-The classification (a bisection for the intermediate states of each launch's J) adds {100 * (t_map / t_batch - 1):+.0f}% to the batch itself: within the noise of this machine (a few %).
-
-### What a cheaper level or a looser tolerance changes
-
-Cells whose outcome differs from the reference map (full model, rtol 1e-6); "settled" counts those among launches settled in both maps (a launch still moving at t1 is classified by where it is, and small differences move it).
-
-{table(["map", "outcomes that differ", "of them settled in both", "reference -> this map", "cost vs reference"], agree_rows)}
-
-{contact_text}
-
-{auto_text(auto_rows, auto_shifted, args.n_theta, args.n_spin, args.t1)}
-### Memory per launch
-
-XLA memory analysis of one compiled chunk (arguments + outputs + temporaries): {sizes[256] / 1e6:.2f} MB for 256 launches, {sizes[1024] / 1e6:.2f} MB for 1024: **{slope / 1e3:.1f} kB per launch** (summary outputs: the solver state of one launch and a few scalars out; it does not depend on t1 or the grid size, and a map of any size runs in chunks of `chunk_size`, default 4096: ~{4096 * slope / 1e6:.0f} MB per chunk). Peak RSS of this benchmark process: {rss:.0f} MB. A 1e6-launch map at {n / t_map:.0f} launches/s would take {1e6 / (n / t_map) / 3600:.1f} h on this machine; `jax.distributed` spreads it over hosts.
-
-### Many launches
-
-{scale_text}
-
-### Two processes
-
-{proc_text}
-"""
-    write_section("maps.py", body)
-    print(body)
-    return 0
-
+MODES = {
+    "cost": (cost, "a map against simulate_batch and a loop; levels, tolerances; memory"),
+    "scale": (scale, "1e5 launches in a fresh process: time and peak memory"),
+    "processes": (processes, "two processes with jax.distributed"),
+    "auto": (auto, "model='auto' maps against full maps: speed, agreement, missed losses"),
+    "auto-random": (auto_random, "the same on seeded random tops"),
+}
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    h.run(MODES, h.parse(__doc__, MODES, options))

@@ -1,6 +1,6 @@
-"""model="auto": the regime of a launch, the level chooser, its table against
-benchmarks/LEVELS.md, and the promise itself (launches the table did not contain, in several
-groups, stay within the tolerance they asked for)."""
+"""model="auto": the regime of a launch, the level chooser, its table against the levels
+suite's blocks of benchmarks/RESULTS.md, and the promise itself (launches the table did not
+contain, in several groups, stay within the tolerance they asked for)."""
 
 import pathlib
 import re
@@ -13,18 +13,18 @@ import tippejax as tj
 from tippejax._analysis.groups import GROUPS
 from tippejax._auto import COST_MARGIN, MEASURED, choose_model, launch_regime
 
-LEVELS_MD = pathlib.Path(__file__).parents[1] / "benchmarks" / "LEVELS.md"
+RESULTS_MD = pathlib.Path(__file__).parents[1] / "benchmarks" / "RESULTS.md"
 
 
 def _block(name):
-    text = LEVELS_MD.read_text()
+    text = RESULTS_MD.read_text()
     block = re.search(rf"```python\n({name} = \{{.*?\n\}})\n```", text, re.S).group(1)
     namespace = {}
     exec(block, namespace)
     return namespace[name]
 
 
-def test_measured_table_matches_levels_md():
+def test_measured_table_matches_results_md():
     assert _block("MEASURED") == MEASURED
 
 
@@ -156,7 +156,7 @@ def test_auto_picks_the_gyroscopic_level_for_a_fast_launch_on_its_manifold():
     assert choose_model(top, nutating, tolerance=10.0) != "gyroscopic"
 
 
-# (A/C, eps/R) of the benchmark's top of each group (`benchmarks/levels_groups.py`), and the
+# (A/C, eps/R) of the benchmark's top of each group (`benchmarks/levels.py --groups`), and the
 # ranges of its launches: spin 0.7-10 x n1 (n2 in group I), mu 0.05-2 s/m, theta0 0.05-0.5, 8 s
 BENCHMARK_TOPS = {"Ia": (0.96, 0.02), "Ib": (0.7, 0.2), "IIa": (0.8, 0.3), "IIb": (0.9, 0.3),
                   "IIc": (0.99, 0.02), "III": (1.5, 0.2)}

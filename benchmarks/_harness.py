@@ -1,0 +1,266 @@
+"""What the benchmark suites share: the machine, timing, modes, and their blocks of RESULTS.md."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import pathlib
+import platform
+import re
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+
+import numpy as np
+
+HERE = pathlib.Path(__file__).resolve().parent
+RESULTS = HERE / "RESULTS.md"
+
+
+# --- the machine ---------------------------------------------------------------------------
+
+
+def cpu() -> dict:
+    """Processor name, cores, clock (GHz) and SIMD flags (from /proc/cpuinfo where it exists)."""
+    name, mhz, flags = platform.processor() or platform.machine(), 0.0, set()
+    try:
+        for line in pathlib.Path("/proc/cpuinfo").read_text().splitlines():
+            key, _, value = (s.strip() for s in line.partition(":"))
+            if key == "model name":
+                name = value
+            elif key == "cpu MHz" and not mhz:
+                mhz = float(value)
+            elif key == "flags" and not flags:
+                flags = set(value.split())
+    except OSError:
+        pass
+    return dict(name=name, cores=os.cpu_count() or 1, ghz=mhz / 1e3, flags=flags)
+
+
+def peak_flops() -> tuple[float, str]:
+    """The cores' float64 peak (flop/s) and how it was counted."""
+    c = cpu()
+    per_cycle, why = (
+        (16, "AVX2 + FMA")
+        if {"avx2", "fma"} <= c["flags"]
+        else (8, "AVX")
+        if "avx" in c["flags"]
+        else (4, "SSE2")
+    )
+    peak = c["cores"] * c["ghz"] * 1e9 * per_cycle
+    return peak, f"{c['cores']} cores x {c['ghz']:.2f} GHz x {per_cycle} flop/cycle ({why})"
+
+
+def machine_line() -> str:
+    """One line: processor, versions, JAX devices."""
+    import diffrax
+    import equinox
+    import jax
+    import scipy
+
+    c, devices = cpu(), jax.devices()
+    name = " ".join(re.sub(r"\((R|TM)\)|\bCPU\b|\bProcessor\b", "", c["name"]).split())
+    n = len(devices)
+    return (
+        f"{name}, {c['cores']} cores @ {c['ghz']:.2f} GHz; python {platform.python_version()}, "
+        f"jax {jax.__version__}, diffrax {diffrax.__version__}, equinox {equinox.__version__}, "
+        f"numpy {np.__version__}, scipy {scipy.__version__}; {n} {devices[0].platform} "
+        f"device{'s' if n > 1 else ''}"
+    )
+
+
+# --- timing ----------------------------------------------------------------------------------
+
+
+class Timing:
+    """Wall-clock and process CPU time of a first (compiling) call and of later calls."""
+
+    def __init__(self):
+        self.first_wall = self.first_cpu = math.nan
+        self.walls: list[float] = []
+        self.cpus: list[float] = []
+
+    @property
+    def wall(self) -> float:
+        return statistics.median(self.walls) if self.walls else self.first_wall
+
+    @property
+    def cpu(self) -> float:
+        return statistics.median(self.cpus) if self.cpus else self.first_cpu
+
+    @property
+    def compile(self) -> float:
+        """The first call less the median of the later ones: compilation (wall clock)."""
+        return self.first_wall - self.wall
+
+
+def call(fn):
+    """(wall s, CPU s, output) of `fn()`, waiting for its arrays (`jax.block_until_ready`)."""
+    import jax
+
+    wall, cpu_ = time.perf_counter(), time.process_time()
+    out = jax.block_until_ready(fn())
+    return time.perf_counter() - wall, time.process_time() - cpu_, out
+
+
+def interleaved(fns: dict, rounds: int) -> dict:
+    """{name: (Timing, output)} of zero-argument callables: a first call each, then `rounds`
+    rounds calling each once, so that a shared machine's load falls on all of them alike."""
+    timings, outs = {name: Timing() for name in fns}, {}
+    for name, fn in fns.items():
+        t = timings[name]
+        t.first_wall, t.first_cpu, outs[name] = call(fn)
+    for _ in range(rounds):
+        for name, fn in fns.items():
+            wall, cpu_, outs[name] = call(fn)
+            timings[name].walls.append(wall)
+            timings[name].cpus.append(cpu_)
+    return {name: (timings[name], outs[name]) for name in fns}
+
+
+def paired(a: Timing, b: Timing, what: str = "walls") -> tuple[float, float, float]:
+    """Median and quartiles of the round-by-round ratios a / b of two interleaved runs."""
+    r = np.asarray(getattr(a, what)) / np.asarray(getattr(b, what))
+    if not r.size:
+        r = np.asarray([a.first_wall / b.first_wall])
+    return float(np.median(r)), float(np.quantile(r, 0.25)), float(np.quantile(r, 0.75))
+
+
+def interp_loglog(x, xs, ys) -> float:
+    """y at x, linear in log-log through the points (xs, ys); beyond them from the nearest two."""
+    xs, ys = np.asarray(xs, float), np.asarray(ys, float)
+    keep = np.isfinite(xs) & np.isfinite(ys) & (xs > 0) & (ys > 0)
+    lx, ly = np.log(xs[keep]), np.log(ys[keep])
+    order = np.argsort(lx)
+    lx, ly = lx[order], ly[order]
+    i = int(np.clip(np.searchsorted(lx, math.log(x)) - 1, 0, len(lx) - 2))
+    slope = (ly[i + 1] - ly[i]) / (lx[i + 1] - lx[i])
+    return math.exp(ly[i] + slope * (math.log(x) - lx[i]))
+
+
+def fresh_process(code: str, *args: str, env: dict | None = None) -> dict:
+    """Run `code` in a new Python process; its last line of output, read as JSON."""
+    full_env = dict(os.environ, **(env or {}))
+    full_env["PYTHONPATH"] = os.pathsep.join(
+        p for p in (str(HERE), str(HERE.parent), full_env.get("PYTHONPATH", "")) if p
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code, *args], env=full_env, capture_output=True, text=True
+    )
+    if out.returncode:
+        raise RuntimeError(out.stderr[-3000:])
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def random_top(rng):
+    """A seeded random top nobody tuned on: A/C in [0.6, 1.7], eps/R in [0.03, 0.4], mu
+    log-uniform in [0.05, 1] s/m (m 20 g, R 25 mm). Returns (top, A/C, eps/R, mu, n_ref), n_ref
+    its n1 (n2 in group I, where n1 is undefined): the scale of its spins."""
+    import tippejax as tj
+
+    a_c, e_r = rng.uniform(0.6, 1.7), rng.uniform(0.03, 0.4)
+    mu = float(np.exp(rng.uniform(np.log(0.05), np.log(1.0))))
+    top = tj.TippeTop.from_ratios(a_c, e_r, m=0.02, R=0.025, mu=mu)
+    th = tj.thresholds(top)
+    n_ref = float(th.n1) if np.isfinite(float(th.n1)) else float(th.n2)
+    return top, a_c, e_r, mu, n_ref
+
+
+# --- tables, charts, RESULTS.md ----------------------------------------------------------------
+
+
+def table(headers, rows) -> str:
+    """A markdown table; `headers` and each row a list of cells or one string "a | b | c"."""
+
+    def line(cells):
+        return (
+            "| " + (cells if isinstance(cells, str) else " | ".join(str(x) for x in cells)) + " |"
+        )
+
+    n = len(headers.split(" | ")) if isinstance(headers, str) else len(headers)
+    return "\n".join([line(headers), "|" + "---|" * n, *map(line, rows)])
+
+
+def verdict(met: bool) -> str:
+    return "**met**" if met else "**missed**"
+
+
+def pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def figure_path(name: str, args) -> pathlib.Path:
+    """Where a chart goes: beside RESULTS.md, or a temporary folder in a smoke run."""
+    if getattr(args, "smoke", False):
+        return pathlib.Path(tempfile.gettempdir()) / f"smoke-{name}"
+    return HERE / name
+
+
+def command(args) -> str:
+    return "python benchmarks/" + " ".join([pathlib.Path(sys.argv[0]).name, *sys.argv[1:]])
+
+
+def write(key: str, title: str, body: str, args, header: str | None = None) -> None:
+    """Print a block and put it in RESULTS.md between `<!-- key -->` and `<!-- /key -->`, under
+    its suite's `## ` heading, after the command and the machine (not in a smoke run)."""
+    header = header or f"`{command(args)}` ({machine_line()})"
+    block = f"<!-- {key} -->\n### {title}\n\n{header}\n\n{body.strip()}\n<!-- /{key} -->"
+    print(block, flush=True)
+    if getattr(args, "smoke", False):
+        return
+    text = RESULTS.read_text() if RESULTS.exists() else "# Benchmark results\n"
+    pattern = rf"<!-- {re.escape(key)} -->.*?<!-- /{re.escape(key)} -->"
+    if re.search(pattern, text, flags=re.S):
+        text = re.sub(pattern, lambda _: block, text, flags=re.S)
+    else:
+        suite = key.split()[0]
+        heading = re.search(rf"^## {re.escape(suite)}\b.*$", text, flags=re.M)
+        if heading is None:
+            text = text.rstrip("\n") + f"\n\n## {suite}\n\n{block}\n"
+        else:
+            nxt = re.search(r"^## ", text[heading.end() :], flags=re.M)
+            at = heading.end() + nxt.start() if nxt else len(text)
+            text = text[:at].rstrip("\n") + f"\n\n{block}\n\n" + text[at:]
+    RESULTS.write_text(text)
+
+
+# --- modes -------------------------------------------------------------------------------------
+
+
+def parse(doc: str, modes: dict, options=None):
+    """The suite's arguments: one flag per mode (none: every mode), `--smoke` (tiny sizes, every
+    code path, nothing written), and the suite's own `options(parser)`."""
+    p = argparse.ArgumentParser(
+        description=doc.splitlines()[0],
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="\n".join(f"  --{m}: {what}" for m, (_, what) in modes.items()),
+    )
+    for m in modes:
+        p.add_argument(f"--{m}", action="store_true")
+    p.add_argument("--smoke", action="store_true", help="tiny sizes, every path, writes nothing")
+    p.add_argument("--rounds", type=int, default=None, help="interleaved timing rounds")
+    if options:
+        options(p)
+    args = p.parse_args()
+    args.modes = [m for m in modes if getattr(args, m.replace("-", "_"))] or list(modes)
+    return args
+
+
+def run(modes: dict, args) -> None:
+    """Run one mode here; several, each in its own process (a mode may ask for its own devices)."""
+    if len(args.modes) == 1:
+        modes[args.modes[0]][0](args)
+        return
+    flags = [a for a in sys.argv[1:] if a.lstrip("-") not in modes]
+    for m in args.modes:
+        print(f"== {pathlib.Path(sys.argv[0]).name} --{m}", flush=True)
+        subprocess.run([sys.executable, sys.argv[0], f"--{m}", *flags], check=True)

@@ -1,0 +1,333 @@
+"""The peers a user has for tippejax's scene, each on the same SO(3) equations: a plain diffrax
+script, compiled numba DOP853 (CyRK) and scipy's DOP853 on the vector-form model in numpy.
+
+The scene: the standard top `tj.default_top()`, theta0 = 0.1, spin 150 rad/s for one top and
+spins linspace(140, 160, N) for a batch, 20 s, the final state (or 6 save times)."""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import diffrax
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, PartitionSpec
+
+import tippejax as tj
+
+TOP = tj.default_top()
+PARAMS = np.array([float(getattr(TOP, k)) for k in ("m", "R", "eps", "A", "C", "g", "mu")])
+THETA0, SPIN, T1 = 0.1, 150.0, 20.0
+TS = np.array([0.5, 1.0, 2.0, 5.0, 10.0, 20.0])
+PI = dict(pcoeff=0.4, icoeff=0.3)  # the PI controller tippejax uses (diffrax's suggestion)
+BLOCK = 128  # members per block of the plain script in blocks (simulate_batch's CPU layout)
+
+
+def spins(n: int) -> np.ndarray:
+    return np.linspace(140.0, 160.0, n)
+
+
+def state_error(final, ref) -> float:
+    """max(|a - a_ref|, |omega - omega_ref| / |omega_ref|) of final states (..., 6)."""
+    final, ref = np.asarray(final, float), np.asarray(ref, float)
+    return float(
+        max(
+            np.max(np.abs(final[..., :3] - ref[..., :3])),
+            np.max(
+                np.abs(final[..., 3:] - ref[..., 3:])
+                / np.linalg.norm(ref[..., 3:], axis=-1, keepdims=True)
+            ),
+        )
+    )
+
+
+# --- the plain diffrax script ------------------------------------------------------------------
+
+
+def so3_field(t, y, p):
+    """The SO(3) equations (translation dropped in the friction law), axis a and omega."""
+    m, R, eps, A, C, g, mu = p
+    a, w = y[:3], y[3:]
+    q = eps * a - jnp.array([0.0, 0.0, R])
+    vq = jnp.cross(w, q).at[2].set(0.0)
+    tau = jnp.cross(q, jnp.array([0.0, 0.0, 1.0]) - mu * vq)  # torque per unit normal force
+    o0 = -(C - A) / A * jnp.dot(w, a) * jnp.cross(w, a)
+    o1 = tau / A + (1 / C - 1 / A) * jnp.dot(a, tau) * a
+    h0 = -eps * (jnp.cross(o0, a)[2] + jnp.cross(w, jnp.cross(w, a))[2])
+    h1 = -eps * jnp.cross(o1, a)[2]
+    rn = (g + h0) / (1 / m - h1)
+    return jnp.concatenate([jnp.cross(w, a), o0 + rn * o1])
+
+
+def launch(spin):
+    a = jnp.array([0.0, -jnp.sin(THETA0), jnp.cos(THETA0)])
+    return jnp.concatenate([a, spin * a])
+
+
+def plain_solve(spin, rtol, atol, ts=None, *, controller=None, solver=None):
+    """One top: Dopri8, PIDController, no events. Returns (final state, steps)."""
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(so3_field),
+        solver or diffrax.Dopri8(),
+        0.0,
+        T1,
+        None,
+        launch(spin),
+        tuple(PARAMS),
+        saveat=diffrax.SaveAt(t1=True) if ts is None else diffrax.SaveAt(ts=ts),
+        stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol, **(controller or {})),
+        max_steps=100_000,
+    )
+    return sol.ys[-1], sol.stats["num_steps"]
+
+
+def plain_shared(spins_, rtol, atol, *, solver=None):
+    """The batch as ONE solve whose state is (N, 6): every member takes the same steps, each
+    member's error controlled (the norm is the largest member's RMS norm)."""
+    field = jax.vmap(so3_field, in_axes=(None, 0, None))
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(field),
+        solver or diffrax.Dopri8(),
+        0.0,
+        T1,
+        None,
+        jax.vmap(launch)(spins_),
+        tuple(PARAMS),
+        saveat=diffrax.SaveAt(t1=True),
+        stepsize_controller=diffrax.PIDController(
+            rtol=rtol, atol=atol, norm=lambda x: jnp.max(jnp.sqrt(jnp.mean(x**2, axis=1)))
+        ),
+        max_steps=100_000,
+    )
+    return sol.ys[-1], jnp.full(spins_.shape, sol.stats["num_steps"])
+
+
+def in_blocks(batched):
+    """`batched(spins, *rest)` over blocks of at most BLOCK members under `lax.map`."""
+
+    def run(spins_, *rest):
+        n = spins_.shape[0]
+        block = max(k for k in range(1, min(n, BLOCK) + 1) if n % k == 0)
+        out = jax.lax.map(lambda s: batched(s, *rest), spins_.reshape(n // block, block))
+        return jax.tree_util.tree_map(lambda x: x.reshape(n, *x.shape[2:]), out)
+
+    return run
+
+
+def over_devices(fn, n_args: int, devices=None, compiler_options=None):
+    """`jax.jit` of `fn(spins, *rest)`; on several devices each runs its own shard's loop
+    (`jax.shard_map`, as `tj.simulate_batch` does), the other arguments whole."""
+    devices = jax.devices() if devices is None else devices
+    if len(devices) > 1:
+        mesh = Mesh(np.array(devices), ("batch",))
+        fn = jax.shard_map(
+            fn,
+            mesh=mesh,
+            in_specs=(PartitionSpec("batch"),) + (PartitionSpec(),) * (n_args - 1),
+            out_specs=PartitionSpec("batch"),
+            check_vma=False,
+        )
+    return jax.jit(fn, compiler_options=compiler_options)
+
+
+@functools.cache
+def plain(kind: str = "vmap", n_devices: int | None = None):
+    """The plain script over a batch, `run(spins, rtol, atol) -> (finals, steps)`:
+    "vmap" (`jax.vmap`), "saves" (vmap, 6 saves), "pi" (vmap, PI controller), "blocks" (vmap in
+    blocks, compiled with `tj.compiler_options()`: the strongest JAX script we know on a CPU),
+    "shared" (one solve for the batch); on every device unless `n_devices`."""
+    devices = jax.devices()[: n_devices or None]
+    one = {
+        "vmap": plain_solve,
+        "pi": functools.partial(plain_solve, controller=PI),
+        "saves": lambda s, r, a: plain_solve(s, r, a, jnp.asarray(TS)),
+    }.get(kind, plain_solve)
+    batched = plain_shared if kind == "shared" else jax.vmap(one, in_axes=(0, None, None))
+    if kind == "blocks":
+        return over_devices(in_blocks(batched), 3, devices, tj.compiler_options())
+    return over_devices(batched, 3, devices)
+
+
+@functools.cache
+def plain_single(kind: str = "vmap"):
+    return jax.jit(functools.partial(plain_solve, controller=PI if kind == "pi" else None))
+
+
+def flops_per_member_step() -> float:
+    """A lower bound on one Dopri8 step of the plain script per member: XLA's cost analysis of
+    its vmapped field x 13 evaluations, plus the Runge-Kutta combinations (controller left out)."""
+    y = jax.vmap(launch)(jnp.asarray(spins(1000)))
+    cost = (
+        jax.jit(jax.vmap(lambda z: so3_field(0.0, z, tuple(PARAMS))))
+        .lower(y)
+        .compile()
+        .cost_analysis()
+    )
+    return 13 * float(cost.get("flops", math.nan)) / 1000 + 2 * sum(range(14)) * 6
+
+
+# --- numba: CyRK's compiled DOP853 on the same equations ---------------------------------------
+
+
+try:  # the compiled peer (`pip install -e ".[bench]"`); defined at module level so that
+    # numba caches its compilation on disk
+    import numba
+    from CyRK import nbsolve_ivp
+except ImportError:  # pragma: no cover
+    numba = None
+else:
+
+    @numba.njit(cache=True)
+    def _numba_rhs(t, y, p):
+        m, R, eps, A, C, g, mu = p[0], p[1], p[2], p[3], p[4], p[5], p[6]
+        ax, ay, az, wx, wy, wz = y[0], y[1], y[2], y[3], y[4], y[5]
+        n = wx * ax + wy * ay + wz * az
+        dx, dy, dz = wy * az - wz * ay, wz * ax - wx * az, wx * ay - wy * ax
+        qx, qy, qz = eps * ax, eps * ay, eps * az - R
+        fx, fy = -mu * (wy * qz - wz * qy), -mu * (wz * qx - wx * qz)
+        tx, ty, tz = qy - qz * fy, qz * fx - qx, qx * fy - qy * fx
+        k0 = -(C - A) / A * n
+        at = (1.0 / C - 1.0 / A) * (ax * tx + ay * ty + az * tz)
+        o1x, o1y, o1z = tx / A + at * ax, ty / A + at * ay, tz / A + at * az
+        h0 = -eps * (k0 * (dx * ay - dy * ax) + (wx * dy - wy * dx))
+        rn = (g + h0) / (1.0 / m + eps * (o1x * ay - o1y * ax))
+        out = np.empty(6)
+        out[0], out[1], out[2] = dx, dy, dz
+        out[3], out[4], out[5] = k0 * dx + rn * o1x, k0 * dy + rn * o1y, k0 * dz + rn * o1z
+        return out
+
+    @numba.njit(parallel=True, cache=True)
+    def _numba_loop(spins_, theta0, t1, rtol, atol, p, ts):
+        finals, steps = np.empty((spins_.shape[0], 6)), np.empty(spins_.shape[0], np.int64)
+        for i in numba.prange(spins_.shape[0]):
+            y0 = np.empty(6)
+            y0[0], y0[1], y0[2] = 0.0, -np.sin(theta0), np.cos(theta0)
+            y0[3:] = spins_[i] * y0[:3]
+            res = nbsolve_ivp(
+                _numba_rhs,
+                (0.0, t1),
+                y0,
+                args=(p,),
+                rtol=rtol,
+                atol=atol,
+                rk_method=2,
+                t_eval=ts,
+                warnings=False,
+            )
+            finals[i], steps[i] = res.y[:, -1], res.size - 1
+        return finals, steps
+
+
+@functools.cache
+def numba_batch():
+    """`run(spins, rtol, atol, threads=None, ts=None) -> (finals, steps)`: CyRK's `nbsolve_ivp`
+    (DOP853) in a `numba.prange` loop over the tops, on `threads` threads (default all)."""
+    if numba is None:
+        raise RuntimeError("the numba peer needs numba and CyRK: pip install -e '.[bench]'")
+
+    def run(spins_, rtol, atol, threads=None, ts=None):
+        # set before every call: a prange loop that ran between JAX's calls keeps no count
+        numba.set_num_threads(threads or numba.config.NUMBA_NUM_THREADS)
+        finals, steps = _numba_loop(
+            np.asarray(spins_, float),
+            THETA0,
+            T1,
+            float(rtol),
+            float(atol),
+            PARAMS,
+            np.empty(0) if ts is None else np.asarray(ts, float),
+        )
+        return finals, (steps if ts is None else None)  # with ts CyRK reports len(ts)
+
+    return run
+
+
+# --- scipy: DOP853 on the vector-form model in numpy --------------------------------------------
+
+
+class VectorModel:
+    """The full (x, y, vx, vy, a, omega) or SO(3) (a, omega) model of tippejax in the global
+    vector form, on Python floats (for 3-vectors faster than numpy arrays): scipy's strongest
+    form of the model, not a strawman. R_n from the vertical Newton equation."""
+
+    def __init__(self, variant: str, params=PARAMS):
+        self.full = variant == "full"
+        self.p = tuple(float(x) for x in params)
+
+    def dynamics(self, a, w, v):
+        """(R_n, omega_dot, horizontal slip velocity, denominator of R_n)."""
+        m, R, eps, A, C, g, mu = self.p
+        (ax, ay, az), (wx, wy, wz) = a, w
+        n = wx * ax + wy * ay + wz * az
+        dx, dy, dz = wy * az - wz * ay, wz * ax - wx * az, wx * ay - wy * ax
+        qx, qy, qz = eps * ax, eps * ay, eps * az - R
+        vqx, vqy = v[0] + wy * qz - wz * qy, v[1] + wz * qx - wx * qz
+        fx, fy = -mu * vqx, -mu * vqy
+        tx, ty, tz = qy - qz * fy, qz * fx - qx, qx * fy - qy * fx
+        k0 = -(C - A) / A * n
+        at = (1.0 / C - 1.0 / A) * (ax * tx + ay * ty + az * tz)
+        o1 = (tx / A + at * ax, ty / A + at * ay, tz / A + at * az)
+        h0 = -eps * (k0 * (dx * ay - dy * ax) + (wx * dy - wy * dx))
+        den = 1.0 / m + eps * (o1[0] * ay - o1[1] * ax)
+        rn = (g + h0) / den
+        return (
+            rn,
+            (k0 * dx + rn * o1[0], k0 * dy + rn * o1[1], k0 * dz + rn * o1[2]),
+            (vqx, vqy),
+            den,
+        )
+
+    def split(self, y):
+        y = y.tolist()
+        return (y[4:7], y[7:10], y[2:4]) if self.full else (y[0:3], y[3:6], (0.0, 0.0))
+
+    def rhs(self, t, y):
+        a, w, v = self.split(y)
+        rn, wdot, vq, _ = self.dynamics(a, w, v)
+        adot = (w[1] * a[2] - w[2] * a[1], w[2] * a[0] - w[0] * a[2], w[0] * a[1] - w[1] * a[0])
+        if self.full:
+            k = -self.p[6] * rn / self.p[0]
+            return np.array([v[0], v[1], k * vq[0], k * vq[1], *adot, *wdot])
+        return np.array([*adot, *wdot])
+
+    def y0(self, theta0, spin, phi_dot=0.0):
+        """The state of `tj.initial_state(top, theta0, spin, phi_dot=...)`."""
+        a = np.array([0.0, -math.sin(theta0), math.cos(theta0)])
+        w = np.array([0.0, 0.0, phi_dot]) + (spin - phi_dot * math.cos(theta0)) * a
+        return np.concatenate([np.zeros(4), a, w]) if self.full else np.concatenate([a, w])
+
+    def solve(self, y0, t1, *, rtol, atol, t_eval=None, stop_at_contact=False):
+        """solve_ivp(DOP853) with the inversion (a_z through 0) and, if asked, the contact loss
+        (R_n D through 0, terminal). Returns theta at t_eval (or the final state), t_invert,
+        t_contact_loss, steps."""
+        from scipy.integrate import solve_ivp
+
+        k = 6 if self.full else 2
+
+        def upright(t, y):
+            return y[k]
+
+        def contact(t, y):
+            rn, _, _, den = self.dynamics(*self.split(y))
+            return rn * den
+
+        upright.direction = contact.direction = -1
+        contact.terminal = True
+        sol = solve_ivp(
+            self.rhs,
+            (0.0, t1),
+            y0,
+            method="DOP853",
+            rtol=rtol,
+            atol=atol,
+            t_eval=t_eval,
+            events=(upright, contact) if stop_at_contact else upright,
+        )
+        if not sol.success:
+            raise RuntimeError(sol.message)
+        a = sol.y[k - 2 : k + 1]
+        first = [float(e[0]) if len(e) else math.nan for e in sol.t_events] + [math.nan]
+        out = np.arctan2(np.hypot(a[0], a[1]), a[2]) if t_eval is not None else sol.y[:, -1]
+        return out, first[0], first[1], (sol.nfev - 1) // 12

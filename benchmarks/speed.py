@@ -1,0 +1,723 @@
+"""speed: tippejax against the peers a user has, on one scene (`_peers.py`).
+
+Every peer runs the same SO(3) equations; tippejax at each level, events on. Per top at equal
+error: each peer at the rtol that gives the plain diffrax script's error at rtol 1e-8 (found on
+a single top's rtol ladder, log-log), then timed in interleaved rounds; ratios are medians of
+the round-by-round ratios (`_harness.paired`).
+
+    python benchmarks/speed.py --one-top      # one top; the chart peers.png
+    python benchmarks/speed.py --batch --big  # batches of 1000 (and 1e4), 1 device and every core
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import os
+import subprocess
+import sys
+import time
+
+# One JAX device here, unless the mode is about devices or every core (set before JAX starts).
+if not {"--numba", "--devices", "--grid", "--worker"} & set(sys.argv):
+    os.environ.setdefault("TIPPEJAX_HOST_DEVICES", "1")
+
+import _harness as h  # noqa: E402
+import _peers as p  # noqa: E402
+import diffrax  # noqa: E402
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+import tippejax as tj  # noqa: E402
+
+TOP, THETA0, SPIN, T1 = p.TOP, p.THETA0, p.SPIN, p.T1
+TARGET = 1e-8  # equal error: the plain script's error at this rtol
+NUMBA, PLAIN, SCIPY = "numba DOP853 (CyRK)", "plain diffrax", "scipy DOP853"
+PLAIN_PI, GYRO = "plain diffrax, PI controller", "tippejax gyroscopic"
+
+
+def final(sol):
+    return jnp.concatenate([sol.states.axis[..., -1, :], sol.states.omega[..., -1, :]], axis=-1)
+
+
+def tj_one(level, spin, rtol):
+    """One top as a user runs it: `tj.simulate(..., summary=True)`; (final state, steps)."""
+    y0 = tj.initial_state(TOP, THETA0, spin)
+    kw = dict(model=level, rtol=rtol, atol=rtol * 1e-2, throw=False, summary=True)
+    sol = tj.simulate(TOP, y0, T1, **kw)
+    return final(sol), sol.num_steps
+
+
+@functools.cache
+def tj_single(level):
+    return jax.jit(functools.partial(tj_one, level))
+
+
+@functools.cache
+def tj_vmap(level, options=False, n_devices=None):
+    """`tj.simulate` in the user's own `jax.jit(jax.vmap(...))` (with `tj.compiler_options()`)."""
+    batched = jax.vmap(functools.partial(tj_one, level), in_axes=(0, None))
+    devices = jax.devices()[: n_devices or None]
+    return p.over_devices(batched, 2, devices, tj.compiler_options() if options else None)
+
+
+def tj_eager_vmap(level):
+    return lambda s, r: jax.vmap(functools.partial(tj_one, level), in_axes=(0, None))(s, r)
+
+
+def tj_batch(level, steps="per_member", shard=True, saves=False):
+    """`tj.simulate_batch`, the public batch function."""
+
+    def run(s, rtol):
+        kw = dict(saveat=p.TS) if saves else dict(summary=True)
+        kw.update(grid=(), model=level, steps=steps, shard=shard)
+        sol = tj.simulate_batch(TOP, THETA0, np.asarray(s), T1, rtol=rtol, atol=rtol / 100, **kw)
+        return final(sol), sol.num_steps
+
+    return run
+
+
+def singles(levels) -> dict:
+    """{peer: run(rtol) -> (final, steps)} on the single top."""
+    nb = p.numba_batch()
+    runs = {
+        NUMBA: lambda r: tuple(x[0] for x in nb(np.array([SPIN]), r, r * 1e-2)),
+        PLAIN: lambda r: p.plain_single()(SPIN, r, r * 1e-2),
+        PLAIN_PI: lambda r: p.plain_single("pi")(SPIN, r, r * 1e-2),
+    }
+    for level in levels:
+        runs[f"tippejax {level}"] = functools.partial(tj_single(level), SPIN)
+    return runs
+
+
+def references(names) -> dict:
+    """The SO(3) equations at rtol 1e-13 (numba); each tippejax level against itself at 1e-12
+    (the full model has other equations), but the gyroscopic level against the SO(3) equations
+    (its error is its model error)."""
+    so3 = np.asarray(p.numba_batch()(np.array([SPIN]), 1e-13, 1e-15)[0][0])
+    out = {}
+    for name in names:
+        level = name.split()[-1] if name.startswith("tippejax") else None
+        own = level not in (None, "gyroscopic")
+        out[name] = np.asarray(tj_single(level)(SPIN, 1e-12)[0]) if own else so3
+    return out
+
+
+def equal_error(levels, args) -> tuple[dict, float]:
+    """{peer: rtol at the plain script's error at rtol TARGET}, and that error."""
+    rtols = (1e-7, 1e-8) if args.smoke else (1e-7, 3e-8, 1e-8, 3e-9)
+    runs = singles(levels)
+    refs = references(runs)
+    errs = {n: [p.state_error(run(r)[0], refs[n]) for r in rtols] for n, run in runs.items()}
+    target = errs[PLAIN][rtols.index(TARGET)]
+    return {n: h.interp_loglog(target, e, rtols) for n, e in errs.items()}, target
+
+
+def rounds(args, default):
+    return 1 if args.smoke else (args.rounds or default)
+
+
+def batch_size(args):
+    return 8 if args.smoke else 1000
+
+
+# --- modes -------------------------------------------------------------------------------------
+
+
+def one_top(args):
+    """One top: every peer's rtol ladder, then the JAX peers at equal error in interleaved
+    rounds; compile time per level; the chart peers.png."""
+    levels = ("so3", "gyroscopic") if args.smoke else ("so3", "full", "routhian", "gyroscopic")
+    ladder = (1e-6, 1e-8) if args.smoke else (1e-6, 1e-7, 1e-8, 1e-9, 1e-10)
+    runs, vm = singles(levels), p.VectorModel("so3")
+    runs[SCIPY] = lambda r: vm.solve(vm.y0(THETA0, SPIN), T1, rtol=r, atol=r / 100)[::3]
+    rows, compile_s = {}, {}
+    for name, run in runs.items():
+        rows[name] = []
+        for r in ladder[::2] if name == SCIPY and len(ladder) > 2 else ladder:
+            t, (fin, steps) = h.interleaved(
+                {0: functools.partial(run, r)}, 1 + 2 * (name != SCIPY)
+            )[0]
+            rows[name].append(dict(rtol=r, fin=fin, steps=int(steps), wall=t.wall, cpu=t.cpu))
+            compile_s.setdefault(name, t.compile)
+    refs = references(runs)
+    for name, rs in rows.items():
+        for x in rs:
+            x["error"] = p.state_error(x.pop("fin"), refs[name])
+    target = rows[PLAIN][ladder.index(TARGET)]["error"]
+    eq = {
+        n: {
+            k: h.interp_loglog(target, [x["error"] for x in rs], [x[k] for x in rs])
+            for k in ("rtol", "steps", "wall")
+        }
+        for n, rs in rows.items()
+        if n != GYRO
+    }
+    eq[GYRO] = dict(rows[GYRO][ladder.index(TARGET)])  # its error is its model error: at 1e-8
+    fns = {
+        n: functools.partial(runs[n], eq[n]["rtol"]) for n in runs if n not in (NUMBA, SCIPY, GYRO)
+    }
+    timed = h.interleaved(fns, rounds(args, 21))
+    base, body = timed[PLAIN][0], []
+    for n, v in eq.items():
+        if n in timed:
+            t, (_, steps) = timed[n]
+            v.update(steps=int(steps), wall=t.wall, ratio=h.paired(t, base)[0])
+        v.setdefault("ratio", v["wall"] / base.wall)
+        comp = f"{compile_s[n]:.1f}" if n.startswith("tippejax") else ""
+        body.append(
+            f"{n} | {v['rtol']:.2e} | {v['steps']:.0f} | {v['steps'] / eq[PLAIN]['steps']:.2f} | {1e3 * v['wall']:.3g} | {v['ratio']:.2f} | {comp}"
+        )
+    so3, full = eq["tippejax so3"], eq.get("tippejax full", eq["tippejax so3"])
+    steps = so3["steps"] / eq[PLAIN]["steps"]
+    h.write(
+        "speed.py --one-top",
+        "One top at equal error",
+        f"""
+SO(3) equations, theta0 0.1, spin 150 rad/s, 20 s. Error of the final state, max(|a - a_ref|, |omega - omega_ref| / |omega_ref|), against the same equations at rtol 1e-13 (each tippejax level against itself at 1e-12). Equal error {target:.2e} (the plain script's at rtol {TARGET:g}; atol = rtol/100). JAX peers: {rounds(args, 21)} interleaved rounds, 'vs plain' the median of the round ratios; numba, scipy and the gyroscopic level (at rtol 1e-8; its error {eq[GYRO]["error"]:.1e} is its model error) from the ladders. Compile: first call less a later one. Chart: `peers.png`.
+
+{h.table("peer | rtol | steps | vs plain steps | ms | vs plain | compile s", body)}
+
+Targets: steps at equal error <= 1.05x the plain script: {steps:.2f}x, {h.verdict(steps <= 1.05)}; one top <= 1.2x (so3): {so3["ratio"]:.2f}x, {h.verdict(so3["ratio"] <= 1.2)}; full <= 1.3x so3: {full["ratio"] / so3["ratio"]:.2f}x, {h.verdict(full["ratio"] <= 1.3 * so3["ratio"])}.
+""",
+        args,
+    )
+    plt = h.pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
+    for n, rs in rows.items():
+        for ax, key in zip(axes, ("cpu", "steps")):
+            if n != GYRO:
+                ax.loglog([x["error"] for x in rs], [x[key] for x in rs], "o-", ms=3, label=n)
+    for ax, label in zip(axes, ("CPU s per solve", "steps")):
+        ax.axvline(target, color="grey", lw=0.8, ls=":")
+        ax.set(xlabel="error of the final state", ylabel=label)
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].legend(fontsize=7)
+    fig.suptitle("Standard top, SO(3) equations, 20 s: work against error")
+    fig.tight_layout()
+    fig.savefig(h.figure_path("peers.png", args), dpi=110)
+
+
+def batch_fns(n, eq, n_devices, smoke):
+    """{row: zero-argument call -> (finals, steps)} of the batch modes."""
+    s, sp, nb, r, rn = jnp.asarray(p.spins(n)), p.spins(n), p.numba_batch(), eq[PLAIN], eq[NUMBA]
+    fns = {
+        f"{NUMBA}, prange": lambda: nb(sp, rn, rn / 100),
+        PLAIN: lambda: p.plain("vmap", n_devices)(s, r, r / 100),
+        "plain diffrax, 6 saves": lambda: p.plain("saves", n_devices)(s, r, r / 100),
+        "plain diffrax in blocks, tj.compiler_options()": lambda: p.plain("blocks", n_devices)(
+            s, r, r / 100
+        ),
+    }
+    if n_devices == 1:
+        fns[f"{NUMBA}, 1 thread"] = lambda: nb(sp, rn, rn / 100, threads=1)
+    for lv in ("so3",) if smoke else ("so3", "full"):
+        rl = eq[f"tippejax {lv}"]
+        fns[f"tj.simulate {lv} in jit(vmap)"] = functools.partial(
+            tj_vmap(lv, False, n_devices), s, rl
+        )
+        fns[f"tj.simulate {lv} in jit(vmap), tj.compiler_options()"] = functools.partial(
+            tj_vmap(lv, True, n_devices), s, rl
+        )
+        if n_devices == 1:
+            fns[f"tj.simulate {lv} in an eager vmap"] = functools.partial(tj_eager_vmap(lv), s, rl)
+        fns[f"tj.simulate_batch {lv}"] = functools.partial(tj_batch(lv, shard=n_devices > 1), s, rl)
+    fns["tj.simulate_batch so3, 6 saves"] = functools.partial(
+        tj_batch("so3", saves=True), s, eq["tippejax so3"]
+    )
+    return fns
+
+
+def time_batch(n, eq, n_devices, args) -> dict:
+    fns, out = batch_fns(n, eq, n_devices, args.smoke), {}
+    if args.smoke and n_devices > 1:  # the every-core path, on the rows its targets read
+        fns = {k: fns[k] for k in (PLAIN, "tj.simulate_batch so3")}
+    for name, (t, (_, steps)) in h.interleaved(fns, rounds(args, 5)).items():
+        steps = np.asarray(steps if steps is not None else np.zeros(n))
+        out[name] = dict(
+            walls=t.walls or [t.first_wall],
+            wall=t.wall,
+            steps_sum=int(steps.sum()),
+            steps_median=float(np.median(steps)),
+        )
+    return out
+
+
+def batch(args):
+    """Batches of 1000 (`--big`: and 1e4) at equal error, on one device and on every core."""
+    if args.worker:  # the every-core half, in a process of its own
+        job = json.loads(args.worker)
+        print("JSON" + json.dumps(time_batch(job["n"], job["eq"], len(jax.devices()), args)))
+        return
+    eq, target = equal_error(("so3",) if args.smoke else ("so3", "full"), args)
+    cores, text, targets = os.cpu_count() or 1, [], []
+    for n in [8] if args.smoke else [1000, 10_000] if args.big else [1000]:
+        one = time_batch(n, eq, 1, args)
+        env = dict(os.environ, TIPPEJAX_HOST_DEVICES=str(cores))
+        cmd = [sys.executable, __file__, "--batch", "--worker", json.dumps(dict(n=n, eq=eq))]
+        out = subprocess.run(
+            cmd + ["--smoke"] * args.smoke, env=env, capture_output=True, text=True
+        )
+        line = [x for x in out.stdout.splitlines() if x.startswith("JSON")]
+        if not line:
+            raise RuntimeError(out.stderr[-3000:])
+        every = json.loads(line[0][4:])
+
+        def ratio(res, a, b=PLAIN):
+            return float(np.median(np.asarray(res[a]["walls"]) / np.asarray(res[b]["walls"])))
+
+        rows = []
+        for name, v in one.items():
+            w = every.get(name)
+            cell = f"{1e3 * w['wall'] / n:.3g} | {ratio(every, name):.2f}" if w else " | "
+            per_step = f"{1e6 * v['wall'] / v['steps_sum']:.3g}" if v["steps_sum"] else ""
+            rows.append(
+                f"{name} | {v['steps_median']:.0f} | {1e3 * v['wall'] / n:.3g} | {ratio(one, name):.2f} | {cell} | {per_step}"
+            )
+        flops, (peak, peak_text) = p.flops_per_member_step(), h.peak_flops()
+        rate = flops * one[PLAIN]["steps_sum"] / one[PLAIN]["wall"]
+        text += [
+            f"**N = {n}**",
+            "",
+            h.table(
+                f"run | steps median | 1 device ms | vs plain | {cores} devices ms | vs plain | us per member-step (1 device)",
+                rows,
+            ),
+            "",
+            f"The plain script on 1 device: {rate / 1e9:.2f} GFLOP/s ({flops:.0f} flop per member-step, a lower bound), {100 * rate / peak:.1f}% of the float64 peak ({peak_text}).",
+            "",
+        ]
+        for label, res in (
+            (("1 device", one), (f"{cores} devices", every)) if n == 1000 or args.smoke else ()
+        ):
+            sb = ratio(res, "tj.simulate_batch so3")
+            targets.append(
+                f"batch of {n} <= 1.2x the plain script, {label} (`simulate_batch` so3) | {sb:.2f}x | {h.verdict(sb <= 1.2)}"
+            )
+            for what in (
+                "tj.simulate_batch {}",
+                "tj.simulate {} in jit(vmap)",
+                "tj.simulate {} in jit(vmap), tj.compiler_options()",
+            ):
+                if what.format("full") in res:
+                    f = ratio(res, what.format("full"), what.format("so3"))
+                    targets.append(
+                        f"full <= 1.3x so3, {label}: {what.format('...')} | {f:.2f}x | {h.verdict(f <= 1.3)}"
+                    )
+    vm, k = p.VectorModel("so3"), 2 if args.smoke else 20
+    start = time.perf_counter()
+    for s in p.spins(1000)[:: 1000 // k][:k]:
+        vm.solve(vm.y0(THETA0, s), T1, rtol=eq[NUMBA], atol=eq[NUMBA] / 100)
+    scipy_ms = 1e3 * (time.perf_counter() - start) / k
+    h.write(
+        "speed.py --batch",
+        "Batches on one device and on every core",
+        f"""
+Spins linspace(140, 160, N), 20 s, summary unless '6 saves'; each peer at its equal-error rtol (error {target:.2e}: {", ".join(f"{k} {v:.2e}" for k, v in eq.items())}); ms per top, medians of {rounds(args, 5)} interleaved rounds; 'vs plain' the median of the round ratios against the plain script on the same devices. Every core: a process with {cores} host devices, each running its shard. scipy DOP853, a loop over the tops: {scipy_ms:.0f} ms per top.
+
+{chr(10).join(text)}
+{h.table("target | measured | verdict", targets)}
+""",
+        args,
+    )
+
+
+def devices(args):
+    """The batch on 2 host devices in one process, against its two shards in two processes pinned
+    to a core each: what one process with 2 XLA:CPU devices costs each program."""
+    n = batch_size(args)
+    if args.worker:
+        core, half, rtol = json.loads(args.worker)
+        os.sched_setaffinity(0, {core})
+        runs = shard_runs(np.split(p.spins(n), 2)[half], rtol)
+        for run in runs.values():
+            run()
+        print("ready", flush=True)
+        for line in sys.stdin:
+            start = time.perf_counter()
+            runs[line.strip()]()
+            print(time.perf_counter() - start, flush=True)
+        return
+    cores = sorted(os.sched_getaffinity(0))[:2]
+    if len(jax.devices()) < 2 or len(cores) < 2:
+        raise SystemExit("--devices needs 2 cores and 2 host devices")
+    rtol = equal_error(("so3",), args)[0]["tippejax so3"]
+    here = shard_runs(p.spins(n), rtol)
+    for run in here.values():
+        run()
+    env = dict(os.environ, TIPPEJAX_HOST_DEVICES="1")
+    workers = [
+        subprocess.Popen(
+            [sys.executable, __file__, "--devices", "--worker", json.dumps([c, i, rtol])]
+            + ["--smoke"] * args.smoke,
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            text=True,
+            env=env,
+        )
+        for i, c in enumerate(cores)
+    ]
+    for w in workers:
+        if w.stdout.readline().strip() != "ready":
+            raise SystemExit("a worker failed to start")
+    one, two = "one process", "two processes"
+    walls = {(k, where): [] for k in here for where in (one, two)}
+    for _ in range(rounds(args, 7)):
+        for k, run in here.items():
+            walls[(k, one)].append(h.call(run)[0])
+            start = time.perf_counter()
+            for w in workers:
+                w.stdin.write(k + "\n")
+                w.stdin.flush()
+            for w in workers:
+                w.stdout.readline()
+            walls[(k, two)].append(time.perf_counter() - start)
+    for w in workers:
+        w.stdin.close()
+        w.wait()
+
+    def ratio(a, b):
+        r = np.asarray(walls[a]) / np.asarray(walls[b])
+        return f"{np.median(r):.3f} ({np.quantile(r, 0.25):.3f}-{np.quantile(r, 0.75):.3f})"
+
+    ms = ", ".join(f"{k} {1e3 * np.median(v) / n:.3f} ({where})" for (k, where), v in walls.items())
+    h.write(
+        "speed.py --devices",
+        "Two host devices in one process against two processes",
+        f"""
+Batch of {n} (SO(3), summary): `tj.simulate_batch` at its equal-error rtol ({
+            rtol:.2e}) and the plain script at 1e-8, {
+            rounds(args, 7)
+        } rounds. One process with 2 host devices, each running its shard, against the same shards in two one-device processes pinned to a core each. ms per top: {
+            ms
+        }.
+
+{
+            h.table(
+                "ratio | median (quartiles)",
+                [
+                    f"tippejax, one process / two processes | {ratio(('tippejax', one), ('tippejax', two))}",
+                    f"plain, one process / two processes | {ratio(('plain', one), ('plain', two))}",
+                    f"tippejax / plain, one process (target <= 1.2) | {ratio(('tippejax', one), ('plain', one))}",
+                    f"tippejax / plain, two processes | {ratio(('tippejax', two), ('plain', two))}",
+                ],
+            )
+        }
+""",
+        args,
+    )
+
+
+def shard_runs(s, rtol):
+    return {
+        "tippejax": functools.partial(tj_batch("so3"), s, rtol),
+        "plain": lambda: p.plain("vmap")(jnp.asarray(s), 1e-8, 1e-10),
+    }
+
+
+def numba_goal(args):
+    """`simulate_batch` against numba per core and on every core, per member and with shared
+    steps, and the plain shared-step script; every run's error measured."""
+    n, (eq, target) = batch_size(args), equal_error(("so3",), args)
+    s, nb, cores, r3, rn = (
+        p.spins(n),
+        p.numba_batch(),
+        len(jax.devices()),
+        eq["tippejax so3"],
+        eq[NUMBA],
+    )
+    fns = {
+        "numba, 1 thread": lambda: nb(s, rn, rn / 100, threads=1),
+        "simulate_batch, 1 device": functools.partial(tj_batch("so3", shard=False), s, r3),
+        "simulate_batch shared steps, 1 device": functools.partial(
+            tj_batch("so3", "shared", False), s, r3
+        ),
+        f"numba, {cores} threads (prange)": lambda: nb(s, rn, rn / 100),
+        f"simulate_batch, {cores} devices": functools.partial(tj_batch("so3"), s, r3),
+        f"simulate_batch shared steps, {cores} devices": functools.partial(
+            tj_batch("so3", "shared"), s, r3
+        ),
+        f"plain diffrax shared steps (rtol 1e-8), {cores} devices": lambda: p.plain("shared")(
+            jnp.asarray(s), 1e-8, 1e-10
+        ),
+    }
+    ref = np.asarray(p.plain("vmap")(jnp.asarray(s), 1e-12, 1e-14)[0])
+    timed = h.interleaved(fns, rounds(args, 9))
+    rows = []
+    for k, (t, out) in timed.items():
+        base = timed["numba, 1 thread" if "1 device" in k else f"numba, {cores} threads (prange)"][
+            0
+        ]
+        med, lo, hi = h.paired(t, base)
+        goal = (
+            f"{med:.3f} ({lo:.3f}-{hi:.3f}) {h.verdict(med <= 1)}"
+            if k.startswith("simulate_batch")
+            else ""
+        )
+        rows.append(f"{k} | {1e3 * t.wall / n:.3f} | {p.state_error(out[0], ref):.1e} | {goal}")
+    h.write(
+        "speed.py --numba",
+        "The numba goal: per core and on every core",
+        f"""
+Batch of {n}, summary, at equal error ({target:.2e}; numba rtol {rn:.2e}, tippejax so3 {r3:.2e}), {rounds(args, 9)} interleaved rounds, one process with {cores} host devices. Error: the largest over the members against the plain script at rtol 1e-12. Goal: at or below numba on the same cores (median of the paired ratios, quartiles).
+
+{h.table("run | ms per top | error | / numba on the same cores", rows)}
+""",
+        args,
+    )
+
+
+def wp(args):
+    """Work-precision of one top against scipy DOP853 on the same model in numpy; exactness of
+    events on any save grid; the chart work_precision.png."""
+    top, ts, y0 = TOP, np.linspace(0.0, T1, 201), tj.initial_state(TOP, 0.1, 150.0)
+    rtols = (1e-4, 1e-8) if args.smoke else (1e-4, 1e-6, 1e-8, 1e-10)
+    scipy_rtols = (1e-4, 1e-8) if args.smoke else tuple(10.0**-k for k in range(3, 12))
+    solvers = {"Dopri8": diffrax.Dopri8(), "default": None} | (
+        {} if args.smoke else {"Tsit5": diffrax.Tsit5()}
+    )
+
+    def run(model, solver, rtol):
+        sol = tj.simulate(
+            top,
+            y0,
+            T1,
+            model=model,
+            saveat=ts,
+            rtol=rtol,
+            atol=rtol / 100,
+            solver=solver,
+            throw=False,
+        )
+        return np.asarray(sol.theta), float(sol.t_invert), int(sol.num_steps)
+
+    curves, body, refs = {}, [], {m: run(m, diffrax.Dopri8(), 1e-13) for m in ("full", "so3")}
+    for model in ("full", "so3"):
+        vm, (ref, ref_t, _) = p.VectorModel(model), refs[model]
+        sc = curves[f"scipy DOP853, {model}"] = []
+        for r in scipy_rtols:
+            wall, _, (theta, t_inv, _, _) = h.call(
+                lambda r=r: vm.solve(vm.y0(0.1, 150.0), T1, rtol=r, atol=r / 100, t_eval=ts)
+            )
+            sc.append((wall, float(np.max(np.abs(theta - ref))), abs(t_inv - ref_t)))
+        for name, solver in solvers.items():
+            curves[f"{model} {name}"] = []
+            for r in rtols:
+                t, (theta, t_inv, steps) = h.interleaved(
+                    {0: functools.partial(run, model, solver, r)}, rounds(args, 5)
+                )[0]
+                err, t_err = float(np.max(np.abs(theta - ref))), abs(t_inv - ref_t)
+                curves[f"{model} {name}"].append((t.wall, err, t_err))
+                at = h.interp_loglog(err, [x[1] for x in sc], [x[0] for x in sc])
+                if name != "default" or type(tj.default_solver(top)) is not diffrax.Dopri8:
+                    body.append(
+                        f"{model} | {name} | {r:.0e} | {1e3 * t.wall:.3g} | {steps} | {err:.2e} | {t_err:.2e} | {at / t.wall:.1f}"
+                    )
+    curves["gyroscopic (t_invert only)"] = []
+    for r in rtols:
+        t, (_, t_inv, steps) = h.interleaved(
+            {0: functools.partial(run, "gyroscopic", None, r)}, rounds(args, 5)
+        )[0]
+        curves["gyroscopic (t_invert only)"].append((t.wall, np.nan, abs(t_inv - refs["full"][1])))
+        body.append(
+            f"gyroscopic | default | {r:.0e} | {1e3 * t.wall:.3g} | {steps} | | {abs(t_inv - refs['full'][1]):.2e} |"
+        )
+    coarse, fine = (float(tj.simulate(top, y0, T1, saveat=g).t_invert) for g in (p.TS, ts))
+    y200 = tj.initial_state(top, 0.1, 200.0)
+    lost = float(
+        tj.simulate(
+            top, y200, 7.0, solver=diffrax.Dopri8(), rtol=1e-6, atol=1e-8, throw=False
+        ).t_contact_loss
+    )
+    y300 = tj.initial_state(top, 0.1, 300.0)
+    long = tj.simulate(
+        top,
+        y300,
+        40.0,
+        rtol=1e-10,
+        atol=1e-12,
+        summary=True,
+        throw=False,
+        on_contact_loss="continue",
+    )
+    h.write(
+        "speed.py --wp",
+        "Work-precision of one top against scipy",
+        f"""
+Standard top, theta0 0.1, spin 150 rad/s, 20 s, 201 saves. Error: max |theta - theta_ref| over the saves and |t_invert - t_invert_ref|, against tippejax Dopri8 at rtol 1e-13 of the same model. scipy: `solve_ivp(DOP853)` on the vector-form model in numpy (`_peers.VectorModel`), atol = rtol/100. 'scipy / tippejax': scipy's time at tippejax's error (log-log on scipy's ladder) over tippejax's. The default solver's rows (on the chart) are shown where it is not Dopri8. The gyroscopic level: t_invert against the full model's. Chart: `work_precision.png`.
+
+{h.table("model | solver | rtol | ms | steps | max d theta | d t_invert | scipy / tippejax", body)}
+
+{
+            h.table(
+                "event | measured | verdict",
+                [
+                    f"t_invert on a 6-point grid = on 201 points | {coarse:.12f} s, {fine:.12f} s | {h.verdict(abs(coarse - fine) < 1e-9)}",
+                    f"spin 200: contact loss found with Dopri8 at rtol 1e-6 (5.1865 s) | {lost:.6f} s | {h.verdict(abs(lost - 5.1865) < 5e-5)}",
+                    f"40 s at rtol 1e-10, spin 300, on_contact_loss='continue' | t_final {float(long.t_final):g} s, {int(long.num_steps)} steps | {h.verdict(float(long.t_final) == 40.0)}",
+                ],
+            )
+        }
+""",
+        args,
+    )
+    plt = h.pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(13, 5.5), constrained_layout=True)
+    for ax, k, label in (
+        (axes[0], 1, "max |theta - theta_ref| (rad)"),
+        (axes[1], 2, "|t_invert - t_invert_ref| (s)"),
+    ):
+        for name, pts in curves.items():
+            pts = [x for x in pts if np.isfinite(x[k])]
+            if pts:
+                style = "k^--" if name.startswith("scipy") else "o-"
+                ax.loglog(
+                    [x[0] for x in pts], [max(x[k], 1e-16) for x in pts], style, ms=4, label=name
+                )
+        ax.set(xlabel="wall time per run (s)", ylabel=label)
+        ax.grid(True, which="both", alpha=0.3)
+    axes[0].legend(fontsize=7)
+    fig.savefig(h.figure_path("work_precision.png", args), dpi=110)
+
+
+def stiff(args):
+    """Tsit5, Dopri8 and Kvaerno5 as friction grows: where `default_solver` changes."""
+    ts, rows = np.linspace(0.0, 0.5, 201), []
+    solvers = {"Tsit5": diffrax.Tsit5(), "Dopri8": diffrax.Dopri8(), "Kvaerno5": diffrax.Kvaerno5()}
+    for mu in (300.0,) if args.smoke else (300.0, 3000.0, 30000.0):
+        top = tj.TippeTop.from_ratios(0.9, 0.3, mu=mu)
+        y0, kw = (
+            tj.initial_state(top, 0.1, 100.0),
+            dict(saveat=ts, throw=False, max_steps=2_000_000),
+        )
+        ref = np.asarray(
+            tj.simulate(top, y0, 0.5, rtol=1e-11, atol=1e-13, solver=diffrax.Kvaerno5(), **kw).theta
+        )
+        fns = {
+            n: functools.partial(tj.simulate, top, y0, 0.5, rtol=1e-8, atol=1e-10, solver=s, **kw)
+            for n, s in solvers.items()
+        }
+        cells = [
+            f"{t.wall:.3f} / {int(sol.num_steps)} / {np.max(np.abs(np.asarray(sol.theta) - ref)):.1e}"
+            for t, sol in h.interleaved(fns, rounds(args, 2)).values()
+        ]
+        rows.append(
+            f"{mu:g} | {float(tj.friction_rate(top)):.3g} | {' | '.join(cells)} | {type(tj.default_solver(top)).__name__}"
+        )
+    h.write(
+        "speed.py --stiff",
+        "Stiff friction: where the default solver changes",
+        f"""
+Standard top with larger mu, theta0 0.1, spin 100 rad/s, 0.5 s, rtol 1e-8, 201 saves; error against Kvaerno5 at rtol 1e-11; {rounds(args, 2)} interleaved rounds. Wall s / steps / max d theta:
+
+{h.table("mu (s/m) | friction rate (1/s) | Tsit5 | Dopri8 | Kvaerno5 | default picks", rows)}
+""",
+        args,
+    )
+
+
+BIG = """
+import json, resource, sys, time
+import numpy as np
+import tippejax as tj
+n, chunk, t1 = int(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3])
+rng = np.random.default_rng(1)
+th, sp = rng.uniform(0.05, 0.3, n), rng.uniform(100.0, 200.0, n)
+start, first, rss0, ok = time.perf_counter(), None, None, 0
+for k in range(0, n, chunk):
+    sol = tj.simulate_batch(tj.default_top(), th[k:k + chunk], sp[k:k + chunk], t1, grid=(),
+                            summary=True)
+    ok += int(np.sum(np.asarray(sol.result == tj.RESULTS.successful)))
+    if first is None:
+        first = time.perf_counter() - start
+        rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+print(json.dumps(dict(wall=time.perf_counter() - start, first=first, rss0=rss0, ok=ok,
+                      rss=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)))
+"""
+
+
+def grid(args):
+    """A grid of 1000 launches of the full model against a scipy loop; lock-step cost and
+    bucketing on a spread batch; 1e5 launches in bounded memory; the chart batch.png."""
+    a, b = (2, 4) if args.smoke else (20, 50)
+    th, sp = np.linspace(0.05, 0.3, a), np.linspace(100, 200, b)
+    kw = dict(summary=True, rtol=1e-8, atol=1e-10)
+    t, sol = h.interleaved({0: lambda: tj.simulate_batch(TOP, th, sp, T1, **kw)}, rounds(args, 2))[
+        0
+    ]
+    steps = np.asarray(sol.num_steps).ravel()
+    vm, k = p.VectorModel("full"), 2 if args.smoke else 20
+    launches = list(zip(np.repeat(th, b), np.tile(sp, a)))[:: max(1, a * b // k)][:k]
+    start = time.perf_counter()
+    for x, s in launches:
+        vm.solve(vm.y0(x, s), T1, rtol=1e-8, atol=1e-10, stop_at_contact=True)
+    scipy_total = (time.perf_counter() - start) / len(launches) * steps.size
+    spread, lock, rows = (np.linspace(0.05, 0.3, a), np.linspace(20, 400, b)), {}, []
+    for t1, buckets in ((20.0, (1, 2, 4)), (4.0, (1, 2, 4, 8))):
+        fns = {
+            m: functools.partial(tj.simulate_batch, TOP, *spread, t1, summary=True, buckets=m)
+            for m in buckets[: 2 if args.smoke else None]
+        }
+        lock[t1] = {
+            m: (x.wall, np.asarray(s.num_steps).ravel())
+            for m, (x, s) in h.interleaved(fns, rounds(args, 2)).items()
+        }
+        rows += [
+            f"{t1:g} s | {m} | {w:.2f} | {lock[t1][1][0] / w:.2f}x | {s.max()} | {np.median(s):.0f}"
+            for m, (w, s) in lock[t1].items()
+        ]
+    n_big = (200, 100) if args.smoke else (100_000, 2000)
+    big = h.fresh_process(BIG, str(n_big[0]), str(n_big[1]), "1.0")
+    h.write(
+        "speed.py --grid",
+        "A grid of launches: against scipy, lock-step, bucketing, 1e5 launches",
+        f"""
+Full model, rtol 1e-8, summary: theta0 linspace(0.05, 0.3, {a}) x spin linspace(100, 200, {b}), 20 s, `tj.simulate_batch` on {len(jax.devices())} devices: {1e3 * t.wall / steps.size:.2f} ms per launch; scipy DOP853 on the numpy model with the contact-loss event ({len(launches)} launches, scaled): **{scipy_total / t.wall:.0f}x** the batch's time. Lock-step: max {steps.max()} steps against a median of {np.median(steps):.0f} ({100 * (1 - steps.mean() / steps.max()):.0f}% of the lane-steps idle).
+
+Spread batch (spin linspace(20, 400)), `simulate_batch(..., buckets=k)` (sorted by spin), {rounds(args, 2)} interleaved rounds:
+
+{h.table("t1 | buckets | wall s | vs 1 bucket | steps max | steps median", rows)}
+
+{n_big[0]} launches of 1 s in chunks of {n_big[1]}, a fresh process: {big["wall"]:.1f} s (first chunk {big["first"]:.1f} s), {big["ok"]} ok; peak RSS {big["rss0"]:.0f} MB after the first chunk, {big["rss"]:.0f} MB at the end.
+""",
+        args,
+    )
+    plt = h.pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(13, 5), constrained_layout=True)
+    for t1, res in lock.items():
+        axes[0].scatter(np.tile(spread[1], a), res[1][1], s=6, label=f"t1 = {t1:g} s")
+        axes[1].plot(
+            list(res), [res[1][0] / w for w, _ in res.values()], "o-", label=f"t1 = {t1:g} s"
+        )
+    axes[0].set(
+        xlabel="spin (rad/s)",
+        ylabel="steps per member (rtol 1e-8)",
+        title="under vmap all take the max",
+    )
+    axes[1].set(xscale="log", xlabel="buckets (sorted by spin)", ylabel="speed-up over 1 bucket")
+    for ax in axes:
+        ax.legend(fontsize=8)
+        ax.grid(alpha=0.3)
+    fig.savefig(h.figure_path("batch.png", args), dpi=110)
+
+
+MODES = {
+    "one-top": (one_top, "one top: every peer's ladder and equal error; peers.png"),
+    "batch": (batch, "batches of 1000 (--big: 1e4) on one device and on every core"),
+    "devices": (devices, "2 host devices in one process against two pinned processes"),
+    "numba": (numba_goal, "the numba goal, per member and shared steps"),
+    "wp": (wp, "work-precision against scipy; events; work_precision.png"),
+    "stiff": (stiff, "solvers under stiff friction"),
+    "grid": (grid, "a 1000-launch grid against scipy, lock-step, bucketing, 1e5; batch.png"),
+}
+
+
+def options(parser):
+    parser.add_argument("--big", action="store_true", help="--batch: also 1e4 tops")
+    parser.add_argument("--worker", default=None, help=argparse.SUPPRESS)
+
+
+if __name__ == "__main__":
+    h.run(MODES, h.parse(__doc__, MODES, options))
