@@ -79,9 +79,9 @@ LEARNING_RATE = 0.25
 SOLVE = dict(rtol=1e-8, atol=1e-10)
 # The design quantity: the nutation-averaged inversion time of the gyroscopic level (chaining to
 # the full model where the slow manifold repels). The full model's t* is a staircase in every
-# parameter (one step of ~0.05 s per nutation cycle): its exact local gradient is 1.4x (mu) to
-# 1.7x (A) smaller than the trend over +-1% at the launch below, while the gyroscopic t*'s
-# gradient is the trend (see `tj.inversion_time`).
+# parameter (one step of about a nutation period per nutation cycle): its exact local gradient
+# is the slope of one stair, not the trend, while the gyroscopic t*'s gradient is the trend
+# (see `tj.inversion_time`).
 DESIGN = dict(SOLVE, model="gyroscopic")
 PENALTY = 0.02  # s / (rad/s)^2, objective 1's penalty on a launch below the full-turn spin
 

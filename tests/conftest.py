@@ -4,18 +4,12 @@ import os
 # The programs a test compiles itself (a `jax.jit`, `jax.vmap` or `jax.grad` around `simulate`,
 # which a user's process compiles with XLA's defaults) are compiled with the options of
 # tippejax's own CPU programs (`tippejax._engine.cpu.CPU_COMPILER_OPTIONS`): LLVM level 1 and
-# XLA:CPU's element-wise loop emitter. The suite's time is mostly XLA compiling: on the 2-core
-# CI machine (2026-11-28) the README's test command took 1302 s with XLA's defaults and 1037 s
-# with these flags (2550 and 2013 s of test time on 2 workers); `tests/test_simulate.py` and
-# `tests/test_gyroscopic.py` alone, side by side on separate cores, 507 s against 373 s.
-# Compile options change the rounding, not the arithmetic: LLVM level 0 (another 9% off those
-# two files) moved two comparisons of two programs past their bounds (a vmap against a loop of
-# single runs at 2.1e-8 against 1e-8; optimistix's Levenberg-Marquardt one step longer than
-# the host loop's), so level 1, which the suite passes at, is kept. The tests that start a
-# new process with a device count of their own (the 2- and 4-device batches, the two-process
-# map) pass these flags on too (`helpers.host_devices_env`): those three tests took a median
-# 0.90x as long as with XLA's defaults (5 alternated pairs, 0.79-1.09x, 2026-11-29).
-# TIPPEJAX_TEST_XLA_DEFAULTS=1 runs the whole suite with XLA's defaults.
+# XLA:CPU's element-wise loop emitter. The suite's time is mostly XLA compiling, and these
+# flags compile sooner. Compile options change the rounding, not the arithmetic; the suite's
+# comparisons of two programs hold at level 1 (level 0 moves some of them past their bounds).
+# The tests that start a new process with a device count of their own pass these flags on too
+# (`helpers.host_devices_env`). TIPPEJAX_TEST_XLA_DEFAULTS=1 runs the suite with XLA's
+# defaults.
 TEST_XLA_FLAGS = ("--xla_backend_optimization_level=1", "--xla_cpu_use_fusion_emitters=false")
 if os.environ.get("TIPPEJAX_TEST_XLA_DEFAULTS", "0") in ("0", ""):
     _flags = os.environ.get("XLA_FLAGS", "")
@@ -56,8 +50,8 @@ def _free_compiled_code_between_modules():
 LONGEST_FIRST = ("test_fit.py", "test_simulate.py", "test_shared_steps.py", "test_engine.py",
                  "test_gyroscopic.py", "test_maps.py", "test_grad.py", "test_batch.py",
                  "test_projection.py", "test_unrolled.py", "test_cache.py", "test_inversion.py")
-"""The test files that take longest (`--durations=0` of the README's test command on a 2-core
-machine, 2026-11-28, summed per file, longest first). They are collected first, so that
+"""The test files that take longest (`--durations=0` of the README's test command, summed per
+file, longest first). They are collected first, so that
 pytest-xdist, which hands out whole files in collection order (`--dist loadfile`), starts them
 first and fills in with the short files: otherwise a long file handed out late keeps one worker
 busy while the others idle."""

@@ -427,8 +427,8 @@ def test_body_vector_of_a_fast_top_against_a_plain_solve(top, inverting):
 
 def test_fast_top_steps_match_a_solve_without_body_vector(top):
     """The body vector no longer sets the steps: the SO(3) level takes within 5% of the steps
-    of a plain Dopri8 solve of (axis, omega) alone with the same step-size controller (it took
-    1.5x as many with the body vector in the state), at rtol 1e-8."""
+    of a plain Dopri8 solve of (axis, omega) alone with the same step-size controller (the
+    spinning body vector in the state would set the steps), at rtol 1e-8."""
     from tippejax._engine.segment import STEP_CONTROL
     from tippejax._models.so3 import so3_vector_field
 

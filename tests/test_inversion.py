@@ -310,7 +310,7 @@ def test_bad_input():
 def test_gyroscopic_gradient_is_the_secular_slope():
     """The design quantity: the gyroscopic t* (nutation averaged) has the gradient of its trend
     over +-1% of mu and A, where the full model's t* is a staircase whose local gradient is
-    not (standard top, theta0 = 0.1, n0 = 100: 1.4x in mu, 1.7x in A)."""
+    not (standard top, theta0 = 0.1, n0 = 100)."""
     top = tj.default_top()
 
     def t_star(mu, A):

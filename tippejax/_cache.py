@@ -16,8 +16,8 @@ process. It does nothing when:
 program is stored, however quick to compile, unless the user set
 `JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS` (JAX's default, 1 s, leaves out the many small
 programs a first call also compiles: about 1 s of a warm first `simulate`). The cache saves
-XLA compilation only: each process still traces the Python functions again (about 3 s for a
-first `simulate` on a loaded 2-core machine, `benchmarks/compile_cache.py`).
+XLA compilation only: each process still traces the Python functions again (a few seconds
+for a first `simulate`; the gradients suite's first-call mode measures it).
 
 JAX does not store programs with host callbacks, which every `eqx.error_if` is; see
 `cacheable` for how the solve is kept free of them. Programs that span several CPU devices (a
@@ -25,8 +25,8 @@ batch sharded over the cores) are kept out of the cache: loading them crashed pr
 (`guard_multi_device_programs`).
 
 **Traced programs too.** The XLA cache does not spare a new process the tracing of the Python
-functions (diffrax's loop, the events, the fit's optimiser): 3-4 s of a first `simulate`, 8-15 s
-of a first `fit`. `cached_call` keeps the traced programs as well: the first call with a
+functions (diffrax's loop, the events, the fit's optimiser), seconds for a first `simulate`
+and more for a first `fit`. `cached_call` keeps the traced programs as well: the first call with a
 configuration exports the jitted function (`jax.export`) and stores the serialized program
 beside the XLA cache (`<cache>-exports`); a later process deserializes it and runs it, compiled
 from the XLA cache, without tracing. The entry's key holds everything the trace depended on:
@@ -125,12 +125,10 @@ def guard_multi_device_programs() -> bool:
     """Keep XLA:CPU programs that span several devices out of JAX's persistent cache: they
     are neither read from it nor written to it, and compile in every process.
 
-    Loading such a program from the cache crashed the process (SIGABRT, no message) in 2 to
-    4 of 10 new processes on this project's machine (jax 0.10.2, 2 host devices): a
-    `simulate_batch` of two tops x two spins with launch rates and 21 saves, sharded over
-    the devices; never when the same program was compiled afresh (0 of 16), nor on one
-    device with the cache (0 of 22), nor for a plain diffrax batch sharded the same way (0 of
-    10). The programs of one device (every `simulate`, `grad` and `fit` of one record) are
+    Loading such a program from the cache crashed some new processes (SIGABRT, no message;
+    jax 0.10, 2 host devices, a sharded `simulate_batch`), while the same program compiled
+    afresh, one-device programs loaded from the cache and a plain diffrax batch sharded the
+    same way never did. The programs of one device (every `simulate`, `grad` and `fit` of one record) are
     still cached. JAX has no public switch per program, so this wraps its private
     `compiler._cache_read` and `_cache_write`; where they are not found (another jax) nothing
     is changed.
@@ -272,7 +270,7 @@ def _single_device(leaves) -> bool:
 def to_device(x, dtype=None) -> jax.Array:
     """A host value as a device array, in the canonical dtype, without a program:
     `jnp.asarray` of a numpy array compiles a small copy program (`stage`) per shape and
-    dtype, 10-20 ms each in a new process (warm cache or not), and a fit makes dozens."""
+    dtype, each a compilation in a new process (warm cache or not), and a fit makes dozens."""
     x = np.asarray(x, dtype)
     return jax.device_put(x.astype(jax.dtypes.canonicalize_dtype(x.dtype), copy=False))
 

@@ -12,10 +12,9 @@ vector-Jacobian product $\bar y^{\mathsf T} J$ (`jax.grad`, `jax.vjp`: the trans
 former, which JAX derives since $J$ is a constant of the primal inputs).
 
 Reverse mode through the solve itself (`diffrax.RecursiveCheckpointAdjoint`) instead runs the
-solve's ~3000 steps backwards through every Runge-Kutta stage, the event watch and the
-step-size controller; for the seven fields of the standard top's 20 s run that cost 5.4-8.1x
-the solve against 3.4-5.5x for $J$ (`benchmarks/gradients.py`, a 2-core CPU), and more the
-more small operations a step holds. It remains the better choice for many differentiated
+solve's thousands of steps backwards through every Runge-Kutta stage, the event watch and
+the step-size controller, which for a top's few inputs costs more than $J$ (the gradients
+suite on the performance page compares both). It remains the better choice for many differentiated
 inputs, which a single run of a top does not have (a batch of tops is `jax.vmap` of single
 runs).
 

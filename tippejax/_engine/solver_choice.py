@@ -1,14 +1,14 @@
-"""The default solver, chosen from measured work-precision (`benchmarks/engine.py`).
+"""The default solver, chosen from measured work-precision (see the performance page).
 
-Non-stiff friction: Dopri8 (8th order, 14 stages) takes 3-10x fewer steps than Tsit5 for the
-same error and is faster at every rtol from 1e-4 to 1e-10 (`benchmarks/RESULTS.md`). Its long
-steps no longer hide events: `WatchedSolver` checks the conditions on each step's dense output.
-Stiff friction: explicit steps are limited by stability, and Tsit5's cheaper steps win until
-the friction is very stiff; above `IMPLICIT_RATE` only an implicit solver (Kvaerno5) finishes.
-A level whose steps follow a slow flow (the gyroscopic level: tens of steps a run) runs Dopri5
-where Dopri8 would be the default: with so few steps a step's fixed cost (Dopri8's is several
-times Dopri5's on a CPU) outweighs the steps saved, and Dopri5's dense output, which the event
-watch evaluates several times a step, is cheaper than Tsit5's (`benchmarks/LEVELS.md`).
+Non-stiff friction: Dopri8 (8th order, 14 stages) takes several times fewer steps than Tsit5
+for the same error and is faster at every rtol from 1e-4 to 1e-10. Its long steps do not hide
+events: `WatchedSolver` checks the conditions on each step's dense output. Stiff friction:
+explicit steps are limited by stability, and Tsit5's cheaper steps win until the friction is
+very stiff; above `IMPLICIT_RATE` only an implicit solver (Kvaerno5) finishes. A level whose
+steps follow a slow flow (the gyroscopic level: tens of steps a run) runs Dopri5 where Dopri8
+would be the default: with so few steps a step's fixed cost outweighs the steps saved, and
+Dopri5's dense output, which the event watch evaluates several times a step, is cheaper than
+Tsit5's.
 """
 
 from __future__ import annotations

@@ -18,33 +18,16 @@ as the next step's first stage, as diffrax does.
 
 The results equal the base solver's to rounding (`tests/test_unrolled.py`); what differs is the
 program: one copy of the vector field per stage instead of one inside a loop, so it compiles
-slower and, on a GPU, runs much faster. `benchmarks/gpu.py`, peers.py's scene (SO(3) tops,
-20 s, rtol 1e-8, Dopri8), NVIDIA H200, seconds per batch, stage loop -> stages written out:
-
-| | 1e4 tops | 1e6 tops |
-|---|---|---|
-| `simulate_batch(steps="shared")` | 1.41 -> 0.74 | 19.3 -> 8.8 |
-| `simulate_batch` (per member) | 1.02 -> 0.33 | |
-| plain diffrax script, shared steps | 0.71 -> 0.18 | 14.7 -> 8.9 |
-| plain diffrax script, `jax.vmap` | 0.80 -> 0.16 | |
-
-On a GPU every trip of the stage loop is a round of small kernels and, in a batch of few
-members, a wait for the loop's predicate; written out, the stages fuse into a few large
-kernels. Compilation on the GPU took 9-12 s -> 13-25 s per program. On XLA:CPU, under tippejax's CPU
-options, the same program ran slower and compiled about 2x slower: `benchmarks/engine_tax.py`
-(1000 tops, one device, ms per top, stage loop -> written out) the plain script 3.21 -> 3.21,
-tippejax's field in a plain loop 3.14 -> 3.42, with the event watch 3.44 -> 4.09,
-`simulate_batch` 3.78 -> 5.84. So tippejax writes the stages out on accelerators only
-(`unroll_stages`).
+slower and, on a GPU, runs much faster. On a GPU every trip of the stage loop is a round of
+small kernels and, in a batch of few members, a wait for the loop's predicate; written out,
+the stages fuse into a few large kernels. On XLA:CPU, under tippejax's CPU options, the same
+program runs slower and compiles slower, so tippejax writes the stages out on accelerators
+only (`unroll_stages`; the GPU suite on the performance page compares both).
 
 On CPUs it runs the stages in its own loop, `StageLoopERK`: diffrax's loop, but each stage's
 $\\sum_j a_{ij} k_j$ a sum over the slices of the stage buffer instead of `jnp.tensordot`,
-which under `jax.vmap` XLA:CPU computed through a transposed copy of the whole buffer at
-every stage. `simulate_batch` of 500 SO(3) tops (peers.py's scene) on one pinned core of
-the Intel Xeon of `benchmarks/RESULTS.md`, seconds, diffrax's loop -> `StageLoopERK`, two
-processes each: 1.93, 1.82 -> 0.99, 0.92 (against the plain script in blocks with the same
-options, paired in the same processes: 1.20x, 1.17x -> 0.65x, 0.66x); full level 1.67 ->
-1.07 (1.08x -> 0.66x).
+which under `jax.vmap` XLA:CPU computes through a transposed copy of the whole buffer at
+every stage.
 """
 
 from __future__ import annotations
@@ -217,8 +200,7 @@ class StageLoopERK(AbstractTableauSolver):
     diffrax forms $y_i = y_0 + \sum_j a_{ij} k_j$ with `jnp.tensordot` over the stage axis of
     its buffer of stages. Under `jax.vmap` that axis is the buffer's middle one (members x
     stages x state), and XLA:CPU transposes the whole buffer into a copy before every stage's
-    product: in a batch of SO(3) tops that copy took about 45% of the run
-    (`tippejax._engine.cpu`). Here the stage index is a loop counter as in diffrax, the row
+    product, the largest single kernel of a batch of tops. Here the stage index is a loop counter as in diffrax, the row
     $a_{i\cdot}$ is read with it, and $y_i = y_0 + \sum_{j} a_{ij} k_j$ is a sum over the $s$
     slices $k_j$ of the buffer (zeros included, as in diffrax), which XLA fuses into one loop
     over the state with no copy. The end of the step is written out with the tableau's

@@ -8,8 +8,8 @@ parameters trade against the spin and keep the envelope of the tilt) is a shallo
 with ripples one cycle apart: the local curvature of one ripple is large, so the standard
 errors are small, yet minima many cycles away fit the record as well or better. A fit that
 ends in one of them comes back within the noise, passes every test of its residuals, and is
-some ten of its own standard errors from the truth (`benchmarks/fitting.py`, records 12 and
-40, were such cases).
+some ten of its own standard errors from the truth (the fitting suite's seeded records hold
+such cases).
 
 So after a fit, the loss is profiled along that valley,
 

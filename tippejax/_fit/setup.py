@@ -273,8 +273,7 @@ class Setup:
 def _own_call(fn, *args, ahead=False, **static):
     """`cached_call` (or with `ahead`, `compile_ahead`) of one of the fit's programs, traced
     for the persistent cache (`cacheable`) and compiled with tippejax's CPU options on a CPU
-    (`tippejax._engine.cpu`; the one-record fit of compile_cache.py's case, 40 steps: first
-    call 13.5 -> 8.4 s, again 3.6 -> 2.8 s)."""
+    (`tippejax._engine.cpu`), which compile and run the fit's programs sooner."""
     options = own_compiler_options()
     with cacheable():
         if ahead:

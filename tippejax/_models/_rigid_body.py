@@ -115,14 +115,11 @@ def rigid_body_dynamics_by_components(top: TippeTop, axis, omega, velocity):
     with $q = \epsilon a - R e_Z$ and $v_Q = v_O + \omega\times q$ (horizontal; see
     `contact_vector`, `contact_velocity`), and only the returned vectors stacked. In vector form
     (`jnp.cross`, `jnp.dot`, a concatenation for $v_O$) XLA keeps the intermediate 3-vectors as
-    concatenations, which do not vectorise when the members of a batch are the fast axis:
-    `simulate_batch(..., steps="shared")` at the SO(3) level, the field in a plain diffrax loop
-    over 512 tops, 1.06 ms per top in vector form with the members leading and 0.69 ms in this
-    form with the members trailing (0.86 in vector form). Elsewhere the vector form stays
-    (`AbstractLevel.by_components`): under `jax.jacfwd` this form doubled the cost of a
-    Jacobian of one top (`benchmarks/gradients.py`: 7.4x the solve against 3.6x), and a run of
-    one top or a vmapped batch gained 3-10%. `tests/test_models.py` checks that both forms
-    give the same numbers.
+    concatenations, which do not vectorise when the members of a batch are the fast axis
+    (`simulate_batch(..., steps="shared")`): there this form is the faster. Elsewhere the vector
+    form stays (`AbstractLevel.by_components`): it is the cheaper for one top, a vmapped batch
+    and under `jax.jacfwd`. `tests/test_models.py` checks that both forms give the same
+    numbers.
     """
     a0, a1, a2 = axis[..., 0], axis[..., 1], axis[..., 2]
     w0, w1, w2 = omega[..., 0], omega[..., 1], omega[..., 2]

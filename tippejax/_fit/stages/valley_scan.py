@@ -4,9 +4,8 @@ r"""Valley scan: the nutation's phase found along the slow loss's valley, never 
 parameters held where the search left them. That holds only while the window is too early for
 the others to matter. On a slowly rising record the "early" window (until the tilt has moved)
 is most of the record; the scan then moves the spin to make up for the others' error in the
-slow motion, and the fit ends tens of percent away (records 24 and 54 of
-`benchmarks/fitting.py`: tilted Group IIa and IIc tops whose tilt first falls, then rises over
-15-18 s). This stage keeps the slow motion matched, so that its scan sees the nutation's phase:
+slow motion, and the fit ends tens of percent away (tilted Group IIa and IIc tops whose tilt
+first falls, then rises over many seconds). This stage keeps the slow motion matched, so that its scan sees the nutation's phase:
 
 1. **Onto the valley.** The start is refined on the slow loss (`levels.py`: the smoothed
    tilt's envelope and its level-crossing times, blind to the phase) with every free
