@@ -22,7 +22,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._analysis.groups import GROUPS, classify, group_index, thresholds
+from ._analysis.potential import effective_potential_d2_closed_form
 from ._analysis.steady_states import branch_jellet, stability_function
+from ._invariants import jellet
+from ._outcome import OUTCOMES, stable_states
+from ._state import initial_state
 from ._top import TippeTop
 
 # One colour per group, in the order of `GROUPS`: blues for I (never inverts), greens/orange for
@@ -424,10 +428,6 @@ OUTCOME_COLOURS = ("#6baed6", "#31a354", "#fd8d3c", "#252525", "#e7298a")
 
 @jax.jit
 def _pole_curvatures(top: TippeTop, theta0, spin):
-    from ._analysis.potential import effective_potential_d2_closed_form
-    from ._invariants import jellet
-    from ._outcome import stable_states
-    from ._state import initial_state
 
     J = jellet(top, initial_state(top, theta0, spin))
     n_stable = jax.vmap(lambda j: jnp.sum(stable_states(top, j)[1]))(J.ravel()).reshape(J.shape)
@@ -450,7 +450,6 @@ def _draw_outcomes(ax, x, y, outcome, settled):
     """Categorical image of `outcome[y, x]`; unsettled cells hatched."""
     from matplotlib.colors import BoundaryNorm, ListedColormap
 
-    from ._outcome import OUTCOMES
 
     cmap = ListedColormap(OUTCOME_COLOURS)
     norm = BoundaryNorm(np.arange(-0.5, len(OUTCOMES) + 0.5), cmap.N)
@@ -468,7 +467,6 @@ def _draw_outcomes(ax, x, y, outcome, settled):
 def _outcome_handles(outcome, settled, extra=()):
     from matplotlib.patches import Patch
 
-    from ._outcome import OUTCOMES
 
     present = set(np.unique(outcome).tolist())
     handles = [

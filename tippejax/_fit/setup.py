@@ -20,7 +20,7 @@ from .._cache import cacheable, cached_call, compile_ahead, to_device
 from .._devices import batch_sharding, shard_over
 from .._engine.cpu import own_compiler_options
 from .optimise import least_squares, optimise
-from .params import physical
+from .params import assemble, physical
 from .problem import (
     NUM_LEVELS,
     U_LIMIT,
@@ -344,8 +344,6 @@ def finish(u, code, data: Data, value, jac_u, sol, cfg: Config):
         phi_fit = jnp.full_like(phi_fit, jnp.nan)
     used = data.weights > 0
     failed = jnp.any(used & ~jnp.isfinite(theta_fit))
-    from .params import assemble
-
     top, y0 = assemble(values, data.base)
     vector = jnp.stack([values[n] for n in cfg.free])
     return dict(

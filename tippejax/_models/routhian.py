@@ -22,11 +22,12 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .._analysis.potential import routhian_terms
 from .._invariants import jellet
 from .._state import State, euler_angles, euler_rates, state_from_euler
 from .._top import TippeTop
 from .base import AbstractLevel, Conditions
+from .reduction import routhian_terms
+from .so3 import SO3Level
 
 CHART_SIN_MIN = 0.05
 """A Routhian run leaves its chart (for the SO(3) level) when $|\\sin\\theta|$ falls below this."""
@@ -195,8 +196,6 @@ class RouthianLevel(AbstractLevel):
         return horizontal > CHART_SIN_MIN
 
     def fallback(self):
-        from .so3 import SO3Level
-
         return SO3Level(body=self.body)
 
     def error_norm(self, scaled_error):
