@@ -468,7 +468,8 @@ def test_step_control_rejects_few_steps(top, model):
 COUNT_SCRIPT = r"""
 import json, os
 import tippejax as tj, jax
-print(json.dumps(dict(devices=jax.device_count(), flags=os.environ.get("XLA_FLAGS", ""))))
+print(json.dumps(dict(devices=jax.device_count(), flags=os.environ.get("XLA_FLAGS", ""),
+                      option=getattr(jax.config, "jax_num_cpu_devices", None))))
 """
 
 
@@ -495,11 +496,16 @@ def test_every_core_is_a_device_by_default():
 
     two = _devices_run(TIPPEJAX_HOST_DEVICES="2")
     assert two["devices"] == 2
-    assert "--xla_force_host_platform_device_count=2" in two["flags"]
+    # JAX's own option where this JAX has it, the XLA flag otherwise
+    if two["option"] is not None:
+        assert two["option"] == 2 and "device_count" not in two["flags"]
+    else:
+        assert "--xla_force_host_platform_device_count=2" in two["flags"]
     assert _devices_run(TIPPEJAX_HOST_DEVICES="1")["devices"] == 1
     user = _devices_run(XLA_FLAGS="--xla_force_host_platform_device_count=3")
     assert user["devices"] == 3
     assert user["flags"].split()[0] == "--xla_force_host_platform_device_count=3"
+    assert _devices_run(JAX_NUM_CPU_DEVICES="3")["devices"] == 3
     default = _devices_run()
     assert default["devices"] == (os.cpu_count() or 1)
 
@@ -519,8 +525,9 @@ def test_sequential_cpu_scheduler_by_default_and_its_opt_outs():
                if k not in ("XLA_FLAGS", "TIPPEJAX_CPU_SCHEDULER")}
         env.update(env_changes)
         script = "import os, tippejax; print(os.environ.get('XLA_FLAGS', ''))"
-        return subprocess.run([sys.executable, "-c", script], env=env, capture_output=True,
-                              text=True, check=True).stdout.strip().splitlines()[-1]
+        out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True,
+                             text=True, check=True).stdout.strip().splitlines()
+        return out[-1] if out else ""
 
     flag = _devices.SCHEDULER_FLAG
     known = _devices._jaxlib_version() in _devices.SCHEDULER_JAXLIB

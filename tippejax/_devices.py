@@ -53,11 +53,12 @@ def use_every_core(environ: MutableMapping[str, str] = os.environ) -> int | None
     a batched `fit` shards its records over the most devices that divide their number
     (`batch_sharding`). A single solve runs on the first device whatever their number.
 
-    JAX makes `N` host devices only when the flag `--xla_force_host_platform_device_count=N`
-    is in `XLA_FLAGS` before its CPU backend starts; importing tippejax puts it there, with
-    `N = os.cpu_count()`, unless
+    JAX makes `N` host devices only when it is told before its CPU backend starts: importing
+    tippejax sets JAX's own option `jax_num_cpu_devices` to `N = os.cpu_count()` (with a JAX
+    that lacks it, the flag `--xla_force_host_platform_device_count=N` in `XLA_FLAGS`), unless
 
-    - `XLA_FLAGS` already holds that flag (the user's choice is kept);
+    - the user chose already: `XLA_FLAGS` holds that flag, or `JAX_NUM_CPU_DEVICES` is set, or
+      `jax_num_cpu_devices` was set before the import (the user's choice is kept);
     - the environment variable `TIPPEJAX_HOST_DEVICES` is set: `TIPPEJAX_HOST_DEVICES=1` keeps
       JAX's default single CPU device, another positive integer asks for that many devices;
     - JAX's backends are already running (jax was used before tippejax was imported): then the
@@ -66,12 +67,17 @@ def use_every_core(environ: MutableMapping[str, str] = os.environ) -> int | None
     **Returns:** the device count set, or None where nothing was changed.
     """
     flags = environ.get("XLA_FLAGS", "")
-    if FLAG in flags:
+    if FLAG in flags or environ.get("JAX_NUM_CPU_DEVICES", "").strip():
         return None
     count = requested_devices(environ)
     if count <= 1 or _backends_running():
         return None
-    environ["XLA_FLAGS"] = f"{flags} {FLAG}={count}".strip()
+    if hasattr(jax.config, "jax_num_cpu_devices"):
+        if jax.config.jax_num_cpu_devices not in (-1, None):
+            return None
+        jax.config.update("jax_num_cpu_devices", count)
+        return count
+    environ["XLA_FLAGS"] = f"{flags} {FLAG}={count}".strip()  # pragma: no cover - older jax
     return count
 
 
