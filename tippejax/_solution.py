@@ -8,7 +8,6 @@ import jax
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
-
 OUTCOMES = ("upright", "inverted", "intermediate", "contact_lost", "failed")
 """Outcome codes of `outcome_map` and `sol.outcome`: `tj.OUTCOMES[int(om.outcome[i, j])]`."""
 

@@ -9,8 +9,8 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .._models.reduction import (
     RouthianTerms as RouthianTerms,
-    inertia_denominator,
     effective_potential as effective_potential,
+    inertia_denominator,
     routhian_terms as routhian_terms,
 )
 from .._top import TippeTop
