@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import functools
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -14,27 +12,24 @@ def _is_float_array(x) -> bool:
     return isinstance(x, jax.Array | jax.core.Tracer) and jnp.issubdtype(x.dtype, jnp.inexact)
 
 
-@functools.partial(jax.custom_jvp, nondiff_argnums=(4, 5))
 def _checked_leaf(x, pred, index, failed, messages, on_error):
-    del failed
-    return eqx.branched_error_if(x, pred, index, messages, on_error=on_error)
-
-
-@_checked_leaf.defjvp
-def _checked_leaf_jvp(messages, on_error, primals, tangents):
-    x, pred, index, failed = primals
-    tx = tangents[0]
+    x = jnp.asarray(x)
     y = eqx.branched_error_if(x, pred, index, messages, on_error=on_error)
-    # The derivative is `tx` times a gate computed from the checked value `y`. In reverse mode
-    # JAX keeps the forward pass only for what the backward pass uses; the gate is such a
-    # residual, so the check runs before any gradient is returned. (A plain `eqx.error_if`
-    # passes the tangent straight through, and under `jit(grad(...))` its check, whose primal
-    # output nothing uses, is removed as dead code: the gradient came back as a silent value.)
-    # The gate is nan for a failed member, so that where the check does not raise
-    # (`EQX_ON_ERROR=nan`) the derivative is nan, never a plausible number.
-    finite = jnp.where(jnp.isfinite(y), y, jnp.zeros_like(y))
+    # The value is the checked `y`; the derivative is `x`'s times a gate computed from `y`. In
+    # reverse mode JAX keeps of the forward pass only what the backward pass uses; the gate is
+    # such a residual, so the check runs before any gradient is returned. (A plain
+    # `eqx.error_if` passes the tangent straight through, and under `jit(grad(...))` its
+    # check, whose primal output nothing uses, is removed as dead code: the gradient came back
+    # as a silent value.) The gate is nan for a failed member, so that where the check does
+    # not raise (`EQX_ON_ERROR=nan`) the derivative is nan, never a plausible number. Plain
+    # operations, not a `custom_jvp`: under `jax.jacfwd` a `custom_jvp` of an undifferentiated
+    # leaf comes out batched, and what follows is traced again for a batch.
+    y_const = jax.lax.stop_gradient(y)
+    finite = jnp.where(jnp.isfinite(y_const), y_const, jnp.zeros_like(y_const))
     gate = jnp.where(failed, jnp.nan, 1.0).astype(y.dtype) + jnp.zeros_like(y) * finite
-    return y, tx * jax.lax.stop_gradient(gate)
+    x_finite = jnp.where(jnp.isfinite(x), x, jnp.zeros_like(x))
+    tangent_path = (x_finite - jax.lax.stop_gradient(x_finite)) * gate
+    return y_const + tangent_path
 
 
 def error_if(x: PyTree, pred, msg: str, *, on_error: str = "default") -> PyTree:
