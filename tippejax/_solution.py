@@ -173,14 +173,10 @@ class Solution(eqx.Module):
       their rates are singular where $\sin\theta = 0$.
     - `theta_dot`, `phi_dot`, `psi_dot`: Euler rates (rad/s); `spin`: $n = \omega\cdot a$.
     - `position`, `velocity`: horizontal centre-of-mass position and velocity, `(n_save, 2)`
-      (constant zero for the SO(3), Routhian and gyroscopic levels, which drop translation).
-
-    With `model="gyroscopic"` every field is that of the state on the slow manifold: `theta_dot`
-    is the slow drift (no nutation), `phi_dot` the balance precession rate, `spin` and `energy`
-    their values there, `normal_force` about $mg$ (a contact loss caused by the nutation is not
-    seen); `jellet` is exact.
+      (nan for the SO(3), Routhian and gyroscopic levels, which drop the translation).
     - `jellet`: $J$; `energy`: $E$; `normal_force`: $R_n$; `slip_speed`: $|v_Q|$.
-    - `states`: the `State`s at `ts`.
+    - `states`: the `State`s at `ts` (in a level's own terms: a level without translation
+      keeps the centre of mass at rest there).
     - `model`: the level used (str); "routhian->so3" when a Routhian run left its chart.
       A gyroscopic run that leaves the domain of gyroscopic balance stops there
       (`result == RESULTS.no_gyroscopic_balance`) and stays "gyroscopic".
@@ -203,6 +199,12 @@ class Solution(eqx.Module):
       crossing of $\pi/2$, is no proof of inversion: a Group III top or a top that settles on
       an intermediate state beyond $\pi/2$ crosses it too.)
 
+    A field a level does not model is nan at the save times that level produced, never a
+    number (`AbstractLevel.unmodelled`): with `model="gyroscopic"` the others are those of the
+    state on the slow manifold (`theta_dot` the slow drift, without the nutation; `phi_dot` the
+    balance precession rate; `spin`, `energy` their values there; `jellet` exact), while `psi`,
+    `normal_force`, `slip_speed`, `position` and `velocity` are nan until a hand-over to the
+    full model (`"gyroscopic->full"`), after which the full model's values follow.
     A batch from `tj.simulate_batch` also keeps its inputs:
 
     - `inputs`: every member's inputs as arrays of the batch's shape: the launch (`theta0`, and
