@@ -31,7 +31,7 @@ for i, ratio in enumerate(ratios):
     group = tj.classify(top.replace(A_over_C=ratio))
     for j, spin in enumerate([60.0, 150.0]):
         print(f"{ratio:4.2f}  {group:5s}  {spin:4.0f}  {float(sol.t_invert[i, j]):12.2f}  "
-              f"{tj.OUTCOMES[int(sol.outcome[i, j])]:12s}  {float(sol.theta[i, j, 0]):.3f}")
+              f"{tj.OUTCOMES[int(sol.outcome[i, j])]:12s}  {float(sol.theta[i, j]):.3f}")
 
 # Spin: the default top at theta0 = 0.1 loses contact (R_n = 0) from about 157 rad/s.
 spins = np.array([99.0, 150.0, 155.0, 157.0, 160.0, 200.0])

@@ -157,3 +157,92 @@ def test_batch_in_degrees_is_a_value_error(theta0):
         tj.simulate_batch(top, theta0, [50.0], 1.0)
     if theta0 != -0.2:
         assert "np.deg2rad" in str(info.value)
+
+
+# --------------------------------------------------------------------------------------------
+# A batch keeps its inputs and exports itself (CSV, npz, xarray)
+# --------------------------------------------------------------------------------------------
+
+THETAS, SPINS_X = np.array([0.05, 0.1]), np.array([60.0, 100.0, 150.0])
+
+
+@pytest.fixture(scope="module")
+def summary_batch():
+    return tj.simulate_batch(tj.default_top(), THETAS, SPINS_X, 1.0, summary=True)
+
+
+def test_a_summary_batch_has_the_batch_shape_and_its_inputs(summary_batch):
+    sol = summary_batch
+    assert sol.theta.shape == (2, 3) and sol.position.shape == (2, 3, 2)
+    assert sol.states.axis.shape == (2, 3, 3)
+    assert sol.grid == ("theta0", "spin")
+    np.testing.assert_array_equal(sol.coords()["theta0"], THETAS)
+    np.testing.assert_array_equal(sol.coords()["spin"], SPINS_X)
+    np.testing.assert_array_equal(sol.inputs["theta0"], np.repeat(THETAS[:, None], 3, 1))
+    np.testing.assert_array_equal(sol.inputs["spin0"], np.repeat(SPINS_X[None], 2, 0))
+    assert np.all(sol.inputs["mu"] == 0.3) and sol.inputs["A_over_C"].shape == (2, 3)
+    # each member is the single run of its inputs (independent of the batch's bookkeeping)
+    top = tj.default_top()
+    one = tj.simulate(top, tj.initial_state(top, float(sol.inputs["theta0"][1, 2]),
+                                            float(sol.inputs["spin0"][1, 2])), 1.0,
+                      summary=True)
+    assert float(sol.theta[1, 2]) == pytest.approx(float(one.theta[-1]), abs=1e-7)
+    with pytest.raises(ValueError, match="no grid"):
+        one.coords()
+
+
+def test_exports_round_trip(summary_batch, tmp_path):
+    import csv
+
+    sol = summary_batch
+    sol.to_csv(tmp_path / "b.csv")
+    with open(tmp_path / "b.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 6  # one row per member, in C order
+    for k, row in enumerate(rows):
+        i, j = divmod(k, 3)
+        assert float(row["theta0"]) == THETAS[i] and float(row["spin0"]) == SPINS_X[j]
+        assert float(row["theta_end"]) == float(sol.theta[i, j])
+        assert row["outcome"] == tj.OUTCOMES[int(sol.outcome[i, j])]
+        assert row["settled"] == str(bool(sol.settled[i, j]))
+        assert row["message"] == "successful"
+    sol.to_npz(tmp_path / "b.npz")
+    z = np.load(tmp_path / "b.npz")
+    np.testing.assert_array_equal(z["theta"], np.asarray(sol.theta))
+    np.testing.assert_array_equal(z["inputs.spin0"], sol.inputs["spin0"])
+    assert list(z["grid"]) == ["theta0", "spin"] and str(z["model"]) == "full"
+    xr = pytest.importorskip("xarray")
+    ds = sol.to_xarray()
+    assert isinstance(ds, xr.Dataset) and ds.theta.dims == ("theta0", "spin0")
+    assert float(ds.theta.sel(theta0=0.1, spin0=60.0)) == float(sol.theta[1, 0])
+    assert float(ds.mu.sel(theta0=0.05, spin0=150.0)) == 0.3
+
+
+def test_a_saved_batch_exports_its_series_over_time(tmp_path):
+    xr = pytest.importorskip("xarray")
+    ts = np.linspace(0.0, 0.5, 6)
+    mus = np.array([0.1, 1.0])
+    sol = tj.simulate_batch(tj.default_top().replace(mu=mus), 0.1, 60.0, 0.5, grid=(),
+                            saveat=ts)
+    ds = sol.to_xarray()
+    assert ds.theta.dims == ("member_0", "time")
+    np.testing.assert_allclose(ds.time.values, ts)
+    np.testing.assert_array_equal(ds.mu.values, mus)
+    sol.to_csv(tmp_path / "s.csv")
+    z = np.genfromtxt(tmp_path / "s.csv", delimiter=",", names=True, dtype=None, encoding=None)
+    np.testing.assert_allclose(z["theta_end"], np.asarray(sol.theta)[:, -1])
+
+
+def test_a_batch_of_tops_with_a_friction_law_keeps_its_law():
+    """Any law: the batch's tops carry the law's batched fields, and each member is its
+    single run."""
+    law = tj.CoulombContensou(mu=0.3, patch_radius=5e-4, slip_scale=1e-5)
+    top = tj.TippeTop(m=0.006, R=0.015, eps=0.003, A=8e-7, C=7e-7, friction=law)
+    mus = np.array([0.2, 0.4])
+    sol = tj.simulate_batch(top.replace(mu=mus), 0.1, 180.0, 0.3, grid=(), summary=True)
+    np.testing.assert_array_equal(sol.inputs["mu"], mus)
+    assert np.all(sol.inputs["patch_radius"] == 5e-4)
+    one = top.replace(mu=0.4)
+    ref = tj.simulate(one, tj.initial_state(one, 0.1, 180.0), 0.3, summary=True)
+    assert float(sol.theta[1]) == pytest.approx(float(ref.theta[-1]), abs=1e-6)
+    assert float(sol.jellet[1]) == pytest.approx(float(ref.jellet[-1]), rel=1e-6)

@@ -435,16 +435,16 @@ def test_run_fields_and_invariants(top):
     y0 = tj.initial_state(top, 0.1, 100.0)
     sol = tj.simulate(top, y0, 10.0, model="gyroscopic", saveat=grid(10.0))
     assert is_ok(sol) and sol.model == "gyroscopic"
-    for name in ("theta", "theta_dot", "spin", "jellet", "energy", "normal_force", "slip_speed"):
+    for name in ("theta", "theta_dot", "spin", "jellet", "energy"):
         assert np.all(np.isfinite(_np(getattr(sol, name)))), name
+    # what the slow flow does not model is reported as not computed, not as numbers
+    for name in ("psi", "normal_force", "slip_speed", "position", "velocity"):
+        assert np.all(np.isnan(_np(getattr(sol, name)))), name
     J = _np(sol.jellet)
     assert np.max(np.abs(J / J[0] - 1)) < 1e-12  # exact, by construction
     assert abs(J[0] - float(tj.jellet(top, y0))) < 1e-12 * abs(J[0])
     E = _np(sol.energy)
     assert np.all(np.diff(E) <= 1e-12 * np.abs(E[1:]))  # friction only takes energy
-    rn = _np(sol.normal_force) / float(top.m * top.g)
-    assert np.max(np.abs(rn - 1)) < 0.03  # R_n = m g on the slow manifold, up to O(thd)
-    assert np.all(_np(sol.position) == 0) and np.all(_np(sol.velocity) == 0)
     assert 5.0 < float(sol.t_invert) < 6.5
 
 
@@ -479,7 +479,7 @@ def test_regular_at_the_poles(top):
         sol = tj.simulate(top, tj.initial_state(top, theta0, spin), 5.0, model="gyroscopic",
                           saveat=grid(5.0))
         assert is_ok(sol)
-        for name in ("theta", "theta_dot", "spin", "jellet", "energy", "normal_force"):
+        for name in ("theta", "theta_dot", "spin", "jellet", "energy"):
             assert np.all(np.isfinite(_np(getattr(sol, name)))), (theta0, name)
         if theta0 > 1:
             assert np.all(_np(sol.theta) > np.pi - 1e-5)

@@ -170,7 +170,7 @@ def frame_geometry(sol: Solution, top: TippeTop, t) -> FrameGeometry:
     body /= np.linalg.norm(body, axis=-1, keepdims=True)
     R, eps = float(top.R), float(top.eps)
     position = np.stack(
-        [np.interp(t, ts, sol.position[:n_valid, i]) for i in range(2)], axis=-1
+        [np.interp(t, ts, _centre_xy(sol)[:n_valid, i]) for i in range(2)], axis=-1
     )
     cm = np.concatenate([position, (R - eps * axis[:, 2])[:, None]], axis=-1)
     centre = cm + eps * axis
@@ -239,6 +239,13 @@ def _writer(path: str, fps: float):
             )
         return animation.FFMpegWriter(fps=fps, codec="h264", extra_args=["-pix_fmt", "yuv420p"])
     raise ValueError(f"unknown animation format {ext or '(none)'!r} in {path!r}: use .gif or .mp4.")
+
+
+def _centre_xy(sol) -> np.ndarray:
+    """The centre of mass's horizontal position: the run's, or the state's for a level that
+    does not model the translation (its `sol.position` is nan; the centre stays put)."""
+    position = np.asarray(sol.position)
+    return np.where(np.isfinite(position), position, np.asarray(sol.states.position))
 
 
 def animate(
@@ -330,7 +337,7 @@ def animate(
 
     # Contact-point trace at the (dense) save times, cut at each frame time.
     valid_ts = sol.ts[:n_valid]
-    trace_xy = sol.position[:n_valid] + float(top.eps) * sol.states.axis[:n_valid, :2]
+    trace_xy = _centre_xy(sol)[:n_valid] + float(top.eps) * sol.states.axis[:n_valid, :2]
     if follow:
         half = 3.0 * R
     else:

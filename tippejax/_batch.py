@@ -3,6 +3,7 @@ devices."""
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Literal
 
 import equinox as eqx
@@ -18,15 +19,42 @@ from ._engine.cpu import CpuProgram
 from ._engine.segment import top_axes
 from ._engine.solver_choice import default_solver, is_traced
 from ._models.levels import LEVELS
+from ._plausibility import warn_if_implausible_spin
 from ._simulate import simulate
 from ._simulate.programs import trim_saves
 from ._simulate.shared import SHARED_OPTIONS, run_shared, shared_run_options
-from ._solution import Solution
+from ._solution import Solution, drop_save_axis
 from ._state import check_theta0, initial_state
-from ._top import _FIELDS, TippeTop
+from ._top import TippeTop
 
 LAUNCH = ("theta0", "spin", "theta_dot", "phi_dot", "phi", "psi", "vx", "vy")
 """The launch quantities `simulate_batch` sweeps (the arguments of `initial_state`)."""
+
+LAUNCH_INPUTS = {"theta0": "theta0", **{k: f"{k}0" for k in LAUNCH[1:]}}
+"""The names of the launch quantities in `sol.inputs` and the exports: the value at $t_0$
+(`spin0`, `theta_dot0`, ...), apart from the run's own series (`sol.spin`, ...)."""
+
+
+def top_leaf_names(top: TippeTop):
+    """`(names, leaves, treedef)` of a top's arrays: its own fields by name (`m`, ..., `g`), its
+    friction law's fields by theirs (`mu`, `patch_radius`, ...), others by their path."""
+    paths, treedef = jax.tree_util.tree_flatten_with_path(top)
+    names = []
+    for path, _ in paths:
+        keys = [getattr(k, "name", str(k)) for k in path]
+        names.append(keys[-1] if keys[0] == "friction" or len(keys) == 1 else ".".join(keys))
+    return names, [leaf for _, leaf in paths], treedef
+
+
+def batch_inputs(launch: dict, top_fields: dict, shape) -> dict:
+    """Every member's inputs, each with the batch's `shape` (numpy views, no copies): the
+    launch quantities (`LAUNCH_INPUTS` names), the top's fields and its ratios `A_over_C`,
+    `eps_over_R`."""
+    out = {LAUNCH_INPUTS[k]: np.broadcast_to(v, shape) for k, v in launch.items()}
+    out.update({k: np.broadcast_to(v, shape) for k, v in top_fields.items()})
+    out["A_over_C"] = np.broadcast_to(top_fields["A"] / top_fields["C"], shape)
+    out["eps_over_R"] = np.broadcast_to(top_fields["eps"] / top_fields["R"], shape)
+    return out
 
 
 def _batch_run_impl(top, launches, t1, kwargs, mesh=None, block=None):
@@ -218,7 +246,8 @@ def simulate_batch(
                   psi=psi, vx=vx, vy=vy)
     launch = {name: _concrete_array(name, v) for name, v in values.items()}
     check_theta0("simulate_batch: theta0", launch["theta0"])
-    top_fields = {k: _concrete_array(f"top.{k}", getattr(top, k)) for k in _FIELDS}
+    top_names, top_leaves, top_tree = top_leaf_names(top)
+    top_fields = {k: _concrete_array(f"top.{k}", v) for k, v in zip(top_names, top_leaves)}
     top_shape = top.batch_shape
 
     if isinstance(grid, str):
@@ -240,7 +269,7 @@ def simulate_batch(
                     f"batch shape {top_shape}."
                 )
             size = top_shape[0] if top_shape else 1
-            for k in _FIELDS:
+            for k in top_fields:
                 top_fields[k] = np.broadcast_to(top_fields[k], (size,))
         else:
             x = launch[name]
@@ -273,6 +302,9 @@ def simulate_batch(
     batched_top = top_shape != ()
     if batched_top:
         flat_top = {k: np.broadcast_to(v, shape).ravel() for k, v in top_fields.items()}
+    warn_if_implausible_spin(*(np.broadcast_to(top_fields[k], shape) for k in ("m", "R", "C", "g")),
+                             np.broadcast_to(launch["spin"], shape))
+    inputs = batch_inputs(launch, top_fields, shape)
 
     if steps == "shared":
         arrays, static, n_save = shared_run_options(top, t1, **kwargs)
@@ -315,10 +347,8 @@ def simulate_batch(
         idx = order[b * per:(b + 1) * per]
         launches = tuple(put(flat[k][idx]) for k in LAUNCH)
         if batched_top:
-            member_tops = eqx.tree_at(
-                lambda t: tuple(getattr(t, k) for k in _FIELDS), top,
-                tuple(put(flat_top[k][idx]) for k in _FIELDS),
-            )
+            member_tops = jax.tree_util.tree_unflatten(
+                top_tree, [put(flat_top[k][idx]) for k in top_names])
         else:
             member_tops = top
         with cacheable():  # every input was checked above, in Python
@@ -356,4 +386,7 @@ def simulate_batch(
 
     if steps == "shared":
         sol = Solution(model=static["level"].name, **trim_saves(dict(sol), n_save, axis=1))
-    return jax.tree_util.tree_map(unflatten, sol)
+    sol = jax.tree_util.tree_map(unflatten, sol)
+    if kwargs.get("summary", False):
+        sol = drop_save_axis(sol, len(shape))
+    return dataclasses.replace(sol, inputs=inputs, grid=grid)

@@ -5,8 +5,11 @@ from __future__ import annotations
 import equinox as eqx
 import equinox.internal as eqxi
 import jax
+import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
+
+from . import _export
 
 OUTCOMES = ("upright", "inverted", "intermediate", "contact_lost", "failed")
 """Outcome codes of `outcome_map` and `sol.outcome`: `tj.OUTCOMES[int(om.outcome[i, j])]`."""
@@ -130,6 +133,29 @@ def attach_message(enumeration) -> None:
 attach_message(RESULTS)
 
 
+def _export_name(name: str) -> str:
+    return name if name in ("theta0", "top") else f"{name}0"
+
+
+SAVED_FIELDS = ("ts", "theta", "phi", "psi", "theta_dot", "phi_dot", "psi_dot", "spin",
+                "position", "velocity", "jellet", "energy", "normal_force", "slip_speed")
+"""The fields with a save axis (and `states`)."""
+
+
+def drop_save_axis(sol: Solution, batch_ndim: int) -> Solution:
+    """A summary-mode batch with the save axis (of length one, after the batch's axes)
+    dropped from every saved field and the states."""
+    def squeeze(x):
+        return x if x is None else jnp.squeeze(x, axis=batch_ndim)
+
+    names = [k for k in SAVED_FIELDS if getattr(sol, k) is not None]
+    sol = eqx.tree_at(lambda s: [getattr(s, k) for k in names], sol,
+                      [squeeze(getattr(sol, k)) for k in names])
+    if sol.states is not None:
+        sol = eqx.tree_at(lambda s: s.states, sol, jax.tree_util.tree_map(squeeze, sol.states))
+    return sol
+
+
 class _NotOne(Exception):
     """A solution that is not one concrete run (batched or traced): no summary."""
 
@@ -147,14 +173,10 @@ class Solution(eqx.Module):
       their rates are singular where $\sin\theta = 0$.
     - `theta_dot`, `phi_dot`, `psi_dot`: Euler rates (rad/s); `spin`: $n = \omega\cdot a$.
     - `position`, `velocity`: horizontal centre-of-mass position and velocity, `(n_save, 2)`
-      (constant zero for the SO(3), Routhian and gyroscopic levels, which drop translation).
-
-    With `model="gyroscopic"` every field is that of the state on the slow manifold: `theta_dot`
-    is the slow drift (no nutation), `phi_dot` the balance precession rate, `spin` and `energy`
-    their values there, `normal_force` about $mg$ (a contact loss caused by the nutation is not
-    seen); `jellet` is exact.
+      (nan for the SO(3), Routhian and gyroscopic levels, which drop the translation).
     - `jellet`: $J$; `energy`: $E$; `normal_force`: $R_n$; `slip_speed`: $|v_Q|$.
-    - `states`: the `State`s at `ts`.
+    - `states`: the `State`s at `ts` (in a level's own terms: a level without translation
+      keeps the centre of mass at rest there).
     - `model`: the level used (str); "routhian->so3" when a Routhian run left its chart.
       A gyroscopic run that leaves the domain of gyroscopic balance stops there
       (`result == RESULTS.no_gyroscopic_balance`) and stays "gyroscopic".
@@ -176,6 +198,25 @@ class Solution(eqx.Module):
       `settled` says that the top turned over and stayed there. (`t_invert`, the first upward
       crossing of $\pi/2$, is no proof of inversion: a Group III top or a top that settles on
       an intermediate state beyond $\pi/2$ crosses it too.)
+
+    A field a level does not model is nan at the save times that level produced, never a
+    number (`AbstractLevel.unmodelled`): with `model="gyroscopic"` the others are those of the
+    state on the slow manifold (`theta_dot` the slow drift, without the nutation; `phi_dot` the
+    balance precession rate; `spin`, `energy` their values there; `jellet` exact), while `psi`,
+    `normal_force`, `slip_speed`, `position` and `velocity` are nan until a hand-over to the
+    full model (`"gyroscopic->full"`), after which the full model's values follow.
+    A batch from `tj.simulate_batch` also keeps its inputs:
+
+    - `inputs`: every member's inputs as arrays of the batch's shape: the launch (`theta0`, and
+      `spin0`, `theta_dot0`, `phi_dot0`, `phi0`, `psi0`, `vx0`, `vy0`: the values at $t_0$), the
+      top's fields (`m`, `R`, `eps`, `A`, `C`, `g`, and its friction law's: `mu`, ...) and its
+      ratios `A_over_C`, `eps_over_R`.
+    - `grid`: the names of the batch's grid axes, as given to `simulate_batch` (`("theta0",
+      "spin")` by default); `sol.coords()` gives each axis's values.
+
+    In summary mode a batch's fields have the batch's shape (no save axis). Every result
+    exports itself: `to_dict()`, `to_csv(path)` (one row per member), `to_npz(path)`, and
+    `to_xarray()` (the optional dependency xarray; `pip install xarray`).
     """
 
     ts: Float[Array, "*batch n"]
@@ -203,6 +244,8 @@ class Solution(eqx.Module):
     model: str = eqx.field(static=True)
     outcome: Int[Array, "*batch"] | None = None
     settled: Bool[Array, "*batch"] | None = None
+    inputs: dict | None = None
+    grid: tuple[str, ...] | None = eqx.field(static=True, default=None)
 
     def message(self):
         """The message of `result`: a `str`, or a numpy array of `str` for a batch
@@ -243,6 +286,51 @@ class Solution(eqx.Module):
             parts.append(f"theta_end={float(theta[finite][-1]):.6g} rad")
         parts.append(f"steps={int(self.num_steps)}")
         return "Solution(" + ", ".join(parts) + ")"
+
+    def coords(self) -> dict[str, np.ndarray]:
+        """The values along each grid axis of a batch (`grid`): `{name: 1-d array}`; for a
+        grid axis of tops (`"top"`), the member index."""
+        if self.grid is None or self.inputs is None:
+            raise ValueError(
+                "coords() needs a batch from tj.simulate_batch; a single run or a batch made "
+                "with jax.vmap has no grid (sol.grid is None)."
+            )
+        out = {}
+        for axis, name in enumerate(self.grid):
+            if name == "top":
+                out[name] = np.arange(np.shape(self.t_final)[axis])
+                continue
+            values = np.asarray(self.inputs[_export_name(name)])
+            index = tuple(slice(None) if i == axis else 0 for i in range(values.ndim))
+            out[name] = values[index]
+        return out
+
+    def to_dict(self) -> dict[str, np.ndarray]:
+        """The result as numpy arrays: every field (series with their save axis; `position`,
+        `velocity` with a trailing axis of 2), the outcome's name, the result's message, and
+        for a batch its `inputs` under their names (see the class docstring)."""
+        return _export.solution_dict(self, result_message(self.result), OUTCOMES)
+
+    def to_csv(self, path) -> None:
+        """Write one row per member (one row for a single run) to `path`: the inputs of a
+        batch, the event times, the outcome and whether it `settled`, the result, the step
+        counts, and each series' value at the last save time (columns `theta_end`, ...). The
+        whole series are in `to_npz` and `to_xarray`."""
+        _export.write_csv(self.to_dict(), path, batch_ndim=np.ndim(self.t_final))
+
+    def to_npz(self, path) -> None:
+        """Write every array of `to_dict()` to `path` with `numpy.savez_compressed`
+        (`np.load(path)` reads it), with the grid's names and the level under `grid`,
+        `model`."""
+        _export.write_npz(self.to_dict(), path, grid=self.grid, model=self.model)
+
+    def to_xarray(self):
+        """The result as an `xarray.Dataset`: dimensions named by the grid (`theta0`, `spin`
+        for the default grid, with their values as coordinates; `member_k` where there is no
+        grid), `time` for the save times and `xy` for `position`, `velocity`; the inputs as
+        coordinates over the batch's dimensions. Needs xarray (`pip install xarray`)."""
+        return _export.to_xarray(self.to_dict(), batch_shape=np.shape(self.t_final),
+                                 grid=self.grid, model=self.model)
 
     @property
     def succeeded(self):

@@ -75,6 +75,10 @@ class AbstractLevel(eqx.Module):
     has_chart: ClassVar[bool] = False
     chart_end_result: ClassVar[str | None] = None
     slow_flow: ClassVar[bool] = False
+    unmodelled: ClassVar[tuple[str, ...]] = ()
+    """The observed `Solution` fields the level does not model: `simulate` returns them as nan
+    at the save times the level produced (the SO(3) and Routhian levels drop the translation;
+    the gyroscopic level also the nutation's body angle, normal force and slip)."""
     friction_laws: ClassVar[tuple[type[AbstractFriction], ...]] = (Viscous,)
     body: bool = eqx.field(static=True, default=True, kw_only=True)
     r"""Whether the level carries the body vector (`State.body`, and with it $\psi$). The full

@@ -165,6 +165,7 @@ class RouthianLevel(AbstractLevel):
     """
 
     name = "routhian"
+    unmodelled = ("position", "velocity")
     friction_model = "so3"
     has_chart = True
 

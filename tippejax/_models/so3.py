@@ -68,6 +68,7 @@ class SO3Level(AbstractLevel):
     zero."""
 
     name = "so3"
+    unmodelled = ("position", "velocity")
     friction_model = "so3"
     friction_laws = (AbstractFriction,)
 

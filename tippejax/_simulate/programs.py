@@ -216,6 +216,7 @@ def outputs(top, y0, ts, out, result, *, level, names=OBSERVED):
             lambda x: jnp.where(valid.reshape(valid.shape + (1,) * (x.ndim - 1)), x, jnp.nan),
             states,
         )
+    fields = _mask_unmodelled(fields, level, times, out.t_chart_switch)
     nonfinite = jnp.any(
         jnp.stack([jnp.any(valid & ~jnp.isfinite(fields[k])) for k in ("theta", "jellet")
                    if k in fields])
@@ -228,6 +229,23 @@ def outputs(top, y0, ts, out, result, *, level, names=OBSERVED):
         t_final=out.t_final, num_steps=out.num_steps,
         num_rejected_steps=out.num_rejected_steps, **fields,
     )
+
+
+def _mask_unmodelled(fields: dict, level, times, t_switch) -> dict:
+    """nan for the fields a level does not model (`AbstractLevel.unmodelled`), at the save
+    times it produced: before `t_switch` (where a chain left the level for its fallback), and
+    after it those its fallback does not model."""
+    fallback = level.fallback()
+    after = () if fallback is None else fallback.unmodelled
+    if not level.unmodelled and not after:
+        return fields
+    first = jnp.isnan(t_switch) | (times < t_switch)
+    out = dict(fields)
+    for name, value in fields.items():
+        drop = jnp.where(first, name in level.unmodelled, name in after)
+        drop = drop.reshape(drop.shape + (1,) * (value.ndim - drop.ndim))
+        out[name] = jnp.where(drop, jnp.nan, value)
+    return out
 
 
 _outputs_program = eqx.filter_jit(outputs)

@@ -64,6 +64,7 @@ class GyroscopicLevel(AbstractLevel):
     """
 
     name = "gyroscopic"
+    unmodelled = ("psi", "normal_force", "slip_speed", "position", "velocity")
     friction_model = "so3"
     has_chart = True
     chart_end_result = "no_gyroscopic_balance"
