@@ -122,7 +122,10 @@ def final_height_and_spin(top):
 def _run(setting, *parts, prepared="UnrolledERK"):
     """SCRIPT in a new process with `TIPPEJAX_UNROLL_STAGES=setting`; `parts`: "solves",
     "grad"; `prepared`: the solver class the process must run Dopri8 as."""
-    env = dict(os.environ, TIPPEJAX_UNROLL_STAGES=setting, TIPPEJAX_HOST_DEVICES="1",
+    # (the same device count as here: shared steps are shared within a device's shard, so the
+    # batches below are compared shard for shard)
+    env = dict(os.environ, TIPPEJAX_UNROLL_STAGES=setting,
+               TIPPEJAX_HOST_DEVICES=str(jax.device_count()),
                PYTHONPATH=os.pathsep.join(
                    [os.path.dirname(os.path.abspath(__file__))]
                    + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]))
