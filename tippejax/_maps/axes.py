@@ -51,21 +51,31 @@ class MapAxes(eqx.Module):
     def launches(self, i: np.ndarray, j: np.ndarray) -> np.ndarray:
         """The launch quantities of the points `(i, j)` (grid indices): shape `(N, 8)`, rows
         in the order of `LAUNCH`."""
-        out = np.zeros((np.size(i), len(LAUNCH)))
-        for k, name in enumerate(LAUNCH):
-            if name == self.names[0]:
-                out[:, k] = self.values[0][i]
-            elif name == self.names[1]:
-                out[:, k] = self.values[1][j]
-            else:
-                out[:, k] = self.fixed.get(name, 0.0)
-        return out
+        return self.launches_at(self.values[0][i], self.values[1][j])
 
     def tops(self, top: TippeTop, i: np.ndarray, j: np.ndarray) -> TippeTop:
         """The tops of the points `(i, j)`: `top` with its fields on the axes set (a batch,
         checked as `TippeTop` checks one), or `top` itself if no axis is a top field."""
-        changes = {name: values[index] for name, values, index in
-                   zip(self.names, self.values, (i, j)) if name not in LAUNCH}
+        return self.tops_at(top, self.values[0][i], self.values[1][j])
+
+    def launches_at(self, first: np.ndarray, second: np.ndarray) -> np.ndarray:
+        """`launches` at any values `first`, `second` of the two axes."""
+        first, second = np.broadcast_arrays(np.asarray(first, float), np.asarray(second, float))
+        out = np.zeros((first.size, len(LAUNCH)))
+        for k, name in enumerate(LAUNCH):
+            if name == self.names[0]:
+                out[:, k] = first.ravel()
+            elif name == self.names[1]:
+                out[:, k] = second.ravel()
+            else:
+                out[:, k] = self.fixed.get(name, 0.0)
+        return out
+
+    def tops_at(self, top: TippeTop, first: np.ndarray, second: np.ndarray) -> TippeTop:
+        """`tops` at any values `first`, `second` of the two axes."""
+        first, second = np.broadcast_arrays(np.asarray(first, float), np.asarray(second, float))
+        changes = {name: v.ravel() for name, v in zip(self.names, (first, second))
+                   if name not in LAUNCH}
         return with_fields(top, changes) if changes else top
 
 

@@ -12,10 +12,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._analysis.potential import effective_potential_d2_closed_form
+from .._bucket import bucket
 from .._invariants import jellet
 from .._outcome import INTERMEDIATE, INVERTED, OUTCOMES, UPRIGHT
 from .._state import initial_state
-from .axes import MapAxes
+from .axes import MapAxes, base_top
 
 THEORY_POINTS = 512
 """Most points along each axis at which the linear theory is evaluated (every k-th point of
@@ -115,6 +116,12 @@ def _pole_curvatures(tops, launches):
     return jax.vmap(one, in_axes=(axes, 0))(tops, launches)
 
 
+def map_axes_of(om) -> MapAxes:
+    """The `MapAxes` of a finished map."""
+    return MapAxes(names=om.axes, values=tuple(np.asarray(v, float) for v in om.axis_values),
+                   fixed=dict(om.fixed))
+
+
 def theory_fields(om) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     r"""$W''(0; J)$ and $W''(\pi; J)$ of every launch's $J$ on every k-th point of the map
     (at most `THEORY_POINTS` per axis, and the last), with the grid indices they are at."""
@@ -123,12 +130,11 @@ def theory_fields(om) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     for n in (n1, n2):
         step = max(1, -(-n // THEORY_POINTS))
         picks.append(np.unique(np.r_[np.arange(0, n, step), n - 1]))
-    axes = MapAxes(names=om.axes, values=tuple(np.asarray(v, float) for v in om.axis_values),
-                   fixed=dict(om.fixed))
+    axes = map_axes_of(om)
     gi, gj = np.meshgrid(*picks, indexing="ij")
     i, j = gi.ravel(), gj.ravel()
     dtype = jnp.result_type(om.top.m)
-    tops = axes.tops(om.top, i, j)
+    tops = axes.tops(base_top(om.top, axes), i, j)
     up, down = _pole_curvatures(tops, jnp.asarray(axes.launches(i, j), dtype))
     shape = gi.shape
     return (np.asarray(up, float).reshape(shape), np.asarray(down, float).reshape(shape),
@@ -148,25 +154,32 @@ def theory_lines(om) -> dict[str, list[np.ndarray]]:
     return out
 
 
-def _distances(points: np.ndarray, field: np.ndarray, pi, pj) -> np.ndarray:
-    r"""The distance (cells) of `points` (index coordinates) from the zero set of `field`
-    (sampled at the grid indices `pi` x `pj`), to first order: $|f| / |\nabla f|$, with $f$
-    and its gradient interpolated bilinearly."""
-    if pi.size < 2 or pj.size < 2:
-        return np.full(len(points), np.nan)
-    gi, gj = np.gradient(field, pi.astype(float), pj.astype(float))
-
-    def at(f, p):
-        u = np.interp(p[:, 0], pi, np.arange(pi.size))
-        v = np.interp(p[:, 1], pj, np.arange(pj.size))
-        a = np.clip(np.floor(u).astype(int), 0, pi.size - 2)
-        b = np.clip(np.floor(v).astype(int), 0, pj.size - 2)
-        du, dv = u - a, v - b
-        return ((1 - du) * (1 - dv) * f[a, b] + du * (1 - dv) * f[a + 1, b]
-                + (1 - du) * dv * f[a, b + 1] + du * dv * f[a + 1, b + 1])
-
+def _distances(om, axes: MapAxes, points: np.ndarray, which: int) -> np.ndarray:
+    r"""The distance (cells) of `points` (index coordinates) from the zero set of the linear
+    theory's field `which` (0: $W''(0; J)$, 1: $W''(\pi; J)$), to first order: $|f| /
+    |\nabla f|$, with $f$ at each point and its gradient by central differences over half
+    a cell along each axis."""
+    dtype = jnp.result_type(om.top.m)
+    base = base_top(om.top, axes)
+    n = [v.size for v in axes.values]
+    offsets = ((0.0, 0.0), (0.5, 0.0), (-0.5, 0.0), (0.0, 0.5), (0.0, -0.5))
+    values = []
+    for di, dj in offsets:
+        at = [np.interp(points[:, k] + d, np.arange(n[k]), axes.values[k])
+              for k, d in ((0, di), (1, dj))]
+        # (padded to a bucket of lengths: one compilation for boundaries of similar sizes)
+        pad = bucket(len(points)) - len(points)
+        at = [np.concatenate([a, np.repeat(a[-1:], pad)]) for a in at]
+        f = _pole_curvatures(axes.tops_at(base, *at),
+                             jnp.asarray(axes.launches_at(*at), dtype))[which]
+        values.append(np.asarray(f, float)[: len(points)])
+    f, up_i, down_i, up_j, down_j = values
+    # (one-sided at the ends of an axis, where the half cell beyond is clipped)
+    span_i = np.clip(points[:, 0] + 0.5, 0, n[0] - 1) - np.clip(points[:, 0] - 0.5, 0, n[0] - 1)
+    span_j = np.clip(points[:, 1] + 0.5, 0, n[1] - 1) - np.clip(points[:, 1] - 0.5, 0, n[1] - 1)
     with np.errstate(invalid="ignore", divide="ignore"):
-        return np.abs(at(field, points)) / np.hypot(at(gi, points), at(gj, points))
+        gradient = np.hypot((up_i - down_i) / span_i, (up_j - down_j) / span_j)
+        return np.abs(f) / gradient
 
 
 def boundaries(om) -> tuple[MapBoundary, ...]:
@@ -174,7 +187,7 @@ def boundaries(om) -> tuple[MapBoundary, ...]:
     `OutcomeMap.boundaries`)."""
     outcome = np.asarray(om.outcome)
     present = [int(k) for k in np.unique(outcome)]
-    theory = None
+    axes = map_axes_of(om)
     out = []
     for x, a in enumerate(present):
         for b in present[x + 1:]:
@@ -187,15 +200,12 @@ def boundaries(om) -> tuple[MapBoundary, ...]:
             kinds = {a, b}
             if lines and kinds & {UPRIGHT, INVERTED} and kinds <= {UPRIGHT, INVERTED,
                                                                    INTERMEDIATE}:
-                if theory is None:
-                    theory = theory_fields(om)
-                up, down, pi, pj = theory
                 points = np.concatenate(lines)
-                candidates = ([("J1", up)] if UPRIGHT in kinds else []) + (
-                    [("J2", down)] if INVERTED in kinds else [])
+                candidates = ([("J1", 0)] if UPRIGHT in kinds else []) + (
+                    [("J2", 1)] if INVERTED in kinds else [])
                 best = None
-                for name, field in candidates:
-                    d = _distances(points, field, pi, pj)
+                for name, which in candidates:
+                    d = _distances(om, axes, points, which)
                     if np.any(np.isfinite(d)) and (best is None
                                                    or np.nanmedian(d) < np.nanmedian(best[1])):
                         best = (name, d)

@@ -13,6 +13,7 @@ import numpy as np
 from jaxtyping import ArrayLike
 from tqdm import tqdm
 
+from .._bucket import bucket
 from .._engine.solver_choice import default_solver
 from .._models.levels import LEVELS, check_friction
 from .._outcome import OUTCOMES
@@ -124,9 +125,13 @@ def _map(where: str, top: TippeTop, grid: MapAxes, *, t1, levels, model, toleran
     rtol, atol = tolerances_for(dtype, rtol, atol)
     solvers = {name: _default_solver(base, grid, name) if solver is None else solver
                for name in routes}
-    n_base = (base_indices(shape[0], 2**levels).size * base_indices(shape[1], 2**levels).size
-              if levels else gi.size)
-    chunk, block = chunk_layout(n_base, chunk_size, devices)
+    if levels:
+        # every batched call of an adaptive map in one chunk shape: the base grid's size,
+        # padded to its bucket (runs of no length), so that maps of similar sizes share it
+        n_base = base_indices(shape[0], 2**levels).size * base_indices(shape[1], 2**levels).size
+        chunk, block = chunk_layout(bucket(n_base), chunk_size, devices)
+    else:
+        chunk, block = chunk_layout(gi.size, chunk_size, devices)
 
     def evaluate(i, j, hint, model=routes[0], tick=None):
         launches = grid.launches(i, j)

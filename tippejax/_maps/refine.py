@@ -211,6 +211,7 @@ def refine(shape: tuple[int, int], levels: int, evaluate: Callable, *, t1: float
     stopped = np.zeros(n_patches, bool)
     leaves = tuple(np.zeros(0, np.int64) for _ in range(4))
     unresolved = tuple(np.zeros(0, np.int64) for _ in range(4))
+    pending = None  # centres of the last split, waiting for their edge midpoints
     while frontier[0].size:
         i0, i1, j0, j1 = frontier
         patch = patch_of(i0, j0)
@@ -227,27 +228,105 @@ def refine(shape: tuple[int, int], levels: int, evaluate: Callable, *, t1: float
                        for lv, f in zip(leaves, frontier))
         parents = tuple(f[split] for f in frontier)
         children = _children(*parents)
-        # the new points: the parents' edge midpoints and centres not simulated yet, each
-        # with the mean steps its parent's corners took (an estimate of its cost)
-        pi0, pi1, pj0, pj1 = parents
-        im, jm = (pi0 + pi1) // 2, (pj0 + pj1) // 2
-        pi = np.concatenate([pi0, pi1, im, im, im])
-        pj = np.concatenate([jm, jm, pj0, pj1, jm])
-        cost = np.tile(np.mean(_corners(out.fields["num_steps"].astype(float), *parents),
-                               axis=1), 5)
+        # the new points of the parents: their edge midpoints and centres; the cells two
+        # launches wide (the last split) only where an edge's ends disagree (`_last_split`)
+        last = (parents[1] - parents[0] <= 2) & (parents[3] - parents[2] <= 2)
+        pi, pj, cost = _new_points(out, tuple(p[~last] for p in parents))
+        ei, ej, ecost, centres = _last_split(out, tuple(p[last] for p in parents))
+        ci_, cj_, ccost = _centres(out, pending)
+        pending = centres
+        pi, pj, cost = (np.concatenate(x) for x in ((pi, ei, ci_), (pj, ej, cj_),
+                                                     (cost, ecost, ccost)))
         flat, first = np.unique(pi.astype(np.int64) * n2 + pj, return_index=True)
         pi, pj, cost = flat // n2, flat % n2, cost[first]
         new = ~out.simulated[pi, pj]
         if np.any(new):
             run(pi[new], pj[new], cost[new], int(split.sum()))
+        _infer_edges(out, tuple(p[last] for p in parents))
         # reopen the cells kept whole whose edges now hold another outcome
         li0, li1, lj0, lj1 = leaves
         reopen = ((known.outcomes_on_edges(li0, li1, lj0, lj1) > 1)
                   & ~stopped[patch_of(li0, lj0)] & ((li1 - li0 > 1) | (lj1 - lj0 > 1)))
         frontier = tuple(np.concatenate([c, lv[reopen]]) for c, lv in zip(children, leaves))
         leaves = tuple(lv[~reopen] for lv in leaves)
+    ci_, cj_, ccost = _centres(out, pending)
+    if ci_.size:
+        run(ci_, cj_, ccost, 0)
+    _centres(out, pending)  # (the centres left: inferred)
     _fill(out, leaves, unresolved)
     return out
+
+
+def _cost(out, cells):
+    """The mean solver steps of each cell's corners: an estimate of a new point's cost."""
+    return np.mean(_corners(out.fields["num_steps"].astype(float), *cells), axis=1)
+
+
+def _new_points(out, parents):
+    """The edge midpoints and centres of `parents`, each with its parent's cost."""
+    i0, i1, j0, j1 = parents
+    im, jm = (i0 + i1) // 2, (j0 + j1) // 2
+    return (np.concatenate([i0, i1, im, im, im]), np.concatenate([jm, jm, j0, j1, jm]),
+            np.tile(_cost(out, parents), 5))
+
+
+def _edges(parents):
+    """The edge midpoints of cells two launches wide: `(i, j, (end_i, end_j), (end_i,
+    end_j), valid)` for the top, bottom, left and right edges."""
+    i0, i1, j0, j1 = parents
+    im, jm = (i0 + i1) // 2, (j0 + j1) // 2
+    wide_i, wide_j = i1 - i0 == 2, j1 - j0 == 2
+    return [(i0, jm, (i0, j0), (i0, j1), wide_j), (i1, jm, (i1, j0), (i1, j1), wide_j),
+            (im, j0, (i0, j0), (i1, j0), wide_i), (im, j1, (i0, j1), (i1, j1), wide_i)]
+
+
+def _last_split(out, parents):
+    r"""The last split of cells two launches wide: an edge midpoint is simulated where the
+    edge's ends disagree, else it takes their outcome (`_infer_edges`, after the batched
+    call); the centre waits for its four neighbours (`_centres`). A launch taken so differs
+    from its run only where a boundary crosses the edge twice within two launches, one
+    launch from it. **Returns:** `(i, j, cost, centres)`."""
+    outcome = out.fields["outcome"]
+    cost = _cost(out, parents)
+    pi, pj, pc = [], [], []
+    for i, j, a, b, valid in _edges(parents):
+        ends_differ = valid & (outcome[a] != outcome[b])
+        pi.append(i[ends_differ])
+        pj.append(j[ends_differ])
+        pc.append(cost[ends_differ])
+    i0, i1, j0, j1 = parents
+    both = (i1 - i0 == 2) & (j1 - j0 == 2)
+    centres = tuple(x[both] for x in (i0, i1, j0, j1)) + (cost[both],)
+    return np.concatenate(pi), np.concatenate(pj), np.concatenate(pc), centres
+
+
+def _infer(out, i, j, from_i, from_j):
+    """The launches `(i, j)` not simulated take the outcome of `(from_i, from_j)`."""
+    todo = ~out.simulated[i, j]
+    for name in ("outcome", "settled", "result"):
+        field = out.fields[name]
+        field[i[todo], j[todo]] = field[from_i[todo], from_j[todo]]
+
+
+def _infer_edges(out, parents):
+    for i, j, a, _, valid in _edges(parents):
+        _infer(out, i[valid], j[valid], a[0][valid], a[1][valid])
+
+
+def _centres(out, pending):
+    """The centres of the cells of `_last_split`, once their edge midpoints are known: to be
+    simulated where those disagree (returned, `(i, j, cost)`), else given their outcome."""
+    empty = np.zeros(0, np.int64)
+    if pending is None or not pending[0].size:
+        return empty, empty, np.zeros(0)
+    i0, i1, j0, j1, cost = pending
+    im, jm = (i0 + i1) // 2, (j0 + j1) // 2
+    outcome = out.fields["outcome"]
+    around = np.stack([outcome[i0, jm], outcome[i1, jm], outcome[im, j0], outcome[im, j1]])
+    differ = np.any(around != around[0], axis=0) & ~out.simulated[im, jm]
+    agree = ~differ
+    _infer(out, im[agree], jm[agree], i0[agree], jm[agree])
+    return im[differ], jm[differ], cost[differ]
 
 
 def _stop_patches(counts, stopped, out, ib, jb, n_patch_j):
