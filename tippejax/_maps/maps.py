@@ -144,7 +144,7 @@ def _map(where: str, top: TippeTop, grid: MapAxes, *, t1, levels, model, toleran
             settle_tol=settle_tol, chunk=chunk, block=block, devices=devices, order=order,
             progress=tick)
 
-    bar = tqdm(total=levels + 1 if levels else -(-gi.size // chunk), disable=not progress,
+    bar = tqdm(total=levels + 2 if levels else -(-gi.size // chunk), disable=not progress,
                desc=f"outcome map {shape[0]} x {shape[1]}",
                unit="level" if levels else "chunk")
     with bar:

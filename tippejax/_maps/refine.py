@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 
+import equinox as eqx
 import numpy as np
 
 from .._outcome import CONTACT_LOST, INTERMEDIATE, INVERTED, UPRIGHT
@@ -50,13 +51,13 @@ class _Known:
 
     def add(self, i, j, outcome):
         n1, n2 = self.shape
-        for code in np.unique(outcome):
+        for code in (int(c) for c in np.unique(outcome)):
             sel = outcome == code
             r = np.concatenate([self.rows.get(code, np.zeros(0, np.int64)),
                                 i[sel].astype(np.int64) * n2 + j[sel]])
             c = np.concatenate([self.cols.get(code, np.zeros(0, np.int64)),
                                 j[sel].astype(np.int64) * n1 + i[sel]])
-            self.rows[int(code)], self.cols[int(code)] = np.sort(r), np.sort(c)
+            self.rows[code], self.cols[code] = np.sort(r), np.sort(c)
 
     def outcomes_on_edges(self, i0, i1, j0, j1) -> np.ndarray:
         """How many distinct outcomes the simulated points on each cell's four edges hold
@@ -148,17 +149,33 @@ def box_dimension(counts: np.ndarray) -> float:
     return float(np.polyfit(level, np.log2(counts[level]), 1)[0])
 
 
-class Refined:
-    """What `refine` returns: the outcome of every point, its fields where simulated, and
-    how the refinement went."""
+class Refinement(eqx.Module):
+    """What `refine` returns.
 
-    def __init__(self, shape, levels):
-        self.shape, self.levels = shape, levels
+    **Fields:** `fields` (every field `evaluate` returns, on the whole grid: nan, or 0, where
+    not simulated, but `outcome`, `settled` and `result`, which every launch has),
+    `simulated` and `resolved` (bool grids), `history` (`(launches, cells split)` per
+    batched call) and `stopped` (`(i0, i1, j0, j1, dimension)` of each base cell that
+    stopped refining)."""
+
+    fields: dict[str, np.ndarray]
+    simulated: np.ndarray
+    resolved: np.ndarray
+    history: tuple[tuple[int, int], ...] = eqx.field(static=True)
+    stopped: tuple[tuple[int, int, int, int, float], ...] = eqx.field(static=True)
+
+
+class _Store:
+    """The refinement's working state on the host: the fields of the launches simulated so
+    far (whole-grid arrays, written in place), which were, and the log."""
+
+    def __init__(self, shape):
+        self.shape = shape
         self.simulated = np.zeros(shape, bool)
         self.resolved = np.ones(shape, bool)
         self.fields: dict[str, np.ndarray] = {}
-        self.history: list[tuple[int, int]] = []  # (points simulated, cells split) per call
-        self.stopped: list[tuple[int, int, int, int, float]] = []  # (i0, i1, j0, j1, D)
+        self.history: list[tuple[int, int]] = []
+        self.stopped: list[tuple[int, int, int, int, float]] = []
 
     def store(self, i, j, out):
         if not self.fields:
@@ -169,9 +186,13 @@ class Refined:
             self.fields[k][i, j] = v
         self.simulated[i, j] = True
 
+    def result(self) -> Refinement:
+        return Refinement(fields=self.fields, simulated=self.simulated, resolved=self.resolved,
+                          history=tuple(self.history), stopped=tuple(self.stopped))
+
 
 def refine(shape: tuple[int, int], levels: int, evaluate: Callable, *, t1: float,
-           progress: Callable | None = None) -> Refined:
+           progress: Callable | None = None) -> Refinement:
     """Refine a map of `shape` points from the base grid of every `2**levels`-th point.
 
     `evaluate(i, j, hint)` simulates the points `(i, j)` (index arrays) in one batched call,
@@ -183,7 +204,7 @@ def refine(shape: tuple[int, int], levels: int, evaluate: Callable, *, t1: float
     points inside a cell kept whole take its corners' outcome. `progress(points, split)` is
     called after each batched call. See `outcome_map(refine=...)`."""
     n1, n2 = shape
-    out = Refined(shape, levels)
+    out = _Store(shape)
     step = 2**levels
     ib, jb = base_indices(n1, step), base_indices(n2, step)
     known = _Known(shape)
@@ -254,7 +275,7 @@ def refine(shape: tuple[int, int], levels: int, evaluate: Callable, *, t1: float
         run(ci_, cj_, ccost, 0)
     _centres(out, pending)  # (the centres left: inferred)
     _fill(out, leaves, unresolved)
-    return out
+    return out.result()
 
 
 def _cost(out, cells):
@@ -343,7 +364,7 @@ def _stop_patches(counts, stopped, out, ib, jb, n_patch_j):
                                 box_dimension(row)))
 
 
-def _fill(out: Refined, leaves, unresolved):
+def _fill(out: _Store, leaves, unresolved):
     """The points not simulated: inside a cell kept whole, its corners' outcome; inside a
     cell of a base cell that stopped refining, the nearest corner's (`resolved` False)."""
     f = out.fields
