@@ -16,6 +16,8 @@ from tippejax._maps.boundaries import box_counting_dimension
 from tippejax._maps.refine import refine
 from tippejax._outcome import CONTACT_LOST, INTERMEDIATE, UPRIGHT
 
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
 # --- the refinement alone, on outcomes given in closed form ---------------------------------
 
 
@@ -246,43 +248,32 @@ def test_a_launch_quantity_on_a_map_of_tops_is_refused():
 
 
 def test_two_processes_spread_each_level_and_give_the_single_process_map(tmp_path):
-    """An adaptive map in two CPU processes (two devices each) with jax.distributed: every
-    level is sharded over the four devices, and the map is the one process's map."""
-    code = """
-import sys
-import jax
-jax.config.update("jax_cpu_collectives_implementation", "gloo")
-jax.distributed.initialize(coordinator_address=sys.argv[1], num_processes=2,
-                           process_id=int(sys.argv[2]))
-import numpy as np
-import tippejax as tj
-th, sp = np.linspace(0.05, 1.4, 9), np.linspace(20.0, 220.0, 9)
-om = tj.outcome_map(tj.default_top(), th, sp, t1=3.0, refine=2, chunk_size=4)
-if jax.process_index() == 0:
-    np.savez(sys.argv[3], outcome=np.asarray(om.outcome), simulated=np.asarray(om.simulated),
-             theta_final=np.asarray(om.theta_final), devices=jax.device_count(),
-             levels=np.array(om.levels))
-jax.distributed.shutdown()
-"""
+    """`examples/distributed_map.py --refine 2` in two CPU processes (two devices each) with
+    jax.distributed, as the dense map's test runs it: every level is sharded over the four
+    devices, and the map is the one process's map."""
+    script = os.path.join(ROOT, "examples", "distributed_map.py")
+    common = ["--n-theta", "9", "--n-spin", "9", "--t1", "3", "--chunk-size", "4",
+              "--refine", "2"]
     with socket.socket() as s:
         s.bind(("localhost", 0))
         port = s.getsockname()[1]
     env = host_devices_env(2, JAX_PLATFORMS="cpu")
-    env["PYTHONPATH"] = os.pathsep.join(
-        p for p in (os.path.dirname(os.path.dirname(os.path.abspath(tj.__file__))),
-                    env.get("PYTHONPATH", "")) if p)
-    out = str(tmp_path / "map.npz")
-    procs = [subprocess.Popen([sys.executable, "-c", code, f"localhost:{port}", str(pid), out],
-                              env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                              text=True) for pid in (0, 1)]
+    procs = [
+        subprocess.Popen(
+            [sys.executable, script, "--coordinator", f"localhost:{port}", "--num-processes",
+             "2", "--process-id", str(pid), "--out", str(tmp_path / f"map{pid}.npz"), *common],
+            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        )
+        for pid in (0, 1)
+    ]
     logs = [p.communicate(timeout=500)[0] for p in procs]
     for p, log in zip(procs, logs):
         assert p.returncode == 0, log[-3000:]
-    got = np.load(out)
-    assert int(got["devices"]) == 4
-    om = tj.outcome_map(tj.default_top(), np.linspace(0.05, 1.4, 9),
-                        np.linspace(20.0, 220.0, 9), t1=3.0, refine=2, chunk_size=4,
-                        devices=jax.devices()[:1])
+    got = np.load(tmp_path / "map0.npz")
+    assert int(got["process_count"]) == 2 and int(got["device_count"]) == 4
+    assert len(got["levels"]) > 1 and not got["simulated"].all()
+    om = tj.outcome_map(tj.default_top(), got["theta0"], got["spin"], t1=3.0, refine=2,
+                        chunk_size=4, devices=jax.devices()[:1])
     np.testing.assert_array_equal(got["outcome"], np.asarray(om.outcome))
     np.testing.assert_array_equal(got["simulated"], np.asarray(om.simulated))
     np.testing.assert_array_equal(got["levels"], np.array(om.levels))
