@@ -8,6 +8,7 @@ Standard top (group IIb) unless said, theta0 = linspace(0.02, 1.5, 24) x spin = 
     python benchmarks/maps.py --cost
     python benchmarks/maps.py --adaptive-agreement   # dense 256^2 maps of four tops: an hour
     python benchmarks/maps.py --adaptive-speed       # dense 512^2 and 1024^2 maps: hours
+    python benchmarks/maps.py --adaptive-speed --sizes 256 --big 1000   # minutes
 """
 
 from __future__ import annotations
@@ -432,8 +433,8 @@ def adaptive_speed(args):
     """The standard top's adaptive map against its dense map at 512^2 and 1024^2 (one run of
     each, compiled), and adaptive maps of 1000^2 and 4096^2."""
     top, t1 = tj.default_top(), 2.0 if args.smoke else args.t1
-    sizes = (17, 33) if args.smoke else (512, 1024)
-    big = (65, 129) if args.smoke else (1000, 4096)
+    sizes = (17, 33) if args.smoke else tuple(args.sizes)
+    big = (65, 129) if args.smoke else tuple(args.big)
     # compile the dense map's chunk program (one chunk of 4096 launches)
     tj.outcome_map(top, **standard_axes(9 if args.smoke else 64), t1=0.01)
     rows = []
@@ -454,6 +455,7 @@ def adaptive_speed(args):
         ])
         dimension = boundary_cells(adaptive)
     big_rows = []
+    report(args, t1, sizes, (), rows, big_rows, dimension)  # (kept if a large map is stopped)
     for n in big:
         k = refine_for(n)
         tj.outcome_map(top, **standard_axes(n), t1=0.01, refine=k)  # compiles its program
@@ -465,7 +467,14 @@ def adaptive_speed(args):
             f"{int(np.sum(np.asarray(om.simulated)))} ({100 * om.share_simulated:.3f}%)",
             f"{len(om.levels)}", f"{len(om.unresolved)}", f"{load0}; after: {load_line()}",
         ])
-    limits = {sizes[0]: 20, sizes[1]: 50}
+        report(args, t1, sizes, big[: len(big_rows)], rows, big_rows, dimension)
+
+
+def report(args, t1, sizes, big, rows, big_rows, dimension):
+    """The block of `--adaptive-speed` with the maps run so far."""
+    limits = {512: 20, 1024: 50}
+    not_run = [n for n in (512, 1024) if n not in sizes] + [n for n in (1000, 4096)
+                                                             if n not in big]
     h.write(
         "maps.py --adaptive-speed",
         "Adaptive maps: cost against the dense map",
@@ -474,11 +483,11 @@ The standard top (group IIb), theta0 = linspace({STANDARD_AXES[0][0]}, {STANDARD
 
 {h.table(["grid", "refine", "dense wall s", "adaptive wall s", "launches simulated", "simulations", "wall time", "agreement (differing, worst distance)", "machine load (before; after)"], rows)}
 
-Targets: at most 1/{limits[sizes[0]]} of the dense map's simulations and wall time at {sizes[0]}^2, 1/{limits[sizes[1]]} at {sizes[1]}^2. Boundaries of the {sizes[1]}^2 adaptive map (D: box-counting dimension; distance in cells from the linear theory's curve): {dimension}.
+Targets: at most 1/{limits[512]} of the dense map's simulations and wall time at 512^2, 1/{limits[1024]} at 1024^2. Boundaries of the {sizes[-1]}^2 adaptive map (D: box-counting dimension; distance in cells from the linear theory's curve): {dimension}.
 
-{h.table(["adaptive map", "refine", "wall s", "CPU s", "launches simulated", "batched calls", "regions not refined", "machine load (before; after)"], big_rows)}
+{h.table(["adaptive map", "refine", "wall s", "CPU s", "launches simulated", "batched calls", "regions not refined", "machine load (before; after)"], big_rows) if big_rows else "No adaptive map of the large sizes was run."}
 
-Targets: {big[0]}^2 within 60 s and {big[1]}^2 within 600 s on 2 CPU cores.
+Targets: 1000^2 within 60 s and 4096^2 within 600 s on 2 CPU cores.{f" **Not run in this run: {', '.join(f'{n}^2' for n in not_run)}** (`--sizes`, `--big`)." if not_run else ""}
 """,
         args,
     )
@@ -491,6 +500,10 @@ def options(prs):
     prs.add_argument("--launches", type=int, default=100_000, help="--scale")
     prs.add_argument("--tops", type=int, default=12, help="--auto-random")
     prs.add_argument("--resolution", type=int, default=256, help="--adaptive-agreement")
+    prs.add_argument("--sizes", type=int, nargs="+", default=[512, 1024],
+                     help="--adaptive-speed: grids (points per axis) run dense and adaptive")
+    prs.add_argument("--big", type=int, nargs="*", default=[1000, 4096],
+                     help="--adaptive-speed: grids run adaptive only")
 
 
 MODES = {
