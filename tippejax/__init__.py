@@ -86,6 +86,7 @@ __all__ = [
     "OUTCOMES",
     "RESULTS",
     "FitResult",
+    "MapBoundary",
     "OutcomeMap",
     "Solution",
     "State",
