@@ -1,5 +1,6 @@
 """Adaptive outcome maps, maps over any two axes, and their boundaries (`tippejax._maps`)."""
 
+import json
 import os
 import socket
 import subprocess
@@ -188,6 +189,35 @@ def test_boundary_of_the_upright_launches_lies_within_one_cell_of_J1(adaptive):
     assert np.all((points[:, 1] >= SPIN[0]) & (points[:, 1] <= SPIN[-1]))
     curves = adaptive.theory_curves()
     assert curves["J1"] and curves["J2"]
+
+
+FLOAT32 = """
+import json, sys
+import numpy as np
+import tippejax as tj
+th, sp, t1, chunk = json.loads(sys.argv[1])
+om = tj.outcome_map(tj.default_top(), np.array(th), np.array(sp), t1=t1, chunk_size=chunk,
+                    refine=2)
+print(json.dumps(dict(dtype=str(om.theta_final.dtype), outcome=np.asarray(om.outcome).tolist(),
+                      simulated=np.asarray(om.simulated).tolist(),
+                      theory=[b.theory for b in om.boundaries()])))
+"""
+
+
+def test_float32_adaptive_map_differs_from_float64_only_next_to_a_boundary(adaptive):
+    """The same adaptive map in a float32 process (TIPPEJAX_ENABLE_X64=0): it runs in float32
+    and its outcomes differ from the float64 map's only beside a boundary of that map."""
+    env = dict(os.environ, TIPPEJAX_ENABLE_X64="0")
+    args = [THETA0.tolist(), SPIN.tolist(), T1, CHUNK]
+    out = subprocess.run([sys.executable, "-c", FLOAT32, json.dumps(args)], env=env,
+                         capture_output=True, text=True, check=True, timeout=600).stdout
+    r = json.loads(out.strip().splitlines()[-1])
+    assert r["dtype"] == "float32"
+    assert not np.all(r["simulated"]) and "J1" in r["theory"]
+    ref, got = np.asarray(adaptive.outcome), np.array(r["outcome"])
+    differ = ref != got
+    assert differ.mean() <= 0.02
+    assert np.all(_near_a_boundary(ref)[differ])
 
 
 def test_any_axes_map_matches_single_simulations():
