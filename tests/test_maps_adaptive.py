@@ -12,6 +12,7 @@ import pytest
 from helpers import host_devices_env
 
 import tippejax as tj
+from tippejax._invariants import normal_force_denominator
 from tippejax._maps import refine as refine_module
 from tippejax._maps.boundaries import box_counting_dimension
 from tippejax._maps.refine import refine
@@ -189,6 +190,35 @@ def test_boundary_of_the_upright_launches_lies_within_one_cell_of_J1(adaptive):
     assert np.all((points[:, 1] >= SPIN[0]) & (points[:, 1] <= SPIN[-1]))
     curves = adaptive.theory_curves()
     assert curves["J1"] and curves["J2"]
+
+
+def test_indicators_are_the_extremes_of_each_run(dense):
+    """`contact_margin` and `theta_max` (kept by the engine at the accepted steps' ends) of
+    one launch of each outcome against the same launch run by `tj.simulate` with 6001 saved
+    states: the smallest $R_n D / g$ (`tippejax._invariants`) and the largest tilt over them.
+    The steps' ends are points of the run, so the map's values lie within the saved range,
+    up to what falls between saved points; a contact-lost run ends at $R_n = 0$."""
+    top = dense.top
+    ts = np.linspace(0.0, T1, 6001)
+    outcome = np.asarray(dense.outcome)
+    for code in (UPRIGHT, INTERMEDIATE, CONTACT_LOST):
+        i, j = (int(k[0]) for k in np.nonzero(outcome == code))
+        sol = tj.simulate(top, tj.initial_state(top, THETA0[i], SPIN[j]), T1, saveat=ts,
+                          throw=False, rtol=dense.rtol, atol=dense.atol)
+        ran = ts <= float(sol.t_final)
+        margin = np.asarray(sol.normal_force * normal_force_denominator(top, sol.states))
+        margin = margin[ran] / float(top.g)
+        theta = np.asarray(sol.theta)[ran]
+        got_margin, got_theta = float(dense.contact_margin[i, j]), float(dense.theta_max[i, j])
+        assert got_margin <= np.nanmin(margin) + 0.05, code
+        if code == CONTACT_LOST:  # the run ends where R_n reaches 0, after the last saved state
+            assert abs(got_margin) < 0.05
+            theta = np.r_[theta, float(dense.theta_final[i, j])]
+        else:
+            assert got_margin >= np.nanmin(margin) - 1e-3, code
+        assert np.nanmax(theta) - 0.02 <= got_theta <= np.nanmax(theta) + 1e-3, code
+    lost = outcome == CONTACT_LOST
+    assert np.all(np.abs(np.asarray(dense.contact_margin)[lost]) < 0.05)
 
 
 FLOAT32 = """
