@@ -376,7 +376,7 @@ def adaptive_agreement(args):
     rng = np.random.default_rng(59)
     n = 17 if args.smoke else args.resolution
     t1 = 2.0 if args.smoke else args.t1
-    k = refine_for(n)
+    k = 2 if args.smoke else refine_for(n)  # (the smoke grid is below the base grid's size)
     rows, notes = [], []
     # compile the dense map's chunk program (one chunk of 4096 launches)
     tj.outcome_map(tj.default_top(), **standard_axes(9 if args.smoke else 64), t1=0.01)
