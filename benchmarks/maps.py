@@ -1,10 +1,14 @@
 """maps: outcome maps: launches per second, memory per launch, what a cheaper level or another
-tolerance changes in a map, maps of 1e5 launches and over two processes.
+tolerance changes in a map, maps of 1e5 launches and over two processes, adaptive maps against
+dense ones (agreement, share simulated, speed).
 
 Standard top (group IIb) unless said, theta0 = linspace(0.02, 1.5, 24) x spin = linspace(10,
 220, 32) = 768 launches, 20 s, float64. Times: the second call (compiled), wall clock.
 
     python benchmarks/maps.py --cost
+    python benchmarks/maps.py --adaptive-agreement   # dense 256^2 maps of four tops: an hour
+    python benchmarks/maps.py --adaptive-speed       # dense 512^2 and 1024^2 maps: hours
+    python benchmarks/maps.py --adaptive-speed --sizes 256 --big 1000   # minutes
 """
 
 from __future__ import annotations
@@ -310,12 +314,196 @@ def auto_random(args):
     )
 
 
+# --- adaptive maps ---------------------------------------------------------------------------
+
+ADAPTIVE_TOPS = {
+    # group: (A/C, eps/R), spin range in units of n_ref (n1, or n2 where n1 is undefined)
+    "IIa": ((0.69, 0.38), (0.3, 7.0)),
+    "IIb": ((0.9, 0.3), (0.3, 7.0)),
+    "III": ((1.6, 0.2), (0.3, 7.0)),
+    "Ib": ((0.65, 0.15), (0.5, 12.0)),  # contact loss at its fastest spins
+}
+
+
+def load_line() -> str:
+    one, five, fifteen = os.getloadavg()
+    return f"load average {one:.1f}, {five:.1f}, {fifteen:.1f} on {os.cpu_count()} cores"
+
+
+def refine_for(n: int) -> int:
+    """The levels of `tippejax map --adaptive`: a base grid of about 32 cells per axis."""
+    from tippejax._cli.maps import adaptive_refine
+
+    return adaptive_refine(n)
+
+
+def distance_to_boundary(dense: np.ndarray) -> np.ndarray:
+    """For every point, the chessboard distance (cells) to the nearest point of another outcome
+    in the dense map."""
+    from scipy.ndimage import distance_transform_cdt
+
+    out = np.zeros(dense.shape, int)
+    for code in np.unique(dense):
+        same = dense == code
+        out[same] = distance_transform_cdt(same, metric="chessboard")[same]
+    return out
+
+
+def agreement(dense, adaptive) -> dict:
+    d, a = np.asarray(dense.outcome), np.asarray(adaptive.outcome)
+    differ = d != a
+    dist = distance_to_boundary(d)
+    return dict(
+        agree=float(np.mean(~differ)), differ=int(differ.sum()),
+        worst=int(dist[differ].max()) if differ.any() else 0,
+        share=adaptive.share_simulated,
+        steps=float(np.sum(np.asarray(adaptive.num_steps)) / np.sum(np.asarray(dense.num_steps))),
+    )
+
+
+def boundary_cells(om) -> str:
+    parts = []
+    for b in om.boundaries():
+        theory = f", {b.distance:.2f} (max {b.distance_max:.1f}) from {b.theory}" if b.theory else ""
+        parts.append(f"{b.outcomes[0]}/{b.outcomes[1]} {b.cells} cells, D {b.dimension:.2f}{theory}")
+    return "; ".join(parts)
+
+
+def adaptive_agreement(args):
+    """Adaptive maps against dense full-model maps of four tops in different groups, on seeded
+    random axis ranges: agreement, distance of each disagreement to a true boundary, share
+    simulated, boundaries."""
+    rng = np.random.default_rng(59)
+    n = 17 if args.smoke else args.resolution
+    t1 = 2.0 if args.smoke else args.t1
+    k = 2 if args.smoke else refine_for(n)  # (the smoke grid is below the base grid's size)
+    rows, notes = [], []
+    # compile the dense map's chunk program (one chunk of 4096 launches)
+    tj.outcome_map(tj.default_top(), **standard_axes(9 if args.smoke else 64), t1=0.01)
+    for group, (ratios, (lo, hi)) in list(ADAPTIVE_TOPS.items())[: 1 if args.smoke else None]:
+        top = tj.TippeTop.from_ratios(*ratios, m=0.02, R=0.025, mu=0.3)
+        th = tj.thresholds(top)
+        n_ref = float(th.n1) if np.isfinite(float(th.n1)) else float(th.n2)
+        theta = np.sort(rng.uniform([0.02, 1.0], [0.3, 1.5]))
+        spin = np.sort(rng.uniform([lo * 0.8, hi * 0.8], [lo * 1.25, hi * 1.25])) * n_ref
+        axes = dict(theta0=np.linspace(*theta, n), spin=np.linspace(*spin, n))
+        tj.outcome_map(top, **axes, t1=0.01, refine=k)  # compiles the adaptive program
+        load0 = load_line()
+        t_dense, _, dense = h.call(lambda top=top, axes=axes: tj.outcome_map(top, **axes, t1=t1))
+        t_adapt, _, adaptive = h.call(
+            lambda top=top, axes=axes: tj.outcome_map(top, **axes, t1=t1, refine=k))
+        c = agreement(dense, adaptive)
+        rows.append([
+            f"{group} ({ratios[0]}, {ratios[1]})", f"{n} x {n}",
+            f"{theta[0]:.2f}-{theta[1]:.2f}", f"{spin[0]:.0f}-{spin[1]:.0f}",
+            ", ".join(f"{name} {v}" for name, v in dense.counts().items() if v),
+            f"{100 * c['agree']:.3f}% ({c['differ']})", c["worst"],
+            f"{100 * c['share']:.2f}%", f"{c['steps']:.3f}", f"{t_adapt / t_dense:.3f}",
+        ])
+        notes.append(f"- {group}: {boundary_cells(adaptive)}"
+                     + (f"; refinement stopped in {adaptive.unresolved}" if adaptive.unresolved else "")
+                     + f" ({load0})")
+    h.write(
+        "maps.py --adaptive-agreement",
+        "Adaptive maps against dense maps",
+        f"""
+`tj.outcome_map(top, theta0=..., spin=..., t1={t1:g}, refine={k})` against the dense map of the same grid (full model, rtol 1e-6), four tops (`TippeTop.from_ratios(A/C, eps/R)`, m 20 g, R 25 mm, mu 0.3 s/m) on axis ranges drawn with seed 59 (theta0 from [0.02, 0.3] to [1.0, 1.5] rad; spins in units of n1, n2 for group I). Worst distance: the largest chessboard distance (cells) from a launch where the two maps disagree to the nearest launch of another outcome in the dense map (1: next to a boundary). Steps: solver steps of the adaptive map over the dense map's; wall: the adaptive map's wall time over the dense map's, both compiled. No GPU was lent to this task.
+
+{h.table(["top", "grid", "theta0 (rad)", "spin (rad/s)", "dense outcomes", "agreement (cells differing)", "worst distance", "simulated", "steps", "wall"], rows)}
+
+Boundaries of the adaptive maps (cells: map cells holding both outcomes; D: box-counting dimension; distance in cells (median, max) from the linear theory's curve):
+
+{chr(10).join(notes)}
+
+Targets: agreement >= 99.9%, every disagreement within one cell of a true boundary (worst distance <= 1).
+""",
+        args,
+    )
+
+
+STANDARD_AXES = ((0.02, 1.5), (10.0, 220.0))
+
+
+def standard_axes(n):
+    (a, b), (c, d) = STANDARD_AXES
+    return dict(theta0=np.linspace(a, b, n), spin=np.linspace(c, d, n))
+
+
+def adaptive_speed(args):
+    """The standard top's adaptive map against its dense map at 512^2 and 1024^2 (one run of
+    each, compiled), and adaptive maps of 1000^2 and 4096^2."""
+    top, t1 = tj.default_top(), 2.0 if args.smoke else args.t1
+    sizes = (17, 33) if args.smoke else tuple(args.sizes)
+    big = (65, 129) if args.smoke else tuple(args.big)
+    # compile the dense map's chunk program (one chunk of 4096 launches)
+    tj.outcome_map(top, **standard_axes(9 if args.smoke else 64), t1=0.01)
+    rows = []
+    for n in sizes:
+        k = refine_for(n)
+        tj.outcome_map(top, **standard_axes(n), t1=0.01, refine=k)  # compiles its program
+        load0 = load_line()
+        t_dense, _, dense = h.call(lambda n=n: tj.outcome_map(top, **standard_axes(n), t1=t1))
+        t_adapt, _, adaptive = h.call(
+            lambda n=n, k=k: tj.outcome_map(top, **standard_axes(n), t1=t1, refine=k))
+        c = agreement(dense, adaptive)
+        rows.append([
+            f"{n} x {n}", k, f"{t_dense:.0f}", f"{t_adapt:.1f}",
+            f"{int(np.sum(np.asarray(adaptive.simulated)))} ({100 * c['share']:.2f}%)",
+            f"**1/{1 / c['share']:.0f}**", f"**1/{t_dense / t_adapt:.0f}**",
+            f"{100 * c['agree']:.3f}% ({c['differ']}, worst {c['worst']})",
+            f"{load0}; after: {load_line()}",
+        ])
+        dimension = boundary_cells(adaptive)
+    big_rows = []
+    report(args, t1, sizes, (), rows, big_rows, dimension)  # (kept if a large map is stopped)
+    for n in big:
+        k = refine_for(n)
+        tj.outcome_map(top, **standard_axes(n), t1=0.01, refine=k)  # compiles its program
+        load0 = load_line()
+        wall, cpu, om = h.call(
+            lambda n=n, k=k: tj.outcome_map(top, **standard_axes(n), t1=t1, refine=k))
+        big_rows.append([
+            f"{n} x {n}", k, f"{wall:.1f}", f"{cpu:.0f}",
+            f"{int(np.sum(np.asarray(om.simulated)))} ({100 * om.share_simulated:.3f}%)",
+            f"{len(om.levels)}", f"{len(om.unresolved)}", f"{load0}; after: {load_line()}",
+        ])
+        report(args, t1, sizes, big[: len(big_rows)], rows, big_rows, dimension)
+
+
+def report(args, t1, sizes, big, rows, big_rows, dimension):
+    """The block of `--adaptive-speed` with the maps run so far."""
+    limits = {512: 20, 1024: 50}
+    not_run = [n for n in (512, 1024) if n not in sizes] + [n for n in (1000, 4096)
+                                                             if n not in big]
+    h.write(
+        "maps.py --adaptive-speed",
+        "Adaptive maps: cost against the dense map",
+        f"""
+The standard top (group IIb), theta0 = linspace({STANDARD_AXES[0][0]}, {STANDARD_AXES[0][1]}, n) x spin = linspace({STANDARD_AXES[1][0]:g}, {STANDARD_AXES[1][1]:g}, n), t1 = {t1:g} s, full model, rtol 1e-6; refine = round(log2((n - 1) / 32)) (a base grid of about 32 cells per axis, `tippejax map --adaptive`). One run of each map after a call that compiled its program (the same chunk shapes at t1 = 0.01 s); wall clock, on a machine shared with other work (its load average is given). No GPU was lent to this task: no GPU figures.
+
+{h.table(["grid", "refine", "dense wall s", "adaptive wall s", "launches simulated", "simulations", "wall time", "agreement (differing, worst distance)", "machine load (before; after)"], rows)}
+
+Targets: at most 1/{limits[512]} of the dense map's simulations and wall time at 512^2, 1/{limits[1024]} at 1024^2. Boundaries of the {sizes[-1]}^2 adaptive map (D: box-counting dimension; distance in cells from the linear theory's curve): {dimension}.
+
+{h.table(["adaptive map", "refine", "wall s", "CPU s", "launches simulated", "batched calls", "regions not refined", "machine load (before; after)"], big_rows) if big_rows else "No adaptive map of the large sizes was run."}
+
+Targets: 1000^2 within 60 s and 4096^2 within 600 s on 2 CPU cores.{f" **Not run in this run: {', '.join(f'{n}^2' for n in not_run)}** (`--sizes`, `--big`)." if not_run else ""}
+""",
+        args,
+    )
+
+
 def options(prs):
     prs.add_argument("--n-theta", type=int, default=24)
     prs.add_argument("--n-spin", type=int, default=32)
     prs.add_argument("--t1", type=float, default=20.0)
     prs.add_argument("--launches", type=int, default=100_000, help="--scale")
     prs.add_argument("--tops", type=int, default=12, help="--auto-random")
+    prs.add_argument("--resolution", type=int, default=256, help="--adaptive-agreement")
+    prs.add_argument("--sizes", type=int, nargs="+", default=[512, 1024],
+                     help="--adaptive-speed: grids (points per axis) run dense and adaptive")
+    prs.add_argument("--big", type=int, nargs="*", default=[1000, 4096],
+                     help="--adaptive-speed: grids run adaptive only")
 
 
 MODES = {
@@ -324,6 +512,8 @@ MODES = {
     "processes": (processes, "two processes with jax.distributed"),
     "auto": (auto, "model='auto' maps against full maps: speed, agreement, missed losses"),
     "auto-random": (auto_random, "the same on seeded random tops"),
+    "adaptive-agreement": (adaptive_agreement, "adaptive against dense maps of four tops"),
+    "adaptive-speed": (adaptive_speed, "adaptive against dense maps: simulations, wall time"),
 }
 
 if __name__ == "__main__":

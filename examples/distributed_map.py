@@ -17,6 +17,9 @@ Open MPI, or on Cloud TPU, `jax.distributed.initialize()` reads all three from t
 
     srun --nodes 4 --ntasks-per-node 1 python examples/distributed_map.py --auto-cluster
 
+With `--refine k` the map is adaptive (`outcome_map(refine=k)`): every level of refinement is
+one batched call spread over every process in the same way.
+
 Process 0 writes the map to `--out` (an `.npz` file) and prints launches per second.
 """
 
@@ -37,6 +40,9 @@ def main(argv=None) -> int:
     p.add_argument("--n-spin", type=int, default=16)
     p.add_argument("--t1", type=float, default=12.0)
     p.add_argument("--chunk-size", type=int, default=4096)
+    p.add_argument("--refine", type=int, default=None,
+                   help="an adaptive map: levels of refinement (each level spread over every "
+                        "process)")
     p.add_argument("--out", default="distributed_map.npz")
     args = p.parse_args(argv)
 
@@ -61,7 +67,8 @@ def main(argv=None) -> int:
     theta0 = np.linspace(0.05, 1.5, args.n_theta)
     spin = np.linspace(15.0, 200.0, args.n_spin)
     start = time.perf_counter()
-    om = tj.outcome_map(top, theta0, spin, t1=args.t1, model="full", chunk_size=args.chunk_size)
+    om = tj.outcome_map(top, theta0, spin, t1=args.t1, model="full", chunk_size=args.chunk_size,
+                        refine=args.refine)
     elapsed = time.perf_counter() - start
     n = theta0.size * spin.size
     if jax.process_index() == 0:
@@ -69,6 +76,7 @@ def main(argv=None) -> int:
             args.out, theta0=theta0, spin=spin, outcome=np.asarray(om.outcome),
             theta_final=np.asarray(om.theta_final), t_invert=np.asarray(om.t_invert),
             jellet=np.asarray(om.jellet), num_steps=np.asarray(om.num_steps),
+            simulated=np.asarray(om.simulated), levels=np.array(om.levels, dtype=int),
             process_count=jax.process_count(), device_count=jax.device_count(),
         )
         print(

@@ -12,7 +12,7 @@ from helpers import host_devices_env
 import tippejax as tj
 from tippejax._auto import choose_model
 from tippejax._map_stages import staged_outcomes
-from tippejax._maps import _auto_models
+from tippejax._maps.auto import auto_models
 from tippejax._models.levels import LEVELS
 from tippejax._outcome import INTERMEDIATE, INVERTED, UPRIGHT
 
@@ -102,7 +102,7 @@ def test_auto_picks_per_launch_what_simulate_would():
     theta = np.array([0.05, 0.1, 0.5, 1.0, 1.4, 0.1, 0.3])
     spin = np.array([10.0, 40.0, 60.0, 100.0, 150.0, 300.0, 30.0])
     for tolerance in (None, 0.05, 0.5, 2.0):
-        models, index = _auto_models(top, theta, spin, tolerance)
+        models, index = auto_models(top, theta, spin, tolerance)
         for k in range(theta.size):
             y0 = tj.initial_state(top, theta[k], spin[k])
             assert models[index[k]] == choose_model(top, y0, tolerance=tolerance)
@@ -134,12 +134,13 @@ def test_map_in_blocks_is_each_launchs_single_run(monkeypatch):
     """On CPU devices a map's launches run in blocks (`run_in_blocks`, as in simulate_batch):
     with blocks of 2, a map of 3 x 2 tops (their fields split into the blocks) holds each
     top's own single run, the padding cut off."""
-    from tippejax import _devices, _maps
+    from tippejax import _devices
+    from tippejax._maps import runs
 
     monkeypatch.setattr(_devices, "PER_MEMBER_BLOCK", 2)
     calls = []
-    run = _maps._run_chunk_cpu
-    monkeypatch.setattr(_maps, "_run_chunk_cpu", lambda *a: calls.append(a) or run(*a))
+    run = runs._run_chunk_cpu
+    monkeypatch.setattr(runs, "_run_chunk_cpu", lambda *a: calls.append(a) or run(*a))
     base = tj.default_top()
     a, e = np.array([0.7, 1.0, 1.3]), np.array([0.2, 0.4])
     om = tj.outcome_map_tops(base, a, e, theta0=0.1, spin=120.0, t1=2.0)

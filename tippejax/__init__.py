@@ -56,6 +56,7 @@ from ._invariants import (
 )
 from ._inversion import inversion_time as inversion_time
 from ._maps import (
+    MapBoundary as MapBoundary,
     OutcomeMap as OutcomeMap,
     outcome_map as outcome_map,
     outcome_map_tops as outcome_map_tops,
@@ -85,6 +86,7 @@ __all__ = [
     "OUTCOMES",
     "RESULTS",
     "FitResult",
+    "MapBoundary",
     "OutcomeMap",
     "Solution",
     "State",

@@ -163,7 +163,10 @@ def build_parser() -> argparse.ArgumentParser:
             "plot where each ends (upright, inverted, intermediate, contact lost, failed) with "
             "the linear-theory boundaries; then a grid of tops over (A/C, eps/R) for one launch "
             "beside the group map. Writes outcome_map.png, outcome_map.npz and "
-            "outcome_map_tops.png to --out."
+            "outcome_map_tops.png to --out. With --adaptive the map is computed from a "
+            "coarse base grid, simulating only where outcomes change, and drawn with its "
+            "boundaries, the linear theory's curves and the launches simulated; the .npz "
+            "holds the outcomes, the flags, the boundaries and the axes."
         ),
     )
     p.add_argument("--group", choices=MAP_GROUP_TOPS, default="standard",
@@ -175,6 +178,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mu", type=float, default=None, help="friction (s/m), default 0.3")
     p.add_argument("--n-theta", dest="n_theta", type=int, default=12, help="launch tilts (12)")
     p.add_argument("--n-spin", dest="n_spin", type=int, default=24, help="launch spins (24)")
+    p.add_argument("--resolution", type=int, default=None,
+                   help="launches along each axis (replaces --n-theta and --n-spin)")
+    p.add_argument("--adaptive", action="store_true",
+                   help="an adaptive map (tj.outcome_map(..., refine=k)) from a base grid of "
+                        "about 32 cells per axis")
+    p.add_argument("--refine", type=int, default=None,
+                   help="levels of refinement of an adaptive map (default with --adaptive: "
+                        "about log2(resolution / 32))")
     p.add_argument("--theta-min", dest="theta_min", type=float, default=0.02)
     p.add_argument("--theta-max", dest="theta_max", type=float, default=1.5)
     p.add_argument("--spin-min", dest="spin_min", type=float, default=10.0)

@@ -61,6 +61,7 @@ class ChainOutput(eqx.Module):
     t_chart_switch: Float[Array, ""]
     num_steps: Array
     num_rejected_steps: Array
+    lowest: dict[str, Float[Array, ""]]  # see `run_chain(lowest=...)`
 
 
 class _Carry(eqx.Module):
@@ -76,6 +77,7 @@ class _Carry(eqx.Module):
     t_chart_switch: Float[Array, ""]
     num_steps: Array
     num_rejected_steps: Array
+    lowest: dict[str, Float[Array, ""]]
     state: State  # the common state the next segment starts from
     t_start: Float[Array, ""]
     active: Array  # whether the member runs the next segment
@@ -91,7 +93,8 @@ class _Start(eqx.Module):
     result: RESULTS
 
 
-def _chain_start(level: AbstractLevel, top, state0: State, t0, ts, stop_on_contact: bool):
+def _chain_start(level: AbstractLevel, top, state0: State, t0, ts, stop_on_contact: bool,
+                 lowest=()):
     """The carry of one member before its first segment: the checks at `t0`."""
     dtype = jnp.result_type(top.m)
     nan = jnp.array(jnp.nan, dtype)
@@ -111,7 +114,8 @@ def _chain_start(level: AbstractLevel, top, state0: State, t0, ts, stop_on_conta
     return _Carry(
         states=states, state_end=state0, t_final=t_start, result=result, t_invert=nan,
         t_contact_loss=jnp.where(lost0, t_start, nan), t_chart_switch=nan,
-        num_steps=jnp.array(0), num_rejected_steps=jnp.array(0), state=state0,
+        num_steps=jnp.array(0), num_rejected_steps=jnp.array(0),
+        lowest={name: jnp.array(jnp.inf, dtype) for name in lowest}, state=state0,
         t_start=t_start, active=~dead0,
     )
 
@@ -204,6 +208,8 @@ def _segment_end(chain, i: int, top, carry: _Carry, start: _Start, seg, ts, *,
         t_chart_switch=t_chart_switch,
         num_steps=carry.num_steps + seg.num_steps,
         num_rejected_steps=carry.num_rejected_steps + seg.num_rejected_steps,
+        lowest={name: jnp.where(runs, jnp.minimum(low, seg.lowest[name].astype(low.dtype)), low)
+                for name, low in carry.lowest.items()},
         state=state,
         t_start=t_start,
         active=active,
@@ -228,6 +234,7 @@ def _chain_output(carry: _Carry, stop_on_contact: bool) -> ChainOutput:
         t_chart_switch=carry.t_chart_switch,
         num_steps=carry.num_steps,
         num_rejected_steps=carry.num_rejected_steps,
+        lowest=carry.lowest,
     )
 
 
@@ -243,6 +250,7 @@ def run_chain(
     inversion: bool = True,
     y0=None,
     shared_steps: bool = False,
+    lowest: tuple[str, ...] = (),
     **segment_options,
 ) -> ChainOutput:
     """Run `level`, then its fallbacks, from `state0` at `t0` to `t1`.
@@ -265,15 +273,22 @@ def run_chain(
     top or one per member, see `top_axes`) whose steps are shared: those per-member parts are
     vmapped around one `run_segment_shared` for the whole batch. Only for a level that is one
     segment (no chart, no fallback: the full and SO(3) levels). Every member's output is then
-    what a run of its own gives it, to about the tolerances (its steps differ)."""
+    what a run of its own gives it, to about the tolerances (its steps differ).
+
+    `lowest`: names of watched conditions (`"contact"`; `"upright"` with `inversion`) whose
+    lowest value over the run, at the start and at the end of every accepted step, is
+    returned in `ChainOutput.lowest` (inf where no segment ran): how near the run came to an
+    event, for an outcome map's indicators. Not with shared steps."""
     chain = level_chain(level)
     if shared_steps and (len(chain) != 1 or level.has_chart):
         raise ValueError(
             f"shared steps run one segment; the {level.name!r} level chains segments."
         )
+    if shared_steps and lowest:
+        raise ValueError("run_chain: lowest= is not kept with shared steps.")
     each = _each_member(top) if shared_steps else _as_one
-    carry = each(lambda top, s: _chain_start(chain[0], top, s, t0, ts, stop_on_contact))(
-        top, state0)
+    carry = each(lambda top, s: _chain_start(chain[0], top, s, t0, ts, stop_on_contact,
+                                             lowest))(top, state0)
     for i, lvl in enumerate(chain):
         start = each(lambda top, c: _segment_start(chain, i, top, c, t1, y0))(top, carry)
         terminating, observed = _segment_events(lvl, stop_on_contact, inversion)
@@ -283,7 +298,7 @@ def run_chain(
                                      **events)
         else:
             seg = run_segment(lvl, top, start.y_start, carry.t_start, start.t_stop, ts,
-                              **events)
+                              lowest=lowest, **events)
         carry = each(lambda top, c, st, sg: _segment_end(
             chain, i, top, c, st, sg, ts, stop_on_contact=stop_on_contact,
             inversion=inversion))(top, carry, start, seg)

@@ -159,6 +159,9 @@ class Segment(eqx.Module):
     observed: dict[str, Float[Array, ""]]  # first crossing time of each observed event
     num_steps: Array
     num_rejected_steps: Array
+    # lowest value of each condition `run_segment(lowest=...)` names, at the accepted steps'
+    # ends (and the start)
+    lowest: dict[str, Float[Array, ""]] = eqx.field(default_factory=dict)
 
 
 def run_segment(
@@ -180,6 +183,7 @@ def run_segment(
     pieces: int,
     locate: bool = True,
     pack_width: int | None = None,
+    lowest: tuple[str, ...] = (),
 ) -> Segment:
     """Integrate `level` from `(t0, y0)` to `t1` or the first terminating event.
 
@@ -189,10 +193,15 @@ def run_segment(
     started from. No step is taken again and no root is found, so the program is smaller to
     compile; for callers that need to know only which save times lie before an event (a
     fit's residuals). `pack_width`: the layout of the state in the solver (`ravel_state`;
-    `pack_width_for` picks it; default: a batch's, `PACK_WIDTH`)."""
+    `pack_width_for` picks it; default: a batch's, `PACK_WIDTH`). `lowest`: watched conditions
+    (among `terminating` and `observed`) whose lowest value over the segment is returned in
+    `Segment.lowest` (`WatchedSolver`'s `lowest`)."""
     if pack_width is None:
         pack_width = PACK_WIDTH
     names = terminating + observed
+    unknown = [name for name in lowest if name not in names]
+    if unknown:
+        raise ValueError(f"run_segment: lowest names {unknown}, not among the watched {names}.")
     y0_flat, unravel = ravel_state(y0, pack_width)
     field = FlatField(level, unravel, pack_width)
     watch = Watch(level, unravel, names)
@@ -200,7 +209,7 @@ def run_segment(
                                        **STEP_CONTROL)
     solver = _prepared_solver(solver, controller, adjoint)
     watched = WatchedSolver(solver, watch, **_event_indices(terminating, observed),
-                            pieces=pieces)
+                            pieces=pieces, lowest=tuple(names.index(n) for n in lowest))
     terms = diffrax.ODETerm(field)
     sol = _solve(terms, watched, controller, top, y0_flat, t0, t1, ts, max_steps=max_steps,
                  adjoint=adjoint, progress_meter=progress_meter)
@@ -223,6 +232,7 @@ def run_segment(
         num_steps=sol.stats["num_steps"],
         # Counted by the watch, not read from diffrax's own counter (see `_WatchState.tally`).
         num_rejected_steps=sol.stats["num_steps"] - sol.solver_state.accepted.astype(int),
+        lowest={name: sol.solver_state.lowest[i] for i, name in enumerate(lowest)},
     )
 
 

@@ -82,11 +82,12 @@ class _RecordLayout(eqx.Module):
 class _WatchState(eqx.Module):
     inner: PyTree
     previous: Float[Array, " n"]  # watched conditions at the start of the step
-    # Their time derivatives there and, last, the number of accepted steps (diffrax keeps a
+    # Their time derivatives there, the lowest values so far of the conditions
+    # `WatchedSolver.lowest` names and, last, the number of accepted steps (diffrax keeps a
     # solver state only from those), in one vector: updated by one kernel. One more small
     # kernel a step (a counter of its own, or diffrax's rejected-step counter) made XLA:CPU run
     # a single top's step on two threads, at a higher cost.
-    tally: Float[Array, " n+1"]
+    tally: Float[Array, " n+k+1"]
     # `EventRecords` packed in one vector (`_RecordLayout`), written by one select: cheaper
     # per step than eight arrays in the loop's state.
     record: Float[Array, " k"]
@@ -94,7 +95,13 @@ class _WatchState(eqx.Module):
 
     @property
     def previous_rate(self) -> Float[Array, " n"]:
-        return self.tally[:-1]
+        return self.tally[: self.previous.shape[-1]]
+
+    @property
+    def lowest(self) -> Float[Array, " k"]:
+        """The lowest value of each condition of `WatchedSolver.lowest` at the accepted steps'
+        ends (and at the start)."""
+        return self.tally[self.previous.shape[-1]:-1]
 
     @property
     def accepted(self) -> Float[Array, ""]:
@@ -289,7 +296,20 @@ class WatchedSolver(AbstractWatchedSolver):
       `locate_terminating`. Watching here, on the values the step computes anyway, replaces
       a `diffrax.Event`, which would evaluate the conditions a second time at every step and
       carry its own bookkeeping through the loop.
+    - `lowest`: indices of conditions whose lowest value over the run (at the start and at
+      the end of every accepted step) is kept, `_WatchState.lowest`: a cheap measure of how
+      near a run came to an event it did not reach (an outcome map's indicators). Default
+      none.
     """
+
+    lowest: tuple[int, ...] = eqx.field(static=True, default=())
+
+    def _lowest_of(self, values, like) -> list:
+        """`[values[lowest]]` in `like`'s dtype, or `[]` when nothing is kept (the program is
+        then what it was without `lowest`)."""
+        if not self.lowest:
+            return []
+        return [values[jnp.array(self.lowest)].astype(like.dtype)]
 
     def init(self, terms, t0, t1, y0, args) -> _WatchState:
         m = len(self.observed)
@@ -307,7 +327,8 @@ class WatchedSolver(AbstractWatchedSolver):
         return _WatchState(
             inner=self.solver.init(terms, t0, t1, y0, args),
             previous=previous,
-            tally=jnp.concatenate([previous_rate, jnp.zeros(1, previous_rate.dtype)]),
+            tally=jnp.concatenate([previous_rate, *self._lowest_of(previous, previous_rate),
+                                   jnp.zeros(1, previous_rate.dtype)]),
             record=record,
             layout=layout,
         )
@@ -350,10 +371,12 @@ class WatchedSolver(AbstractWatchedSolver):
             return jnp.where(where, written, record)
 
         record = jax.lax.cond(jnp.any(new) | stopped, write, lambda r: r, record)
+        lowest = [jnp.minimum(solver_state.lowest, low)
+                  for low in self._lowest_of(end, solver_state.tally)]
         state = _WatchState(
             inner=inner,
             previous=end,
-            tally=jnp.concatenate([end_rate, solver_state.tally[-1:] + 1]),
+            tally=jnp.concatenate([end_rate, *lowest, solver_state.tally[-1:] + 1]),
             record=record,
             layout=layout,
         )
