@@ -219,7 +219,7 @@ def test_exports_round_trip(summary_batch, tmp_path):
 
 
 def test_a_saved_batch_exports_its_series_over_time(tmp_path):
-    xr = pytest.importorskip("xarray")
+    pytest.importorskip("xarray")
     ts = np.linspace(0.0, 0.5, 6)
     mus = np.array([0.1, 1.0])
     sol = tj.simulate_batch(tj.default_top().replace(mu=mus), 0.1, 60.0, 0.5, grid=(),
