@@ -68,7 +68,7 @@ def _inversion_times_converge(per, shared, reference):
 
 def test_shared_summary_agrees_with_per_member(so3_summary, so3_reference):
     per, shared = so3_summary
-    assert shared.theta.shape == per.theta.shape == (SPINS.size, 1)
+    assert shared.theta.shape == per.theta.shape == (SPINS.size,)  # no save axis
     assert shared.model == "so3"
     # the same outcome per member: inverted tops invert, the fast ones lose contact and stop,
     # while the others go on to t1
@@ -201,7 +201,7 @@ def test_shared_steps_sharded_over_two_host_devices():
     ).stdout
     r = json.loads(out.strip().splitlines()[-1])
     assert r["devices"] == 2
-    assert r["shape"] == [5, 1]  # 5 launches padded to 6 and cut back
+    assert r["shape"] == [5]  # 5 launches padded to 6 and cut back
     assert r["diff"] < 1e-5  # each device shares steps over its own shard only
 
 
