@@ -24,7 +24,7 @@ from .candidates import (
     start_point,
     widen,
 )
-from .inputs import build_setup, check_guess, check_options, check_records
+from .inputs import build_setup, check_guess, check_model, check_options, check_records
 from .result import FIT_RESULTS, FitResult
 from .stages import Final
 from .strategies import IF_NOISE, STRATEGIES
@@ -161,6 +161,7 @@ def fit(
     free = check_options(free, model, method, strategy, max_steps, tol, sigma, STRATEGIES)
     records = check_records(ts, theta_obs, phi_obs, weights, t0, free)
     fields, launch = check_guess(top_guess, y0_guess, free, records.batch)
+    check_model(model, top_guess.friction)
     if not isinstance(trim, bool):
         raise ValueError(f"trim must be True or False, got {trim!r}.")
 
@@ -315,7 +316,7 @@ def _result(best, setup, obs2, ends, batch, free, model, method, strategy) -> Fi
         wrapped = np.arctan2(np.sin(dphi), np.cos(dphi))
         phi_res = to_device(wrapped if batch is not None else wrapped[0], dtype)
     return FitResult(
-        top=out["top"], y0=out["y0"], values=out["values"], std_errors=out["std_errors"],
+        top=out["top"], y0=out["y0"], t0=out["t0"], values=out["values"], std_errors=out["std_errors"],
         covariance=out["covariance"], correlation=out["correlation"],
         loss_history=to_device(arrays["loss_history"], dtype),
         ts=to_device(arrays["ts"], dtype), theta_obs=to_device(arrays["theta_obs"], dtype),

@@ -349,8 +349,9 @@ def finish(u, code, data: Data, value, jac_u, sol, cfg: Config):
 
     top, y0 = assemble(values, data.base)
     vector = jnp.stack([values[n] for n in cfg.free])
+    t0 = values["t0"] if "t0" in values else data.t0
     return dict(
-        top=top, y0=y0, values=vector, std_errors=std, covariance=cov, correlation=corr,
+        top=top, y0=y0, t0=t0, values=vector, std_errors=std, covariance=cov, correlation=corr,
         theta_fit=theta_fit, phi_fit=phi_fit, loss=0.5 * rss,
         result=FIT_RESULTS.where(
             jnp.all(jnp.isfinite(u)),
