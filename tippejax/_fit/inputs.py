@@ -305,8 +305,10 @@ def build_setup(top_guess, y0_guess, records: Records, fields, launch, *, free, 
         y0_guess,
     ) if batched else jax.tree_util.tree_map(lambda x: to_device(np.asarray(x, dtype)[None]), y0_guess)
     # the launch time's guess and its scale (params.py): the guess's distance to the first
-    # frame, or one frame
-    t0_scale = max(ts_np[0] - t0, float(np.median(np.diff(ts_np))))
+    # frame, or a quarter of the guess's nutation period (a phase the windows can follow), or
+    # one frame
+    t0_scale = max(ts_np[0] - t0, 0.25 * nutation_period(fields, launch),
+                   float(np.median(np.diff(ts_np))))
     law = top_guess.friction
     base = Base(
         top={f: per_rec(v) for f, v in fields.items()},

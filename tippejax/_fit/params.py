@@ -13,12 +13,13 @@ $u = 0$ at the guess, so that the constraints hold at every trial without clippi
 | `theta0` | $\theta_0 = \pi\,\sigma(u + \mathrm{logit}(\theta_{0,0}/\pi))$ | $0 < \theta_0 < \pi$ |
 | `theta_dot` at a pole | $\dot\theta_0 = \dot\theta_{0,0} e^{u}$ | a launch at $\theta_0 = 0$ leaves it |
 | other rates, `vx, vy` | $p = p_0 + \max(|p_0|, s)\,u$ | nothing (any sign) |
-| `t0` (the launch time) | $t_0 = t_{0,0} + d\,u$, $d = \max(t_1 - t_{0,0}, \Delta t)$ | nothing: before $t_0$ the top is held at its launch |
+| `t0` (the launch time) | $t_0 = t_{0,0} + d\,u$, $d = \max(t_1 - t_{0,0}, T/4, \Delta t)$ | nothing: before $t_0$ the top is held at its launch |
 
 $\sigma$ is the logistic function. One unit of $u$ is then about a relative change of 100% in
 every parameter, which is what the global search and the optimiser's damping assume. ($t_1$ is
-the first observation and $\Delta t$ the median sample interval: one unit of $u$ moves the launch
-by its guessed distance to the first frame, or by one frame.)
+the first observation, $T = 2\pi A/(C|n|)$ the guess's nutation period and $\Delta t$ the median
+sample interval: one unit of $u$ moves the launch by its guessed distance to the first frame, or
+by a quarter of a nutation period, whichever is longer.)
 """
 
 from __future__ import annotations

@@ -42,6 +42,12 @@ class FIT_RESULTS(eqxi.Enumeration):
         "guess, more starts (strategy), or trim=True for a record whose end the model does "
         "not describe."
     )
+    launch_time = (
+        "The residuals are not noise, and a shift of the launch time would explain most of "
+        "them: the record's clock probably does not start at the launch. y0_guess is the "
+        "state at the launch time t0 (0 by default, as in simulate). Pass t0= the launch's "
+        "time in the record's clock, or free 't0'. The standard errors do not apply."
+    )
     phase_ambiguous = (
         "The nutation's phase does not pin the spin: along the valley of the slow motion, "
         "spins one or more nutation cycles away fit the record as well (chi-square within 9 "
