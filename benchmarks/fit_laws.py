@@ -262,13 +262,14 @@ def laws(args):
     rows = sorted(rows, key=lambda r: r["index"])[:n] if not args.smoke else rows
     if not rows:
         raise SystemExit(f"--minutes {budget}: no record finished in the time allowed.")
-    size = (f"{len(rows)} of the {n} records asked for (`--minutes {budget}` stopped the run)"
-            if stopped or len(rows) < n else f"{len(rows)}")
+    size = f"{len(rows)} seeded random record{'s' if len(rows) != 1 else ''}"
+    if stopped or len(rows) < n:
+        size += f" (of the {n} asked for: `--minutes {budget:g}` stopped the run)"
     h.write(
         "fitting.py --laws",
         "Which law does a record obey?",
         f"""
-{size} seeded random records (seed {args.seed}; {", ".join(f"{sum(r['law'] == k for r in rows)} {NAMES[k]}" for k in flr.LAWS)}), made by the independent reference `tests/real_top_reference.py`: 2-5 s at 30-240 Hz, noise 0.005-0.02 rad, the first frame one sample after the launch. Each record is fitted with its own law from the truth, then `tj.compare_laws` fits it with all three laws (sigma given; the record's law from its parameters 30% off, the others from generic guesses; eps and the spin 30% off; theta0 known). Targets: with the right law at least 95% within 2% and 3 SE from 30% off, every failure flagged; the wrong law ruled out on at least 95% of the records where the laws differ by more than the noise; the law chosen right on at least 95%.
+{size} (seed {args.seed}; {", ".join(f"{sum(r['law'] == k for r in rows)} {NAMES[k]}" for k in flr.LAWS)}), made by the independent reference `tests/real_top_reference.py`: 2-5 s at 30-240 Hz, noise 0.005-0.02 rad, the first frame one sample after the launch. Each record is fitted with its own law from the truth, then `tj.compare_laws` fits it with all three laws (sigma given; the record's law from its parameters 30% off, the others from generic guesses; eps and the spin 30% off; theta0 known). Targets: with the right law at least 95% within 2% and 3 SE from 30% off, every failure flagged; the wrong law ruled out on at least 95% of the records where the laws differ by more than the noise; the law chosen right on at least 95%.
 
 {summary(rows)}
 """,

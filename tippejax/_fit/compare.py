@@ -119,6 +119,8 @@ class LawComparison(eqx.Module):
                 verdict = "preferred"
             if self.ruled_out[i] and not self.white[i]:
                 verdict += " (residuals not white)"
+            if not bool(np.all(np.asarray(self.fits[i].converged))):
+                verdict += f" (fit flagged: fits[{i}].message())"
             rms = math.sqrt(float(self.rss[i]) / self.num_samples) / self.sigma
             lines.append(
                 f"  {name:<24}{int(self.num_params[i]):>3}{rms:>11.3f}"
@@ -182,7 +184,10 @@ def compare_laws(
       law that leaves structure below the noise's level.
 
     The chance that the right law is ruled out is then a few times 1e-3 (if its fit finds the
-    least-squares minimum; a fit that fails is ruled out with it, and its message says so).
+    least-squares minimum: a fit stuck in a local minimum leaves residuals that are not noise,
+    and its law is ruled out with it). A fit flagged for another reason (`converged` False: a
+    phase ambiguity, `max_steps`) is judged by its residuals all the same; the table marks it,
+    and its `message()` says what to trust.
     Among the laws not ruled out, the record **prefers** the one with the lowest information
     criterion (`criterion`: `"bic"`, $-2\ln L + k\ln N$, default, or `"aic"`, $-2\ln L + 2k$),
     which charges a law for its extra parameters; the table also gives the likelihood ratio
