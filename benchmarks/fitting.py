@@ -10,6 +10,8 @@ does not must be flagged (`converged=False`). Fits are kept beside the records' 
 finish (`--resume`), never in the repository.
 
     python benchmarks/fitting.py --table --n 60 --compare 8
+    python benchmarks/fitting.py --laws --n 48 --resume   # friction laws (fit_laws.py)
+    python benchmarks/fitting.py --mujoco                 # MuJoCo's own top, every law
     python benchmarks/fitting.py --quick       # one tiny record per path, writes nothing
 """
 
@@ -24,6 +26,7 @@ import jax
 import numpy as np
 
 sys.path.insert(0, str(h.HERE.parent / "tests"))
+import fit_laws  # noqa: E402
 import fit_records as fr  # noqa: E402
 
 import tippejax as tj  # noqa: E402
@@ -349,11 +352,16 @@ def options(prs):
         "--compare", type=int, default=8, help="records also fitted with the other strategies"
     )
     prs.add_argument("--copies", type=int, default=4, help="--coverage: noise draws per record")
-    prs.add_argument("--resume", action="store_true", help="--table: keep the fits already made")
+    prs.add_argument("--resume", action="store_true",
+                     help="--table, --laws: keep the fits already made")
+    prs.add_argument("--minutes", type=float, default=None,
+                     help="--laws: start no new record after this many minutes")
 
 
 MODES = {
     "table": (table, "every record from the truth and 30% off; strategies; fitting.png"),
+    "laws": (fit_laws.laws, "records of every friction law: which law a record obeys"),
+    "mujoco": (fit_laws.mujoco, "MuJoCo's own top, the whole record with every law"),
     "coverage": (coverage, "the coverage of the error bars over repeated noise"),
     "speed": (speed, "the time of a fit: first call, later calls, scipy"),
     "records": (records, "print the drawn records"),

@@ -41,7 +41,13 @@ from ._batch import simulate_batch as simulate_batch
 from ._engine import fibre as _fibre  # noqa: F401  (GyroscopicLevel(projection="fibre"))
 from ._engine.cpu import compiler_options as compiler_options
 from ._engine.solver_choice import default_solver as default_solver, friction_rate as friction_rate
-from ._fit import FIT_RESULTS as FIT_RESULTS, FitResult as FitResult, fit as fit
+from ._fit import (
+    FIT_RESULTS as FIT_RESULTS,
+    FitResult as FitResult,
+    LawComparison as LawComparison,
+    compare_laws as compare_laws,
+    fit as fit,
+)
 from ._friction.base import AbstractFriction as AbstractFriction
 from ._friction.coulomb import Coulomb as Coulomb
 from ._friction.coulomb_contensou import CoulombContensou as CoulombContensou
@@ -86,6 +92,7 @@ __all__ = [
     "OUTCOMES",
     "RESULTS",
     "FitResult",
+    "LawComparison",
     "MapBoundary",
     "OutcomeMap",
     "Solution",
@@ -95,6 +102,7 @@ __all__ = [
     "TippeTop",
     "animate",
     "classify",
+    "compare_laws",
     "compiler_options",
     "default_solver",
     "default_top",

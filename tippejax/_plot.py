@@ -543,7 +543,8 @@ def outcome_map_figure(om, *, title: str | None = None):
         group = classify(top)
         ax.set_title(
             f"Outcome at t1 = {om.t1:g} s, Group {group} ($A/C$ = {float(top.A_over_C):.3g}, "
-            f"$\\epsilon/R$ = {float(top.eps_over_R):.3g}, $\\mu$ = {float(top.mu):.3g} s/m)",
+            f"$\\epsilon/R$ = {float(top.eps_over_R):.3g}, $\\mu$ = {float(top.mu):.3g}"
+            f"{'' if top.friction.mu_units == '1' else ' ' + top.friction.mu_units})",
             fontsize=10,
         )
         # Right: the end states on the bifurcation diagram.

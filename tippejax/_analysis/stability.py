@@ -17,6 +17,11 @@ r"""Linear stability of the steady states, by four independent routes.
    exactly: the zeros of the conserved $|a|^2$ and $J$ by restricting to the invariant subspace
    $\nabla|a|^2\cdot\delta = \nabla J\cdot\delta = 0$, the zero of the rotation symmetry (away from
    the poles) by quotienting out its generator $e_Z\times y_0$.
+
+Routes 1-3 are derived for the viscous law; a law without drilling torque enters them through
+its viscous coefficient at zero slip (`laws.linearised_top`: $\mu/\delta$ for the regularised
+Coulomb law), route 4 through the law itself. Under a drilling torque there is no fixed point to
+linearise about (`laws.drifting_message`): each route raises `ValueError`.
 """
 
 from __future__ import annotations
@@ -28,15 +33,23 @@ from jaxtyping import Array, Complex
 from .._models._rigid_body import rigid_body_dynamics
 from .._models.routhian import RouthianState, _single as _routhian_single
 from .._top import TippeTop
+from .laws import drifting_message, linearised_top
 from .potential import effective_potential_d2_closed_form, routhian_terms
+
+
+def drilling_rate(top: TippeTop, theta0, J):
+    r"""$\omega_n = \omega\cdot e_Z$ at the relative equilibrium $\theta_0$ with Jellet $J$."""
+    return relative_equilibrium(top, theta0, J)[1][2]
 
 
 def reduced_jacobian_eigenvalues(top: TippeTop, theta0, J) -> Complex[Array, "3"]:
     r"""Eigenvalues of the reduced system's Jacobian at the relative equilibrium $\theta_0$.
 
     Variables $(\theta, \dot\theta, \dot{\bar\varphi})$; the Jacobian is by `jax.jacfwd` of the
-    Routhian vector field. Not defined at $\sin\theta_0 = 0$.
+    Routhian vector field, with the law's viscous coefficient at zero slip
+    (`laws.linearised_top`). Not defined at $\sin\theta_0 = 0$.
     """
+    top = linearised_top(top, drilling_rate(top, theta0, J))
 
     def field(z):
         y = RouthianState(
@@ -54,7 +67,9 @@ def characteristic_polynomial(top: TippeTop, theta0, J, *, corrected: bool = Tru
     r"""Coefficients $[1, c_2, c_1, c_0]$ of the cubic of Sec. 4 at $\theta_0$ (zero root removed).
 
     `corrected=True` uses the full inertia coefficients (`docs/notes.md`, "The factor 2"); `False` the printed ones.
+    $\mu$ is the law's viscous coefficient at zero slip (`laws.linearised_top`).
     """
+    top = linearised_top(top, drilling_rate(top, theta0, J))
     terms = routhian_terms(top, theta0, J)
     dbeta = jax.grad(lambda th: routhian_terms(top, th, J).gyroscopic)(
         jnp.asarray(theta0, dtype=jnp.result_type(theta0, top.m))
@@ -109,10 +124,14 @@ def vector_field_eigenvalues(
     Linearised in the frame rotating about $e_Z$ at $\dot\varphi_0$, where the relative
     equilibrium is a fixed point. `pole=True` (static) for $\theta_0 \in \{0, \pi\}$: there the
     rotation symmetry fixes the equilibrium and gives no zero eigenvalue.
-    SO(3): 4 eigenvalues at a pole, 3 elsewhere; full: 6 at a pole, 5 elsewhere.
+    SO(3): 4 eigenvalues at a pole, 3 elsewhere; full: 6 at a pole, 5 elsewhere. The friction
+    is the top's law itself (its force and its effect on $R_n$); a law with a drilling torque
+    raises `ValueError` (the relative equilibrium is not a fixed point: `laws.drifting_message`).
     """
     if model not in ("so3", "full"):
         raise ValueError(f"model must be 'so3' or 'full', got {model!r}.")
+    if top.friction.has_drilling_torque:
+        raise ValueError(drifting_message(top, "A linearisation at a steady state"))
     axis0, omega0, rate = relative_equilibrium(top, theta0, J)
     if pole:
         # At a pole the steady state is a true fixed point: use the inertial frame.
@@ -132,7 +151,8 @@ def vector_field_eigenvalues(
         omega_dot = omega_dot - rate * jnp.cross(ez, omega)
         parts = [axis_dot, omega_dot]
         if full:
-            velocity_dot = -top.mu * rn * v_q[:2] / top.m - rate * jnp.stack([-velocity[1], velocity[0]])
+            force, _ = top.friction.force_and_torque(v_q[:2], omega[2])  # per unit R_n
+            velocity_dot = rn * force / top.m - rate * jnp.stack([-velocity[1], velocity[0]])
             parts = [velocity_dot] + parts
         return jnp.concatenate(parts)
 

@@ -22,8 +22,10 @@ from jaxtyping import Array, Bool, Complex, Float
 
 from .._top import TippeTop
 from .groups import thresholds
+from .laws import drilling_torque_at_rest, slip_coefficient
 from .potential import effective_potential_d2_closed_form
 from .stability import (
+    drilling_rate,
     polynomial_eigenvalues,
     reduced_jacobian_eigenvalues,
     vector_field_eigenvalues,
@@ -91,6 +93,24 @@ class SteadyStates(eqx.Module):
     The reduced Jacobian, the polynomial and the SO(3) field describe the same model (translation
     dropped in the friction), so their three eigenvalues agree; the full model has two more
     modes (the translation) and eigenvalues of its own. `table()` reports both.
+
+    **The friction law.** The states, their spins, $W''$, $g$ and the stability by $W'' > 0$
+    do not depend on the law: a steady state needs only $f = 0 \Leftrightarrow v_Q = 0$
+    (Friedl 1997, sec. 2.3; Leine & Glocker 2003, eq. 18). The eigenvalues do: a law without
+    drilling torque linearises at zero slip to a viscous law of coefficient
+    `*_slip_coefficient` ($\mu$ for `Viscous`, $\mu/\delta$ for `Coulomb`; s/m), which the
+    reduced routes use, while the SO(3) and full fields use the law itself. A law with a
+    drilling torque (`CoulombContensou`) keeps drilling at these states: there the Jellet
+    integral drifts at `*_jellet_rate` $= m g\, m(0, \omega_n)(R - \epsilon\cos\theta)$
+    (kg m^2/s^2; `jellet_rate`), so they are quasi-steady states that move with $J$ (stable
+    ones at frozen $J$ where $W'' > 0$), not fixed points: their eigenvalues and slip
+    coefficients are nan, and `drifts` is True.
+
+    - `vertical_jellet_rate`, `intermediate_jellet_rate`: $\dot J$ at each state (0 for a law
+      without drilling torque).
+    - `vertical_slip_coefficient`, `intermediate_slip_coefficient`: the law's viscous
+      coefficient at zero slip at each state's drilling rate (s/m; nan under a drilling torque).
+    - `law`: the law's class name; `drifts`: whether the law has a drilling torque.
     """
 
     jellet: Float[Array, ""]
@@ -110,6 +130,12 @@ class SteadyStates(eqx.Module):
     intermediate_eigenvalues_polynomial: Complex[Array, "2 3"]
     intermediate_eigenvalues_so3: Complex[Array, "2 3"]
     intermediate_eigenvalues_full: Complex[Array, "2 5"]
+    vertical_jellet_rate: Float[Array, "2"]
+    intermediate_jellet_rate: Float[Array, "2"]
+    vertical_slip_coefficient: Float[Array, "2"]
+    intermediate_slip_coefficient: Float[Array, "2"]
+    law: str = eqx.field(static=True, default="Viscous")
+    drifts: bool = eqx.field(static=True, default=False)
 
     @property
     def intermediate(self) -> list[tuple[float, bool]]:
@@ -130,10 +156,12 @@ class SteadyStates(eqx.Module):
         `stable` (by $W'' > 0$), `eigenvalues_so3`, `eigenvalues_full` (numpy arrays),
         `max_real_so3`, `max_real_full` (the largest real part: negative for a
         linearly stable state), `routes_agree` (whether the sign of every route's largest real
-        part agrees with `stable`) and, for intermediate states, `eigenvalues_reduced`,
-        `eigenvalues_polynomial` and `route_spread`: the largest distance between the
-        eigenvalues of the reduced Jacobian, the polynomial and the SO(3) field, matched
-        in sorted order (the three describe one model; rounding-level when they agree).
+        part agrees with `stable`; None under a drilling torque, where there are no
+        eigenvalues), `jellet_rate`, `slip_coefficient` and, for intermediate states,
+        `eigenvalues_reduced`, `eigenvalues_polynomial` and `route_spread`: the largest
+        distance between the eigenvalues of the reduced Jacobian, the polynomial and the SO(3)
+        field, matched in sorted order (the three describe one model; rounding-level when they
+        agree).
         """
         _check_concrete_single(self, "rows")
         out = []
@@ -147,7 +175,9 @@ class SteadyStates(eqx.Module):
                 stable=stable, eigenvalues_so3=ev_so3, eigenvalues_full=ev_full,
                 max_real_so3=float(np.max(ev_so3.real)),
                 max_real_full=float(np.max(ev_full.real)),
-                routes_agree=_signs_agree(stable, ev_so3, ev_full),
+                routes_agree=None if self.drifts else _signs_agree(stable, ev_so3, ev_full),
+                jellet_rate=float(self.vertical_jellet_rate[i]),
+                slip_coefficient=float(self.vertical_slip_coefficient[i]),
             ))
         for i in range(2):
             if not bool(self.intermediate_valid[i]):
@@ -155,8 +185,9 @@ class SteadyStates(eqx.Module):
             ev = {k: np.asarray(getattr(self, f"intermediate_eigenvalues_{k}")[i])
                   for k in ("reduced", "polynomial", "so3", "full")}
             stable = bool(self.intermediate_stable[i])
-            spread = max(_eigen_distance(ev["so3"], ev["reduced"]),
-                         _eigen_distance(ev["so3"], ev["polynomial"]))
+            spread = float("nan") if self.drifts else max(
+                _eigen_distance(ev["so3"], ev["reduced"]),
+                _eigen_distance(ev["so3"], ev["polynomial"]))
             out.append(dict(
                 state="intermediate", theta=float(self.intermediate_theta[i]),
                 spin=float(self.intermediate_spin[i]), d2W=float(self.intermediate_d2W[i]),
@@ -164,7 +195,10 @@ class SteadyStates(eqx.Module):
                 eigenvalues_reduced=ev["reduced"], eigenvalues_polynomial=ev["polynomial"],
                 max_real_so3=float(np.max(ev["so3"].real)),
                 max_real_full=float(np.max(ev["full"].real)),
-                routes_agree=_signs_agree(stable, *ev.values()), route_spread=spread,
+                routes_agree=None if self.drifts else _signs_agree(stable, *ev.values()),
+                route_spread=spread,
+                jellet_rate=float(self.intermediate_jellet_rate[i]),
+                slip_coefficient=float(self.intermediate_slip_coefficient[i]),
             ))
         return out
 
@@ -172,22 +206,37 @@ class SteadyStates(eqx.Module):
         """The states as a text table: theta, spin, $W''$, stability, and the largest real
         part of the eigenvalues by each route with their agreement (see `rows`)."""
         d2w = "W''"
-        lines = [f"steady states at J = {float(self.jellet):.6g} kg m^2/s",
+        if self.drifts:
+            last = f"{'dJ/dt':>13}"
+        else:
+            last = f"{'max Re so3':>12}{'max Re full':>13}  routes"
+        lines = [f"steady states at J = {float(self.jellet):.6g} kg m^2/s ({self.law} law)",
                  f"  {'state':<13}{'theta (rad)':>12}{'spin (rad/s)':>14}{d2w:>12}  "
-                 f"{'stable':<9}{'max Re so3':>12}{'max Re full':>13}  routes"]
+                 f"{'stable':<9}{last}"]
         for row in self.rows():
-            if row["state"] == "intermediate":
-                routes = "agree" if row["routes_agree"] else "DISAGREE"
-                routes += f" (spread {row['route_spread']:.1e})"
+            if self.drifts:
+                tail = f"{row['jellet_rate']:>13.4g}"
             else:
                 routes = "agree" if row["routes_agree"] else "DISAGREE"
+                if row["state"] == "intermediate":
+                    routes += f" (spread {row['route_spread']:.1e})"
+                tail = f"{row['max_real_so3']:>12.4g}{row['max_real_full']:>13.4g}  {routes}"
             lines.append(
                 f"  {row['state']:<13}{row['theta']:>12.6g}{row['spin']:>14.6g}"
-                f"{row['d2W']:>12.4g}  {'stable' if row['stable'] else 'unstable':<9}"
-                f"{row['max_real_so3']:>12.4g}{row['max_real_full']:>13.4g}  {routes}"
+                f"{row['d2W']:>12.4g}  {'stable' if row['stable'] else 'unstable':<9}{tail}"
             )
         if not np.asarray(self.intermediate_valid).any():
             lines.append("  (no intermediate state at this J)")
+        if self.drifts:
+            lines.append(
+                f"  The {self.law} law's drilling torque does not vanish at these states: J "
+                "drifts at dJ/dt (kg m^2/s^2), so they are quasi-steady states that move with "
+                "J, 'stable' at frozen J (W'' > 0); no eigenvalues (stability margins).")
+        elif self.law != "Viscous":
+            k = np.asarray(self.vertical_slip_coefficient)[0]
+            lines.append(
+                f"  Eigenvalues of the {self.law} law linearised at zero slip: a viscous law of "
+                f"coefficient {k:.4g} s/m (mu/slip_scale for Coulomb).")
         return "\n".join(lines)
 
     def __repr__(self) -> str:
@@ -316,18 +365,33 @@ def _steady_states(top: TippeTop, J) -> SteadyStates:
     theta_i = jnp.stack(thetas)
     valid = jnp.stack(valids)
     safe = jnp.where(valid, theta_i, 1.0)
+    drifts = top.friction.has_drilling_torque
+    complex_dtype = jnp.result_type(J.dtype, jnp.complex64)
+
+    def eigenvalues(th, count, fn, **kw):  # nan under a drilling torque (no fixed point)
+        if drifts:
+            return jnp.full((count,), jnp.nan, complex_dtype)
+        return fn(top, th, J, **kw)
+
+    def law_at(th):  # (dJ/dt, the slip coefficient) at the state theta = th
+        rate = drilling_rate(top, th, J)
+        torque = top.m * top.g * drilling_torque_at_rest(top, rate)  # R_n = m g at rest
+        jdot = torque * (top.R - top.eps * jnp.cos(th))
+        k = jnp.full_like(rate, jnp.nan) if drifts else slip_coefficient(top, rate)
+        return jdot, k
 
     def per_state(th):
         return (
             effective_potential_d2_closed_form(top, th, J),
             stability_function(top, jnp.cos(th)),
-            reduced_jacobian_eigenvalues(top, th, J),
-            polynomial_eigenvalues(top, th, J),
-            vector_field_eigenvalues(top, th, J, model="so3"),
-            vector_field_eigenvalues(top, th, J, model="full"),
+            eigenvalues(th, 3, reduced_jacobian_eigenvalues),
+            eigenvalues(th, 3, polynomial_eigenvalues),
+            eigenvalues(th, 3, vector_field_eigenvalues, model="so3"),
+            eigenvalues(th, 5, vector_field_eigenvalues, model="full"),
+            *law_at(th),
         )
 
-    d2w, g, ev_red, ev_poly, ev_so3, ev_full = jax.vmap(per_state)(safe)
+    d2w, g, ev_red, ev_poly, ev_so3, ev_full, jdot_i, k_i = jax.vmap(per_state)(safe)
 
     def mask(x):
         shape = (2,) + (1,) * (x.ndim - 1)
@@ -336,11 +400,14 @@ def _steady_states(top: TippeTop, J) -> SteadyStates:
     poles = jnp.array([0.0, jnp.pi], dtype=J.dtype)
     vertical_d2w = effective_potential_d2_closed_form(top, poles, J)
     vertical_so3 = jnp.stack(
-        [vector_field_eigenvalues(top, p, J, model="so3", pole=True) for p in (poles[0], poles[1])]
+        [eigenvalues(p, 4, vector_field_eigenvalues, model="so3", pole=True)
+         for p in (poles[0], poles[1])]
     )
     vertical_full = jnp.stack(
-        [vector_field_eigenvalues(top, p, J, model="full", pole=True) for p in (poles[0], poles[1])]
+        [eigenvalues(p, 6, vector_field_eigenvalues, model="full", pole=True)
+         for p in (poles[0], poles[1])]
     )
+    jdot_v, k_v = (jnp.stack(x) for x in zip(*(law_at(p) for p in (poles[0], poles[1]))))
     x = jnp.cos(safe)
     lever = top.R * x - top.eps
     spin_i = J * lever / (top.R**2 * top.A * (1.0 - x**2) + top.C * lever**2)
@@ -362,6 +429,12 @@ def _steady_states(top: TippeTop, J) -> SteadyStates:
         intermediate_eigenvalues_polynomial=mask(ev_poly),
         intermediate_eigenvalues_so3=mask(ev_so3),
         intermediate_eigenvalues_full=mask(ev_full),
+        vertical_jellet_rate=jdot_v,
+        intermediate_jellet_rate=mask(jdot_i),
+        vertical_slip_coefficient=k_v,
+        intermediate_slip_coefficient=mask(k_i),
+        law=type(top.friction).__name__,
+        drifts=drifts,
     )
 
 

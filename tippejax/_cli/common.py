@@ -42,13 +42,20 @@ def fmt(value: float, spec: str = ".6g") -> str:
     return "-" if math.isnan(value) else format(value, spec)
 
 
+def mu_text(top, spec: str = ".4g") -> str:
+    """`mu = ...` with the units of the top's friction law (s/m for the viscous law,
+    dimensionless for the Coulomb laws)."""
+    units = top.friction.mu_units
+    return f"mu = {float(top.mu):{spec}} " + ("(dimensionless)" if units == "1" else units)
+
+
 def print_top(top) -> str:
     """Print a top's parameters, group and thresholds; returns its group."""
     th = jax.jit(thresholds)(top)  # one compilation instead of one per elementwise op
     group = GROUPS[int(jax.jit(group_index)(top))]
     print(
         f"top: m = {float(top.m):.4g} kg, R = {float(top.R):.4g} m, eps = {float(top.eps):.4g} m, "
-        f"A = {float(top.A):.4g} kg m^2, C = {float(top.C):.4g} kg m^2, mu = {float(top.mu):.4g} s/m"
+        f"A = {float(top.A):.4g} kg m^2, C = {float(top.C):.4g} kg m^2, {mu_text(top)}"
     )
     print(f"A/C = {float(top.A / top.C):.4g}, eps/R = {float(top.eps / top.R):.4g}: Group {group}")
     print("thresholds (- = undefined for this group):")

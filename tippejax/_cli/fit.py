@@ -13,7 +13,7 @@ import numpy as np
 from .._fit import fit
 from .._plot import fit_figure
 from .._state import initial_state
-from .common import fmt, save, top_from_options, use_agg
+from .common import fmt, mu_text, save, top_from_options, use_agg
 
 FIT_DEFAULT_SPIN = 100.0  # rad/s: launch spin guess of `tippejax fit`
 FIT_MIN_THETA0 = 0.02  # rad: the launch tilt guess from the data is at least this
@@ -140,7 +140,7 @@ def _run_fit(args) -> int:
     print(
         f"guess: m = {float(top.m):.4g} kg, R = {float(top.R):.4g} m, eps = {float(top.eps):.4g} m "
         f"(eps/R = {float(top.eps / top.R):.4g}), A/C = {float(top.A / top.C):.4g}, "
-        f"mu = {float(top.mu):.4g} s/m; launch theta0 = {theta0:.4g} rad, "
+        f"{mu_text(top)}; launch theta0 = {theta0:.4g} rad, "
         f"theta_dot = {theta_dot:g} rad/s, spin = {args.spin:g} rad/s"
     )
     print(
@@ -151,6 +151,7 @@ def _run_fit(args) -> int:
     result = fit(
         top, y0, t, theta, free=free, phi_obs=phi, model=args.model, method=args.method,
         strategy=args.strategy, max_steps=args.max_steps, sigma=args.sigma, trim=args.trim,
+        t0=args.t0,
     )
     wall = time.perf_counter() - start
     print(result.table())

@@ -14,7 +14,7 @@ import numpy as np
 from .._analysis.groups import classify, thresholds
 from .._maps import OUTCOMES, outcome_map, outcome_map_tops
 from .._plot import OUTCOME_COLOURS, outcome_map_figure
-from .common import REPRESENTATIVES, save, top_from_options, use_agg
+from .common import REPRESENTATIVES, mu_text, save, top_from_options, use_agg
 
 MAP_GROUP_TOPS = ("standard", *REPRESENTATIVES)
 
@@ -172,7 +172,7 @@ def run(args) -> int:
         spin = np.linspace(args.spin_min, spin_max, n_spin)
         os.makedirs(args.out, exist_ok=True)
         print(f"top: Group {group}, A/C = {float(top.A_over_C):.4g}, "
-              f"eps/R = {float(top.eps_over_R):.4g}, mu = {float(top.mu):.4g} s/m")
+              f"eps/R = {float(top.eps_over_R):.4g}, {mu_text(top)}")
         start = time.perf_counter()
         om = outcome_map(top, theta0, spin, t1=args.t1, model=args.model,
                          tolerance=args.tolerance, refine=refine or None,

@@ -81,7 +81,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--mu", type=float, default=None, help="viscous friction coefficient (s/m), default 0.3"
     )
     guess.add_argument("--theta0", metavar="TH", type=float, default=None,
-                       help="launch tilt (rad) at the first time, held fixed unless --free names "
+                       help="launch tilt (rad) at the launch time t0, held fixed unless --free names "
                             "theta0; default: free, starting from the mean of the record's first "
                             f"samples (at least {FIT_MIN_THETA0:g})")
     guess.add_argument("--theta-dot", dest="theta_dot", metavar="W", type=float, default=None,
@@ -89,6 +89,10 @@ def build_parser() -> argparse.ArgumentParser:
                             "--theta0 0 --theta-dot W and free theta_dot")
     guess.add_argument("--spin", metavar="N", type=float, default=FIT_DEFAULT_SPIN,
                        help=f"launch spin (rad/s), default {FIT_DEFAULT_SPIN:g}")
+    guess.add_argument("--t0", metavar="T0", type=float, default=None,
+                       help="launch time (s) in the record's clock: the guess is the state at "
+                            "t0 (default 0, as in tippejax.fit and simulate; free it with "
+                            "--free ...,t0)")
     p.add_argument("--model", default="full", choices=("full", "so3", "routhian"),
                    help="level of model to fit with (default full)")
     p.add_argument("--strategy", default="global", choices=tuple(STRATEGIES),

@@ -1,5 +1,11 @@
 """Fitting: one stage per file (`stages/`), behind one interface (`stages/base.py`)."""
 
+from .compare import (
+    CRITERIA as CRITERIA,
+    LawComparison as LawComparison,
+    compare_laws as compare_laws,
+    law_name as law_name,
+)
 from .fit import fit as fit
 from .inputs import FIT_MODELS as FIT_MODELS, METHODS as METHODS
 from .params import (

@@ -139,3 +139,41 @@ def describes(residuals: np.ndarray, ts: np.ndarray, sigma: float | None) -> dic
         until = window_test(ts, residuals, sigma, reference="quietest")[1]
     return dict(runs_z=z, ljung_box=q / q_limit if np.isfinite(q) else float("nan"), noise=noise,
                 describes_until=until, rms=rms, passes=passes)
+
+
+def chi2_sf(x: float, nu: float) -> float:
+    r"""$P(\chi^2_\nu > x)$, the upper tail of chi-square with $\nu$ degrees of freedom: the
+    regularised upper incomplete gamma function $Q(\nu/2, x/2)$, by its series below
+    $x/2 < \nu/2 + 1$ and its continued fraction above (Lentz's method), to about 1e-14
+    relative."""
+    if not x > 0:
+        return 1.0
+    if not math.isfinite(x):
+        return 0.0
+    a, z = 0.5 * nu, 0.5 * x
+    log_prefactor = a * math.log(z) - z - math.lgamma(a)
+    if z < a + 1.0:  # P(a, z) by its series, Q = 1 - P
+        term = total = 1.0 / a
+        for k in range(1, 100_000):
+            term *= z / (a + k)
+            total += term
+            if term < total * 1e-16:
+                break
+        return max(0.0, 1.0 - math.exp(log_prefactor) * total)
+    tiny = 1e-300  # Q(a, z) by its continued fraction (modified Lentz)
+    b = z + 1.0 - a
+    c, d = 1.0 / tiny, 1.0 / b
+    h = d
+    for k in range(1, 100_000):
+        an = -k * (k - a)
+        b += 2.0
+        d = an * d + b
+        d = tiny if abs(d) < tiny else d
+        c = b + an / c
+        c = tiny if abs(c) < tiny else c
+        d = 1.0 / d
+        step = d * c
+        h *= step
+        if abs(step - 1.0) < 1e-16:
+            break
+    return math.exp(log_prefactor) * h

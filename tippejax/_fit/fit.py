@@ -24,7 +24,8 @@ from .candidates import (
     start_point,
     widen,
 )
-from .inputs import build_setup, check_guess, check_options, check_records
+from .inputs import build_setup, check_guess, check_model, check_options, check_records
+from .launch import launch_time_suspects
 from .result import FIT_RESULTS, FitResult
 from .stages import Final
 from .strategies import IF_NOISE, STRATEGIES
@@ -54,12 +55,21 @@ def fit(
     learning_rate: float = 0.02,
     trim: bool = False,
 ) -> FitResult:
-    r"""Fit free parameters of the top and its launch to a measured tilt $\theta(t_k)$.
+    r"""Fit free parameters of the top, its friction law and its launch to a measured tilt
+    $\theta(t_k)$.
+
+    **The launch time.** `y0_guess` is the state at the launch, at `t0` in the record's clock:
+    `t0 = 0` by default, as in `simulate`, so a record whose first frame comes a sample after
+    the launch is fitted from the launch, not a sample late. Pass `t0=` when the record's clock
+    does not start at the launch (`t0=ts[0]` if the guess is the state at the first frame), or
+    free `"t0"` when the launch time is not known.
 
     **Arguments:**
 
-    - `top_guess`: a `TippeTop`; its fields give the fixed parameters and the starting guess.
-    - `y0_guess`: the `State` at time `t0` (see `initial_state`); gives the launch quantities.
+    - `top_guess`: a `TippeTop`; its fields and its friction law (`top_guess.friction`, any
+      law) give the fixed parameters and the starting guess. The fit keeps the law.
+    - `y0_guess`: the `State` at the launch time `t0` (see `initial_state`); gives the launch
+      quantities.
       Any valid state, including one at a pole (an upright top with a tilt rate: free
       `theta_dot` then, not `theta0`). When no launch quantity is free it is simulated as
       given.
@@ -70,14 +80,20 @@ def fit(
       and gets the fit it would get alone: a stage that some recordings need, the search
       from a guess that does not describe them, runs on those alone). **NaN marks a missing
       sample**, which is left out of the loss.
-    - `free`: a sequence of names of the parameters to fit: top fields `m, R, eps, A, C, g,
-      mu` and launch quantities `theta0, spin, theta_dot, phi_dot, vx, vy`. The spin keeps
-      the sign of its guess (theta alone cannot tell its direction). Nothing else is fitted:
-      a launch tilt that is not free is held at the guess's exactly, so free `theta0` unless
-      it is known.
+    - `free`: a sequence of names of the parameters to fit: top fields `m, R, eps, A, C, g`;
+      the friction law's fields: `mu` for every law (s/m for `Viscous`, dimensionless for the
+      Coulomb laws), `patch_radius` (m) for `CoulombContensou`, `slip_scale` (m/s) for
+      `Coulomb` (not for `CoulombContensou`, whose motion converges as the slip scale
+      goes to 0, so that a record does not determine it); launch quantities `theta0, spin,
+      theta_dot, phi_dot, vx, vy`; and the launch time `t0` (s; before it the model top is
+      held at its launch state). The spin keeps the sign of its guess (theta alone cannot tell
+      its direction). Nothing else is fitted: a launch tilt that is not free is held at the
+      guess's exactly, so free `theta0` unless it is known.
     - `phi_obs`: optional precession angle (rad; differences are wrapped), weighted by
       $\sin\theta^{obs}$, NaN masked.
-    - `model`: level of model to fit with, `"full"`, `"so3"` or `"routhian"`.
+    - `model`: level of model to fit with, `"full"`, `"so3"` or `"routhian"`; one that takes
+      the top's law (`"full"` or `"so3"` for laws other than the viscous one; the Coulomb
+      laws' creep needs `"full"`, `docs/friction.md`).
     - `method`: `"levenberg_marquardt"` (default) or `"gauss_newton"` (the steps of
       `optimistix.LevenbergMarquardt` and `optimistix.GaussNewton`, taken on the host around
       one compiled evaluation, `tippejax/_fit/optimise.py`), or `"adam"` (`optax.adam` at
@@ -88,7 +104,10 @@ def fit(
       whole record; see below), `"search"` (the search alone), `"levels"` (the same
       from the guess alone), `"windows"` (growing windows from the guess) or `"plain"` (the
       whole record at once).
-    - `t0`: time of `y0_guess` (default `ts[0]`; must be `<= ts[0]`).
+    - `t0`: the launch time, the time of `y0_guess` in seconds (default 0, as in `simulate`;
+      must be `<= ts[0]`). With the default, a record that starts longer after 0 than it
+      lasts is refused with a message (its clock does not start at the launch). With `"t0"`
+      free, the guess of the launch time.
     - `weights`: optional non-negative weight per sample (e.g. `1/sigma_k^2`).
     - `sigma`: the noise of `theta_obs` (rad), if known: the diagnostics then also test the
       residuals' level against it.
@@ -161,6 +180,7 @@ def fit(
     free = check_options(free, model, method, strategy, max_steps, tol, sigma, STRATEGIES)
     records = check_records(ts, theta_obs, phi_obs, weights, t0, free)
     fields, launch = check_guess(top_guess, y0_guess, free, records.batch)
+    check_model(model, top_guess.friction)
     if not isinstance(trim, bool):
         raise ValueError(f"trim must be True or False, got {trim!r}.")
 
@@ -177,7 +197,7 @@ def fit(
     ends = np.full(setup.bsize, records.ts[-1])
     if trim:
         out, ends = trim_records(setup, out, obs2, sigma)
-    return _result(out, setup, obs2, ends, batch, free, model, method, strategy)
+    return _result(out, setup, obs2, ends, batch, free, model, method, strategy, sigma)
 
 
 def _fit_starts(setup, attempts, obs2, sigma):
@@ -275,7 +295,7 @@ def _check_phase(setup, best, obs2, sigma):
     return best
 
 
-def _result(best, setup, obs2, ends, batch, free, model, method, strategy) -> FitResult:
+def _result(best, setup, obs2, ends, batch, free, model, method, strategy, sigma) -> FitResult:
     out = best["out"]
     bsize, n = obs2.shape
     verdicts = best["verdicts"]
@@ -283,8 +303,11 @@ def _result(best, setup, obs2, ends, batch, free, model, method, strategy) -> Fi
     passes = np.array([v["passes"] for v in verdicts])
     code = out["result"]
 
-    # a converged fit whose residuals are not noise is a local minimum
-    code = flag(code, ~passes if batch is not None else ~passes[0], FIT_RESULTS.local_minimum)
+    # a converged fit whose residuals are not noise: a launch time that is off, if freeing it
+    # would explain them, else a local minimum
+    one = (lambda x: x) if batch is not None else (lambda x: x[0])  # noqa: E731
+    code = flag(code, one(launch_time_suspects(setup, best, sigma)), FIT_RESULTS.launch_time)
+    code = flag(code, one(~passes), FIT_RESULTS.local_minimum)
     mask = setup.mask
     whole = np.where(mask, residuals, np.nan)
     rms = np.sqrt(np.nanmean(whole**2, axis=-1))
@@ -315,7 +338,7 @@ def _result(best, setup, obs2, ends, batch, free, model, method, strategy) -> Fi
         wrapped = np.arctan2(np.sin(dphi), np.cos(dphi))
         phi_res = to_device(wrapped if batch is not None else wrapped[0], dtype)
     return FitResult(
-        top=out["top"], y0=out["y0"], values=out["values"], std_errors=out["std_errors"],
+        top=out["top"], y0=out["y0"], t0=out["t0"], values=out["values"], std_errors=out["std_errors"],
         covariance=out["covariance"], correlation=out["correlation"],
         loss_history=to_device(arrays["loss_history"], dtype),
         ts=to_device(arrays["ts"], dtype), theta_obs=to_device(arrays["theta_obs"], dtype),

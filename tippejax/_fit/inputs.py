@@ -9,10 +9,22 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._cache import to_device
+from .._models.levels import levels_taking
 from .._simulate import MODELS
 from .._state import State
 from .._top import TippeTop, _checks
-from .params import FREE_NAMES, TOP_FIELDS, Base, launch_of
+from .params import (
+    BODY_FIELDS,
+    FREE_NAMES,
+    LAW_FIELDS,
+    NAMES,
+    Base,
+    identifiable,
+    launch_of,
+    law_fields,
+    law_options,
+    units,
+)
 from .problem import Config, Data
 from .setup import Setup, bucket
 from .smoothing import ladder, smooth_numpy, smoother
@@ -22,6 +34,9 @@ METHODS = ("levenberg_marquardt", "gauss_newton", "adam")
 
 FIT_MODELS = ("full", "so3", "routhian")
 """The levels of model `fit(model=...)` fits with."""
+
+LAUNCH_TIME = 0.0
+"""The default launch time of `fit` (s): `y0_guess` is the state at t = 0, as in `simulate`."""
 
 MAX_RECORD_SPAN = 600.0  # s: a longer record is taken for times in the wrong unit
 
@@ -35,9 +50,13 @@ def check_options(free, model, method, strategy, max_steps, tol, sigma, strategi
             f"not the string {free!r} (which would be read letter by letter)."
         )
     free = tuple(free)
-    unknown = [n for n in free if n not in FREE_NAMES]
+    unknown = [n for n in free if n not in NAMES]
     if unknown:
-        raise ValueError(f"Unknown names in free: {unknown}; choose from {FREE_NAMES}.")
+        raise ValueError(
+            f"Unknown names in free: {unknown}; choose from {FREE_NAMES} (a top with the "
+            f"viscous law), the fields of the top's friction law ({LAW_FIELDS[1:]} where it "
+            "has them) and the launch time 't0'."
+        )
     if not free:
         raise ValueError(f"free is empty; name at least one of {FREE_NAMES}.")
     if len(set(free)) != len(free):
@@ -107,21 +126,36 @@ def check_guess(top_guess, y0_guess, free, batch):
         raise TypeError(
             f"y0_guess must be a tippejax.State (see initial_state), got {type(y0_guess).__name__}."
         )
-    fields = {f: np.asarray(getattr(top_guess, f), dtype=float) for f in TOP_FIELDS}
+    law = top_guess.friction
+    check_law(law, free)
+    fields = {f: np.asarray(getattr(top_guess, f), dtype=float) for f in BODY_FIELDS}
+    fields |= {f: np.asarray(getattr(law, f), dtype=float) for f in law_fields(law)}
     for f, v in fields.items():
+        where = f if f in BODY_FIELDS else f"friction.{f}"
         if not np.all(np.isfinite(v)):
-            raise ValueError(f"top_guess.{f} is not finite.")
+            raise ValueError(f"top_guess.{where} is not finite.")
         if v.ndim > 1 or (v.ndim == 1 and (batch is None or v.shape[0] != batch)):
             raise ValueError(
-                f"top_guess.{f} has shape {v.shape}: a guess is one top, or one per recording "
-                f"when theta_obs has shape (batch, N)."
+                f"top_guess.{where} has shape {v.shape}: a guess is one top, or one per "
+                f"recording when theta_obs has shape (batch, N)."
             )
-    for failed, message in _checks(*(fields[f] for f in ("m", "R", "eps", "A", "C", "g", "mu"))):
+    for failed, message in _checks(*(fields[f] for f in BODY_FIELDS)):
         if np.any(failed):
             raise ValueError(f"top_guess is not a valid top: {message}")
-    for name in ("m", "R", "g", "mu"):
+    try:  # the law's own rules, and those that involve the ball
+        checked_law = type(law)(**{f: fields[f] for f in law_fields(law)},
+                                **dict(law_options(law)))
+    except ValueError as err:
+        raise ValueError(f"top_guess is not a valid top: {err}") from None
+    for failed, message in checked_law.ball_rules(fields["R"], np):
+        if np.any(failed):
+            raise ValueError(f"top_guess is not a valid top: {message}")
+    for name in ("m", "R", "g", *law_fields(law)):
         if name in free and np.any(fields[name] == 0):
-            raise ValueError(f"{name!r} is free but its guess is 0; give a positive guess.")
+            raise ValueError(
+                f"{name!r} is free but its guess is 0 ({units(name, law)}); give a positive "
+                "guess."
+            )
     launch = {k: np.asarray(v, dtype=float) for k, v in launch_of(y0_guess).items()}
     for k, v in launch.items():
         if not np.all(np.isfinite(v)):
@@ -146,6 +180,38 @@ def check_guess(top_guess, y0_guess, free, batch):
     if "C" in free and "A" not in free and np.any(fields["C"] >= 2 * fields["A"]):
         raise ValueError("'C' is free but the guess has C >= 2A, which no rigid body has.")
     return fields, launch
+
+
+def check_law(law, free) -> None:
+    """The free names of the friction law's fields, checked against the law `law`."""
+    fields, fittable = law_fields(law), identifiable(law)
+    name = type(law).__name__
+    for n in free:
+        if n in LAW_FIELDS and n not in fields:
+            raise ValueError(
+                f"{n!r} is free, but the top's friction law {name} has no field {n!r} (its "
+                f"fields: {', '.join(fields)}). Give the top a law that has it (e.g. "
+                "friction=tj.CoulombContensou(...) for 'patch_radius'), or leave it out of free."
+            )
+        if n in fields and n not in fittable:
+            raise ValueError(
+                f"{n!r} is free, but a record of the tilt does not determine the {name} law's "
+                f"{n} ({units(n, law)}): with a drilling torque the motion converges as "
+                "slip_scale -> 0 (docs/friction.md), so a fit would wander along a flat "
+                f"valley. Hold it at a small value; the law's fields a fit may free: "
+                f"{', '.join(fittable)}."
+            )
+
+
+def check_model(model, law) -> None:
+    """The fit's level of model, checked against the top's friction law."""
+    taking = tuple(m for m in FIT_MODELS if m in levels_taking(law))
+    if model not in taking:
+        raise ValueError(
+            f"fit model={model!r} is derived for the viscous law only, and this top has a "
+            f"{type(law).__name__} law (mu in {law.mu_units}). Fit it with one of the levels "
+            f"that take it: {', '.join(repr(m) for m in taking)}."
+        )
 
 
 def nutation_period(fields, launch) -> float:
@@ -195,9 +261,24 @@ def check_records(ts, theta_obs, phi_obs, weights, t0, free) -> Records:
                 f"Recording {b} has {mask2[b].sum()} usable samples (not NaN) for "
                 f"{len(free)} free parameters; a fit needs more samples than parameters."
             )
-    t0 = float(ts_np[0]) if t0 is None else float(t0)
+    given, t0 = t0 is not None, LAUNCH_TIME if t0 is None else float(t0)
+    if not np.isfinite(t0):
+        raise ValueError(f"t0 (the launch time, s) must be finite, got {t0}.")
     if not t0 <= ts_np[0]:
-        raise ValueError(f"t0 = {t0} must not be later than the first observation ts[0] = {ts_np[0]}.")
+        raise ValueError(
+            f"t0 = {t0:g} s (the launch time{'' if given else ', by default 0 as in simulate'}) "
+            f"must not be later than the first observation ts[0] = {ts_np[0]:g} s: y0_guess is "
+            "the state at the launch. Pass t0= the launch's time in the record's clock, or "
+            "free 't0' (with a guess t0 <= ts[0])."
+        )
+    span = ts_np[-1] - ts_np[0]
+    if not given and ts_np[0] - t0 > span:
+        raise ValueError(
+            f"The record starts at ts[0] = {ts_np[0]:g} s, longer after the launch at t0 = 0 "
+            f"(the default, as in simulate) than it lasts ({span:g} s): y0_guess is the state "
+            "at the launch. Pass t0= the launch's time in the record's clock (t0=ts[0] if the "
+            "guess is the state at the first frame), or free 't0'."
+        )
     return Records(ts=ts_np, theta=obs2, phi=phi2, weights=w2, mask=mask2, batch=batch, t0=t0)
 
 
@@ -223,10 +304,18 @@ def build_setup(top_guess, y0_guess, records: Records, fields, launch, *, free, 
         lambda x: to_device(np.broadcast_to(np.asarray(x), (bsize,) + np.shape(x)[-1:]), dtype),
         y0_guess,
     ) if batched else jax.tree_util.tree_map(lambda x: to_device(np.asarray(x, dtype)[None]), y0_guess)
+    # the launch time's guess and its scale (params.py): the guess's distance to the first
+    # frame, or a quarter of the guess's nutation period (a phase the windows can follow), or
+    # one frame
+    t0_scale = max(ts_np[0] - t0, 0.25 * nutation_period(fields, launch),
+                   float(np.median(np.diff(ts_np))))
+    law = top_guess.friction
     base = Base(
         top={f: per_rec(v) for f, v in fields.items()},
-        launch={k: per_rec(v) for k, v in launch.items()},
+        launch={k: per_rec(v) for k, v in (launch | dict(t0=t0, t0_scale=t0_scale)).items()},
         state=state,
+        law=type(law),
+        options=law_options(law),
     )
     # Arrays padded to a bucket length (padding: the last time, weight and mask 0), so that
     # records of similar lengths share one compilation.

@@ -31,7 +31,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
 from .._simulate import simulate_tilt
-from .params import TOP_FIELDS, Base, assemble, physical
+from .params import Base, assemble, physical
 
 NUM_LEVELS = 12
 FAILED_RESIDUAL = math.pi
@@ -99,12 +99,18 @@ def simulated(values, data: Data, cfg: Config) -> TiltRun:
     # A trial with a non-finite value (an optimiser step that overflowed) runs the guess
     # instead, and all its samples are marked failed: simulate must not see a NaN state.
     finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(v)) for v in values.values()]))
-    guess = {k: data.base.top[k] if k in TOP_FIELDS else data.base.launch[k] for k in values}
+    guess = {k: data.base.top[k] if k in data.base.top else data.base.launch[k] for k in values}
     safe = {k: jnp.where(finite, v, guess[k]) for k, v in values.items()}
     top, y0 = assemble(safe, data.base)
     saves = jnp.minimum(data.ts, data.t_end)
+    t0 = data.t0
+    if "t0" in safe:
+        # A free launch time: the top is held at its launch state before it (a sample before
+        # the launch sees the launch tilt), so the residuals are continuous in t0.
+        t0 = jnp.minimum(safe["t0"], data.t_end - 1e-9 * jnp.abs(data.t_end))
+        saves = jnp.maximum(saves, t0)
     out = simulate_tilt(
-        top, y0, saves, t0=data.t0, t1=data.t_end, model=cfg.model, rtol=data.rtol,
+        top, y0, saves, t0=t0, t1=data.t_end, model=cfg.model, rtol=data.rtol,
         atol=data.atol, solver=cfg.solver, max_steps=cfg.sim_max_steps,
         adjoint=diffrax.ForwardMode(),
     )

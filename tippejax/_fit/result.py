@@ -11,6 +11,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from .._state import State
 from .._top import TippeTop
+from .params import units
 
 
 class FIT_RESULTS(eqxi.Enumeration):
@@ -41,6 +42,12 @@ class FIT_RESULTS(eqxi.Enumeration):
         "guess, more starts (strategy), or trim=True for a record whose end the model does "
         "not describe."
     )
+    launch_time = (
+        "The residuals are not noise, and a shift of the launch time would explain most of "
+        "them: the record's clock probably does not start at the launch. y0_guess is the "
+        "state at the launch time t0 (0 by default, as in simulate). Pass t0= the launch's "
+        "time in the record's clock, or free 't0'. The standard errors do not apply."
+    )
     phase_ambiguous = (
         "The nutation's phase does not pin the spin: along the valley of the slow motion, "
         "spins one or more nutation cycles away fit the record as well (chi-square within 9 "
@@ -56,7 +63,11 @@ class FitResult(eqx.Module):
 
     **Fields:**
 
-    - `top`, `y0`: the fitted `TippeTop` and initial `State` (free quantities replaced).
+    - `top`, `y0`: the fitted `TippeTop` (its friction law included) and initial `State`
+      (free quantities replaced).
+    - `t0`: the launch time (s): the time of `y0` in the record's clock (fitted if `"t0"` was
+      free; else the given `t0`, by default 0). `simulate(res.top, res.y0, t1, t0=res.t0)`
+      runs the fitted motion.
     - `free`: the names of the free parameters, in the order of `values`.
     - `values`: fitted values of the free parameters.
     - `std_errors`: their standard errors, $\sqrt{\mathrm{diag}\,\Sigma}$.
@@ -106,6 +117,7 @@ class FitResult(eqx.Module):
 
     top: TippeTop
     y0: State
+    t0: Float[Array, "*batch"]
     values: Float[Array, "*batch p"]
     std_errors: Float[Array, "*batch p"]
     covariance: Float[Array, "*batch p p"]
@@ -153,11 +165,13 @@ class FitResult(eqx.Module):
         values, errors = np.asarray(self.values), np.asarray(self.std_errors)
         lines = []
         message = self.message()
+        law = self.top.friction
         if values.ndim == 1:
-            lines.append(f"{'parameter':>10}  {'value':>13}  {'std error':>11}  {'rel':>8}")
+            lines.append(f"friction law: {law!r}")
+            lines.append(f"{'parameter':>12}  {'value':>13}  {'std error':>11}  {'rel':>8}  units")
             for name, v, e in zip(self.free, values, errors):
                 rel = abs(e / v) if v != 0 else np.inf
-                lines.append(f"{name:>10}  {v:13.6g}  {e:11.3g}  {rel:8.2%}")
+                lines.append(f"{name:>12}  {v:13.6g}  {e:11.3g}  {rel:8.2%}  {units(name, law)}")
             lines.append(
                 f"rms residual {float(self.rms):.4g} rad over the record, "
                 f"{float(self.rms_fitted):.4g} rad over the fitted part (noise level "

@@ -96,6 +96,17 @@ class Setup:
         sub.fitted = pick(self.fitted)
         return sub
 
+    def with_free(self, free: tuple[str, ...]) -> "Setup":
+        """The same records and guess with other free parameters (`free`): the setup of a
+        question about the fit, such as whether freeing the launch time would help
+        (`launch.py`)."""
+        cfg = eqx.tree_at(lambda c: c.free, self.cfg, tuple(free))
+        other = Setup(ts=self.ts, mask=self.mask, weights=self.w, phi=self.phi,
+                      rises=self.rises, template=self.template, cfg=cfg,
+                      batched=self.batched, tol=self.tol, rtol=self.rtol)
+        other.fitted = self.fitted
+        return other
+
     def place(self, tree):
         """`tree`'s arrays committed to a device, or in a sharded batch split over the devices
         along their first (the record) axis."""
@@ -346,8 +357,9 @@ def finish(u, code, data: Data, value, jac_u, sol, cfg: Config):
     failed = jnp.any(used & ~jnp.isfinite(theta_fit))
     top, y0 = assemble(values, data.base)
     vector = jnp.stack([values[n] for n in cfg.free])
+    t0 = values["t0"] if "t0" in values else data.t0
     return dict(
-        top=top, y0=y0, values=vector, std_errors=std, covariance=cov, correlation=corr,
+        top=top, y0=y0, t0=t0, values=vector, std_errors=std, covariance=cov, correlation=corr,
         theta_fit=theta_fit, phi_fit=phi_fit, loss=0.5 * rss,
         result=FIT_RESULTS.where(
             jnp.all(jnp.isfinite(u)),

@@ -1,0 +1,137 @@
+"""Which law does a top obey: `fit` with any law's fields and `compare_laws`.
+
+Records come from `tests/real_top_reference.py` (Newton-Euler in the space frame with its own
+friction laws, the Hertz disc by quadrature; no tippejax physics). Both records share one time
+grid, one free set per law and the laws' classes, so the fits of the second record reuse the
+first one's compilations.
+"""
+
+import math
+
+import numpy as np
+import pytest
+import real_top_reference as rr
+from scipy import stats
+
+import tippejax as tj
+from tippejax._fit import diagnostics
+
+RATE = 100.0  # Hz: the first frame one sample after the launch, as a camera sees it
+LENGTH = 2.0  # s
+NOISE = 0.01  # rad
+THETA0, SPIN = 0.1, 100.0
+TOP = tj.TippeTop(**rr.STANDARD, mu=0.3)
+MU_VISCOUS = 0.3  # s/m
+MU_COULOMB, PATCH, SLIP = 0.3, 5e-4, 1e-5  # dimensionless, m, m/s
+FREE = ("spin",)
+
+
+def _record(law, mu, seed):
+    n = int(LENGTH * RATE)
+    out = rr.solve(rr.STANDARD, law, THETA0, SPIN, (n + 0.5) / RATE, mu=mu, rho=PATCH,
+                   delta=SLIP, stem=False, contact="rigid", dt_sample=1.0 / RATE, rtol=1e-10)
+    t, theta = np.asarray(out["t"]), np.asarray(out["theta"])
+    keep = (t > 0.5 / RATE) & (t < (n + 0.25) / RATE)
+    ts, clean = t[keep], theta[keep]
+    assert ts.size == n and abs(ts[0] - 1.0 / RATE) < 1e-12  # no contact loss, frames 1..n
+    return ts, clean, clean + NOISE * np.random.default_rng(seed).standard_normal(n)
+
+
+def _guesses():
+    """The laws' guesses: each some 20-30% off the records' truths."""
+    return [tj.Viscous(0.4), tj.CoulombContensou(0.22, 6.5e-4, SLIP)]
+
+
+@pytest.fixture(scope="module")
+def viscous_record():
+    ts, clean, obs = _record("viscous", MU_VISCOUS, seed=1)
+    y0 = tj.initial_state(TOP, THETA0, SPIN * 1.05)
+    return ts, clean, tj.compare_laws(TOP, y0, ts, obs, _guesses(), free=FREE, sigma=NOISE)
+
+
+@pytest.fixture(scope="module")
+def contensou_record():
+    ts, clean, obs = _record("hertz", MU_COULOMB, seed=2)
+    y0 = tj.initial_state(TOP, THETA0, SPIN * 0.95)
+    return ts, clean, tj.compare_laws(TOP, y0, ts, obs, _guesses(), free=FREE, sigma=NOISE)
+
+
+def _check_fit(res, truth):
+    values, errors = np.asarray(res.values), np.asarray(res.std_errors)
+    assert bool(res.converged), res.message()
+    assert np.all(np.abs(values - truth) / np.abs(truth) < 0.02), values
+    assert np.all(np.abs(values - truth) < 3 * errors), (values - truth) / errors
+
+
+def test_viscous_record_keeps_the_viscous_law(viscous_record):
+    """The record of the viscous law does not rule it out; the fit (launched at t = 0, a
+    sample before the first frame) recovers its mu and spin."""
+    ts, clean, cmp = viscous_record
+    print(cmp)
+    assert cmp.names == ("Viscous", "CoulombContensou(hertz)")
+    res = cmp.fits[0]
+    assert type(res.top.friction) is tj.Viscous
+    assert res.free == ("spin", "mu")
+    _check_fit(res, np.array([SPIN, MU_VISCOUS]))
+    assert not cmp.ruled_out[0] and cmp.p_value[0] > cmp.level and cmp.white[0]
+    # the chi-square is the residual sum of squares against the given noise
+    r = np.asarray(res.residuals)
+    assert math.isclose(float(cmp.chi2[0]), float(np.sum(r**2)) / NOISE**2, rel_tol=1e-9)
+    assert int(cmp.dof[0]) == ts.size - 2
+
+
+def test_contensou_record_rules_out_the_viscous_law(contensou_record):
+    """A Coulomb-Contensou record, whose best viscous fit is much further than the noise from
+    it, rules out the viscous law and prefers Coulomb-Contensou, whose mu (dimensionless) and
+    patch radius the fit recovers."""
+    ts, clean, cmp = contensou_record
+    print(cmp)
+    viscous, contensou = cmp.fits
+    differs = np.sqrt(np.mean((np.asarray(viscous.theta_fit) - clean) ** 2))
+    assert differs > 3 * NOISE  # the laws differ by more than the noise on this record
+    assert cmp.ruled_out[0] and not cmp.ruled_out[1]
+    assert cmp.preferred_index == 1 and cmp.preferred_name == "CoulombContensou(hertz)"
+    assert cmp.ruled_out_names == ("Viscous",)
+    assert isinstance(cmp.preferred, tj.CoulombContensou)
+    assert contensou.free == ("spin", "mu", "patch_radius")
+    _check_fit(contensou, np.array([SPIN, MU_COULOMB, PATCH]))
+    assert float(cmp.preferred.patch_radius) == pytest.approx(float(contensou.values[2]))
+    # the statistics from their definitions
+    n, k = ts.size, np.array([2, 3])
+    assert np.allclose(cmp.bic, cmp.chi2 + k * math.log(n))
+    assert np.allclose(cmp.aic, cmp.chi2 + 2 * k)
+    assert np.allclose(cmp.likelihood_ratio, cmp.chi2 - cmp.chi2.min())
+    assert np.allclose(cmp.p_value, stats.chi2.sf(cmp.chi2, n - k), rtol=1e-8, atol=1e-300)
+    assert "rules out: Viscous" in str(cmp)
+
+
+def test_chi2_tail_against_scipy():
+    for x, nu in [(0.5, 1), (3.0, 2), (150.0, 197), (260.0, 197), (900.0, 197), (1e-3, 50)]:
+        assert diagnostics.chi2_sf(x, nu) == pytest.approx(stats.chi2.sf(x, nu), rel=1e-9,
+                                                           abs=1e-300)
+
+
+@pytest.mark.parametrize(
+    "call, match",
+    [
+        (lambda ts, y: tj.compare_laws(TOP, y, ts, ts, [tj.Viscous(0.3)]), "at least two laws"),
+        (lambda ts, y: tj.compare_laws(TOP, y, ts, ts, [tj.Viscous(0.3), 0.3]),
+         "friction laws"),
+        (lambda ts, y: tj.compare_laws(TOP, y, ts, ts, _guesses(), criterion="hqc"),
+         "criterion"),
+        (lambda ts, y: tj.compare_laws(TOP, y, ts, ts, _guesses(), level=1.5), "level"),
+        (lambda ts, y: tj.compare_laws(TOP, y, ts, ts, _guesses(), sigma=-1.0), "sigma"),
+        (lambda ts, y: tj.compare_laws(TOP, y, ts, ts, _guesses(), trim=True), "trim"),
+        (lambda ts, y: tj.compare_laws(TOP, y, ts, np.stack([ts, ts]), _guesses()),
+         "one record"),
+        (lambda ts, y: tj.fit(TOP, y, ts, ts, free=("patch_radius",)), "no field 'patch_radius'"),
+        (lambda ts, y: tj.fit(TOP.replace(friction=tj.CoulombContensou(0.3, PATCH, SLIP)), y,
+                              ts, ts, free=("slip_scale",)), "does not determine"),
+        (lambda ts, y: tj.fit(TOP, y, ts + 10.0, ts, free=("mu",)), "t0="),
+        (lambda ts, y: tj.fit(TOP, y, ts, ts, free=("mu",), t0=0.5), "t0"),
+    ],
+)
+def test_bad_input(call, match):
+    ts = np.arange(1, 51) / RATE
+    with pytest.raises((ValueError, TypeError), match=match):
+        call(ts, tj.initial_state(TOP, THETA0, SPIN))
