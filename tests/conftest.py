@@ -35,6 +35,22 @@ def getkey():
     return lambda: next(keys)
 
 
+STRICT_PROMOTION = ("test_models.py", "test_invariants.py", "test_friction.py", "test_state.py")
+"""The test files that run under JAX's strict dtype promotion (`jax.numpy_dtype_promotion`):
+there an implicit promotion (a float32 array meeting a float64 one, an int meeting a float) is
+an error, not a silent widening. The physics (the models, the invariants, the friction laws and
+the states) holds to it; the rest of the suite runs JAX's standard promotion."""
+
+
+@pytest.fixture(autouse=True)
+def _strict_promotion(request):
+    if request.path.name in STRICT_PROMOTION:
+        with jax.numpy_dtype_promotion("strict"):
+            yield
+    else:
+        yield
+
+
 @pytest.fixture(autouse=True, scope="module")
 def _free_compiled_code_between_modules():
     """Drop JAX's in-memory caches of traced and compiled functions after each test module.
