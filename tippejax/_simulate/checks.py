@@ -79,7 +79,7 @@ def warn_of_friction(top: TippeTop) -> None:
         return
     caveat = top.friction.inversion_time_caveat()
     if caveat is not None:
-        warnings.warn(caveat, UserWarning, stacklevel=4)
+        warnings.warn(caveat, UserWarning, stacklevel=3)  # (at the caller of simulate)
 
 
 _STATE_TOL = 1e-6
