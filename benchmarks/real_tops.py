@@ -255,7 +255,8 @@ def batch(args):
     rows, per_top = [], {}
     for name in ("ellipse", "hertz", "viscous"):
         top = lg_top(name)
-        fn = lambda top=top: tj.simulate_batch(top, theta0, spin, t1, summary=True)  # noqa: E731
+        fn = lambda top=top: tj.simulate_batch(top, theta0, spin, t1, grid=(),  # noqa: E731
+                                               summary=True)
         (timing, sol), = h.interleaved({name: fn}, args.rounds or 1).values()
         per_top[name] = timing.wall / n
         ok = np.asarray(sol.result == tj.RESULTS.successful)
@@ -266,7 +267,7 @@ def batch(args):
     ratios = {k: per_top[k] / per_top["viscous"] for k in ("ellipse", "hertz")}
     h.write(f"{SUITE} --batch", "A batch of tops with the stem, per law", f"""
 Leine & Glocker's top with its stem, {n} seeded launches (theta0 uniform in [0.05, 0.3] rad, spin
-in [150, 210] rad/s), {t1:g} s, `simulate_batch(top, theta0, spin, t1, summary=True)` (per member,
+in [150, 210] rad/s), {t1:g} s, `simulate_batch(top, theta0, spin, t1, grid=(), summary=True)` (per member,
 the default solver), the Contensou laws at slip scale {DELTA:g} m/s and the viscous law (mu 0.3
 s/m) on the same scene. Wall: the call after the compiling one.
 

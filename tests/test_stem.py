@@ -98,6 +98,9 @@ def test_stem_top_runs_at_the_full_level_only():
         tj.simulate(top, y0, 0.1, model="so3")
     with pytest.raises(ValueError, match="stem on or below the table"):
         tj.simulate(top, tj.initial_state(top, theta=2.5, spin=SPIN), 0.1)
+    top32 = top.astype(jnp.float32)
+    with pytest.raises(ValueError, match="runs in float64 only"):
+        tj.simulate(top32, jax.tree_util.tree_map(lambda x: x.astype(jnp.float32), y0), 0.1)
 
 
 def test_compliant_contact_at_rest_carries_the_weight():
@@ -303,6 +306,23 @@ def test_figure_15_theta_at_half_a_second(pressure):
 
 
 # ---------------- after the touch: the ball's return (slow) ----------------
+
+
+@pytest.mark.slow
+def test_touch_time_is_differentiable():
+    """d t_stem / d a2 through the located events of both levels, against central
+    differences."""
+
+    def t_stem(offset):
+        top = lg_top().replace(stem=tj.Stem(LG["r2"], offset))
+        y0 = tj.initial_state(top, theta=THETA0, spin=SPIN)
+        return tj.simulate(top, y0, 1.45, summary=True).t_stem
+
+    grad = float(jax.grad(t_stem)(jnp.asarray(LG["a2"])))
+    step = 1e-6
+    central = (float(t_stem(LG["a2"] + step)) - float(t_stem(LG["a2"] - step))) / (2 * step)
+    assert grad < 0  # a longer stem touches earlier
+    assert grad == pytest.approx(central, rel=1e-5)
 
 
 @pytest.mark.slow

@@ -55,6 +55,13 @@ def check_stem(model: str, top: TippeTop, y0: State) -> None:
     table (concrete values); else a `ValueError` saying what is allowed."""
     if top.stem is None:
         return
+    if jnp.result_type(top.m) != jnp.float64:
+        raise ValueError(
+            "A top with a stem (tj.Stem) runs in float64 only: the stem level's compliant "
+            "contacts are pressed in by about (m g/k)^(2/3) (1e-7 m for a hard top), which a "
+            "float32 height and axis resolve to a part in a few hundred at a top's size, and "
+            "the noisy contact forces stall the steps. Pass a float64 top (the default)."
+        )
     if model != "full":
         raise ValueError(
             f"model={model!r}: a top with a stem (tj.Stem) runs at the full level only, which "

@@ -236,7 +236,7 @@ def outputs(top, y0, ts, out, result, *, level, names=OBSERVED):
 def _stem_phase(top, times, states, out, fields):
     """`fields` with the stem level's normal force and slip speed (`stem_observables`) at the
     save times from the hand-over to it on (a top with a stem; else `fields` as they are)."""
-    if top.stem is None:
+    if top.stem is None or not {"normal_force", "slip_speed"} & set(fields):
         return fields
     on_stem_level = times >= out.t_chart_switch  # (False where it is nan)
     stem_fields = stem_observables(top, states)
