@@ -89,6 +89,15 @@ def test_bad_geometry_raises_under_jit():
     assert float(angle(0.016)) == pytest.approx(rr.stem_touch_angle(LG))
     with pytest.raises(Exception, match="inside the ball"):
         jax.block_until_ready(angle(0.008))
+    # under vmap: one bad member of a batch of offsets fails the batch, with the rule
+    angles = jax.vmap(angle)(jnp.array([0.016, 0.017]))
+    assert np.all(np.isfinite(np.asarray(angles)))
+    with pytest.raises(Exception, match="r2 <= R"):
+        jax.block_until_ready(jax.vmap(angle)(jnp.array([0.016, 0.008])))
+    with pytest.raises(Exception, match="must be > 0"):
+        jax.block_until_ready(jax.jit(jax.vmap(
+            lambda r2: lg_top().replace(stem=tj.Stem(r2, 0.016)).stem_angle))(
+                jnp.array([0.005, 0.0])))
 
 
 def test_stem_top_runs_at_the_full_level_only():
