@@ -96,8 +96,12 @@ def ref_events(r) -> dict:
                 ball_return=again)
 
 
-def tj_events(sol) -> dict:
-    return dict(t_half=float(sol.t_invert), t_stem=float(sol.t_stem),
+def tj_events(sol, saves=None) -> dict:
+    """tippejax's events; with `saves`, theta at the touch interpolated from the save times."""
+    t_stem = float(sol.t_stem)
+    theta_stem = (float(np.interp(t_stem, saves, np.asarray(sol.theta)))
+                  if saves is not None and np.isfinite(t_stem) else math.nan)
+    return dict(t_half=float(sol.t_invert), t_stem=t_stem, theta_stem=theta_stem,
                 ball_return=float(sol.t_ball_return))
 
 
@@ -195,8 +199,9 @@ def peers(args):
     tj_points = {}
     for rtol, (timing, sol) in timed.items():
         err = theta_error(saves, sol.theta, truth, until)
-        tj_points[rtol] = row(f"tippejax, rtol {rtol:g} (Dopri8)", timing.wall, tj_events(sol),
-                              err, int(sol.num_steps))
+        solver = type(tj.default_solver(top)).__name__
+        tj_points[rtol] = row(f"tippejax, rtol {rtol:g} ({solver})", timing.wall,
+                              tj_events(sol, saves), err, int(sol.num_steps))
     refs = {}
     for rtol in ((1e-6,) if args.smoke else (1e-6, 1e-9)):
         runs = [ref_run(rr, t1=t1, rtol=rtol) for _ in range(1 if args.smoke else 3)]

@@ -317,6 +317,35 @@ def test_figure_15_theta_at_half_a_second(pressure):
 # ---------------- after the touch: the ball's return (slow) ----------------
 
 
+LIFT = (0.2973661587308238, 202.2649829796107)  # (theta0, spin): the ball leaves the table
+# at about 0.75 s, before the stem can touch
+
+
+@pytest.mark.slow
+def test_a_lift_off_before_the_touch_hands_over_to_the_compliant_contacts():
+    """A launch whose ball would leave the table before the stem touches: the full level hands
+    over to the stem level where the rigid R_n reaches 0, as the reference does, instead of
+    stopping at a contact loss; the ball then bounces on its compliant contact, and theta
+    follows the reference through the bounces."""
+    ref = rr.solve(LG, "ellipse", *LIFT, T_TOUCH, mu=MU, rho=RHO, delta=1e-6)
+    lift = next(t for t, name, _ in ref["events"] if name == "rigid_liftoff")
+    bounces = [t for t, name, _ in ref["events"] if name == "ball_touchdown"]
+    assert len(bounces) > 2 and np.isnan(ref["t_stem"])  # the scene: bounces, no stem touch
+    top = lg_top()
+    y0 = tj.initial_state(top, theta=LIFT[0], spin=LIFT[1])
+    sol = tj.simulate(top, y0, T_TOUCH, saveat=SAVES, solver=diffrax.Tsit5(), rtol=1e-9,
+                      atol=1e-12, max_steps=200_000)
+    assert bool(sol.succeeded) and sol.model == "full->stem"
+    assert np.isnan(float(sol.t_contact_loss)) and np.isnan(float(sol.t_stem))
+    assert float(sol.t_chart_switch) == pytest.approx(lift, abs=1e-7)
+    assert float(sol.t_invert) == pytest.approx(ref["t_half"], abs=1e-7)
+    shared = SAVES <= ref["t"][-1]
+    theta_ref = np.interp(SAVES[shared], ref["t"], ref["theta"])
+    assert np.max(np.abs(np.asarray(sol.theta)[shared] - theta_ref)) < 1e-6
+    energy = np.asarray(sol.energy)
+    assert np.max(np.diff(energy)) <= 1e-9 * energy[0]
+
+
 @pytest.mark.slow
 def test_touch_time_is_differentiable():
     """d t_stem / d a2 through the located events of both levels, against central

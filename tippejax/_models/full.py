@@ -138,7 +138,8 @@ class FullLevel(AbstractLevel):
     **Static option:** `stem` (default False; `for_top` sets it for a top with a `tj.Stem`).
     The level then has a chart: the ball's rigid contact, until the stem's gap above the table,
     $z_O + a_2 a_Z - r_2$ with $z_O = R - \epsilon a_Z$, falls to `HAND_OVER_DEFLECTIONS`
-    static deflections of the ball, just before the stem touches. There the run goes on in the
+    static deflections of the ball, just before the stem touches, or until the ball's $R_n$
+    falls to 0 (a lift-off before the touch: no contact loss then). There the run goes on in the
     stem level (`StemLevel`: two compliant contacts), and the chain's common states carry the
     height of the centre of mass (`State.height`, here the rigid contact's)."""
 
@@ -208,5 +209,11 @@ class FullLevel(AbstractLevel):
         conditions = vector_conditions(top, y.axis, y.omega, y.velocity,
                                        by_components=self.by_components)
         if self.stem:
-            conditions = dataclasses.replace(conditions, chart=self._stem_chart(top, y.axis))
+            # The chart also ends where the ball would leave the table (R_n falling through
+            # 0): the stem level's compliant contacts carry the flight, so the run hands over
+            # there instead of stopping at a contact loss (the reference model does the same).
+            lift = conditions.contact / (top.m * top.g)
+            gap = self._stem_chart(top, y.axis) / top.R
+            conditions = dataclasses.replace(
+                conditions, chart=jnp.minimum(gap, lift), contact=jnp.ones_like(lift))
         return conditions
