@@ -1,7 +1,7 @@
 r"""Independent reference model of a real tippe top: Coulomb-type friction, Contensou drilling, stem.
 
 Written from the physics (Newton-Euler in the space frame), not from tippejax: a test oracle for
-the friction laws and the stem (issue 58) and the scipy peer of `benchmarks/real_tops_peers.py`.
+the friction laws and the stem (issue 58) and the scipy peer of `benchmarks/real_tops.py`.
 Conventions of `euler_reference` / `vector_reference`: unit axis a from the centre of mass O
 towards the ball centre, theta = arccos a_z, Z up.
 

@@ -1,5 +1,7 @@
 """The animation: geometry of the drawn top, resampling to frame times, files written, errors."""
 
+import contextlib
+
 import matplotlib
 
 matplotlib.use("Agg")
@@ -25,14 +27,16 @@ T1 = 0.25  # the CLI test simulates the same launch and save grid (one compilati
 N_SAVE = 51
 
 
-def _fake_solution(ts, axis, body, omega, position=None, model="full"):
+def _fake_solution(ts, axis, body, omega, position=None, model="full", height=None):
     """A `Solution` holding the given orientation (other fields zero), no simulation."""
     ts = jnp.asarray(ts, dtype=float)
     n = ts.shape[0]
     zeros = jnp.zeros(n)
     position = jnp.zeros((n, 2)) if position is None else jnp.asarray(position, dtype=float)
     states = tj.State(position=position, velocity=jnp.zeros((n, 2)), axis=jnp.asarray(axis),
-                      omega=jnp.asarray(omega), body=jnp.asarray(body))
+                      omega=jnp.asarray(omega), body=jnp.asarray(body),
+                      height=None if height is None else jnp.asarray(height, dtype=float),
+                      height_rate=None if height is None else zeros)
     theta = jnp.arccos(jnp.clip(states.axis[:, 2], -1, 1))
     scalar = jnp.asarray(jnp.nan)
     return tj.Solution(
@@ -85,6 +89,45 @@ def test_geometry_stem_sphere_contact(top, theta):
         np.testing.assert_allclose(base[2], 0.0, atol=1e-15)
         np.testing.assert_allclose(tip, base, atol=1e-15)
         assert g.centre_of_mass[0, 2] > g.centre[0, 2]
+
+
+def test_modelled_stem_is_drawn_and_moves_with_the_axis(tmp_path, monkeypatch):
+    """A top with a `tj.Stem`: the rod runs along the axis to the tip's centre O + a2 a, the
+    tip's outline (an artist of its own) is drawn there at each frame, of radius r2, and the
+    centre of mass is at the height the states carry."""
+    import tippejax._animate as animate_module
+
+    top = tj.TippeTop(m=0.006, R=0.015, eps=0.003, A=8e-7, C=7e-7, stem=tj.Stem(0.005, 0.016))
+    thetas = np.array([0.3, 1.2, 2.3])
+    ys = [tj.state_from_euler(th, 0.4 * k, 0.0, 0.0, 0.0, 0.0) for k, th in enumerate(thetas)]
+    axis = np.stack([np.asarray(y.axis) for y in ys])
+    height = 0.015 - 0.003 * np.cos(thetas) + [0.0, 1e-3, 2e-3]
+    sol = _fake_solution(np.arange(3) * 0.1, axis, np.stack([np.asarray(y.body) for y in ys]),
+                         np.zeros((3, 3)), height=height)
+    g = frame_geometry(sol, top, [0.0, 0.1, 0.2])
+    np.testing.assert_allclose(g.centre_of_mass[:, 2], height, atol=1e-15)
+    np.testing.assert_allclose(g.stem_tip, g.centre_of_mass + 0.016 * axis, atol=1e-15)
+    np.testing.assert_allclose(g.stem[:, 1], g.stem_tip, atol=1e-15)
+    rod = g.stem[:, 1] - g.stem[:, 0]  # along the axis, outwards
+    np.testing.assert_allclose(rod / np.linalg.norm(rod, axis=-1, keepdims=True), axis, atol=1e-12)
+
+    drawn = []  # the tip's outline at each frame, as the animation draws it
+
+    class Writer:
+        def saving(self, fig, path, dpi):
+            self.fig = fig
+            return contextlib.nullcontext()
+
+        def grab_frame(self):
+            (line,) = [ln for ln in self.fig.axes[0].lines if ln.get_gid() == "stem_tip"]
+            drawn.append(np.stack(line.get_data_3d(), axis=-1))
+
+    monkeypatch.setattr(animate_module, "_writer", lambda path, fps: Writer())
+    tj.animate(sol, top, str(tmp_path / "stem.gif"), frames=3, dpi=20)
+    assert len(drawn) == 3
+    for outline, centre in zip(drawn, g.stem_tip):
+        np.testing.assert_allclose(np.linalg.norm(outline - centre, axis=-1), 0.005, rtol=1e-9)
+    assert np.linalg.norm(drawn[2].mean(0) - drawn[0].mean(0)) > 0.01  # it moved
 
 
 def test_geometry_matches_simulation(top, sol):

@@ -71,6 +71,7 @@ from ._models.routhian import CHART_SIN_MIN as _CHART_SIN_MIN
 from ._outcome import OUTCOMES as OUTCOMES
 from ._simulate import MODELS as MODELS, simulate as simulate
 from ._solution import RESULTS as RESULTS, Solution as Solution
+from ._stem import Stem as Stem
 from ._state import (
     State as State,
     euler_angles as euler_angles,
@@ -86,6 +87,9 @@ except _metadata.PackageNotFoundError:  # running from a source tree
     __version__ = "0.0.0"
 
 __all__ = [
+    "AbstractFriction",
+    "Coulomb",
+    "CoulombContensou",
     "GROUPS",
     "FIT_RESULTS",
     "MODELS",
@@ -98,8 +102,10 @@ __all__ = [
     "Solution",
     "State",
     "SteadyStates",
+    "Stem",
     "Thresholds",
     "TippeTop",
+    "Viscous",
     "animate",
     "classify",
     "compare_laws",
@@ -116,6 +122,7 @@ __all__ = [
     "initial_state",
     "inversion_time",
     "jellet",
+    "jellet_rate",
     "normal_force",
     "outcome_map",
     "outcome_map_tops",

@@ -5,8 +5,10 @@ to the centre $\mathcal C$ of the sphere, so the centre of the sphere is
 $\mathcal C = (x + \epsilon a_x,\ y + \epsilon a_y,\ R)$ for the centre of mass at
 $(x, y, R - \epsilon a_Z)$, and the contact point is $Q = \mathcal C - R e_Z$. The model is an
 eccentric sphere; the stem of a real tippe top sits on the flat face opposite the centre of mass,
-along $+a$ beyond $\mathcal C$ (up at $\theta = 0$, down at $\theta = \pi$). It is drawn as a marker
-of the axis only: the model has no stem, so the drawn stem is clipped at the table.
+along $+a$ beyond $\mathcal C$ (up at $\theta = 0$, down at $\theta = \pi$). Without a modelled stem it
+is drawn as a marker of the axis only, clipped at the table; a top with a `tj.Stem` has its stem
+drawn as modelled, a rod along the axis to the tip's sphere of radius $r_2$ at $O + a_2 a$, and
+its centre of mass at the height the run carries (`State.height`).
 """
 
 from __future__ import annotations
@@ -45,7 +47,10 @@ class FrameGeometry(NamedTuple):
     - `centre`: centre of the sphere (height $R$); `centre_of_mass`: $\\mathcal C - \\epsilon a$.
     - `contact`: contact point $Q = \\mathcal C - R e_Z$ (on the table).
     - `stem`: `(frames, 2, 3)`, the drawn stem from the sphere's surface outwards along $+a$,
-      clipped at the table.
+      clipped at the table; for a top with a `tj.Stem`, the rod from the rim's plane of the
+      flat face to the centre of the tip's sphere.
+    - `stem_tip`: `(frames, 3)`, the centre $O + a_2 a$ of the tip's sphere (a top with a
+      `tj.Stem`; nan without one).
     """
 
     t: np.ndarray
@@ -56,6 +61,7 @@ class FrameGeometry(NamedTuple):
     centre_of_mass: np.ndarray
     contact: np.ndarray
     stem: np.ndarray
+    stem_tip: np.ndarray
 
 
 def _numpy_member(sol: Solution, index) -> Solution:
@@ -172,18 +178,28 @@ def frame_geometry(sol: Solution, top: TippeTop, t) -> FrameGeometry:
     position = np.stack(
         [np.interp(t, ts, _centre_xy(sol)[:n_valid, i]) for i in range(2)], axis=-1
     )
-    cm = np.concatenate([position, (R - eps * axis[:, 2])[:, None]], axis=-1)
+    height = R - eps * axis[:, 2]
+    if sol.states.height is not None:  # (a top with a stem: its height is a state)
+        height = np.interp(t, ts, sol.states.height[:n_valid])
+    cm = np.concatenate([position, height[:, None]], axis=-1)
     centre = cm + eps * axis
     contact = centre.copy()
     contact[:, 2] -= R
-    base = centre + R * axis
-    tip = centre + (1 + STEM_LENGTH) * R * axis
-    # Clip the stem at the table (z = 0); the base is at height R (1 + a_Z) >= 0.
-    drop = base[:, 2] - tip[:, 2]
-    frac = np.where(tip[:, 2] < 0, base[:, 2] / np.where(drop > 0, drop, 1.0), 1.0)
-    tip = base + np.clip(frac, 0.0, 1.0)[:, None] * (tip - base)
+    stem_tip = np.full_like(cm, np.nan)
+    if top.stem is None:
+        base = centre + R * axis
+        tip = centre + (1 + STEM_LENGTH) * R * axis
+        # Clip the stem at the table (z = 0); the base is at height R (1 + a_Z) >= 0.
+        drop = base[:, 2] - tip[:, 2]
+        frac = np.where(tip[:, 2] < 0, base[:, 2] / np.where(drop > 0, drop, 1.0), 1.0)
+        tip = base + np.clip(frac, 0.0, 1.0)[:, None] * (tip - base)
+    else:  # the modelled stem: from the flat face's plane to the centre of its tip's sphere
+        stem_tip = cm + float(top.stem.offset) * axis
+        base = centre + R * math.cos(STEM_RIM) * axis
+        tip = stem_tip
     theta = np.arccos(np.clip(axis[:, 2], -1.0, 1.0))
-    return FrameGeometry(t, axis, body, theta, centre, cm, contact, np.stack([base, tip], 1))
+    return FrameGeometry(t, axis, body, theta, centre, cm, contact, np.stack([base, tip], 1),
+                         stem_tip)
 
 
 def _wireframe(n_lat: int = 5, n_lon: int = 12, samples: int = 49):
@@ -274,8 +290,9 @@ def animate(
     Draws the sphere of radius $R$ (a wireframe fixed in the body, so the spin $\dot\psi$ turns
     it; the red meridian through the body vector marks the spin) centred at
     $\mathcal C = (x + \epsilon a_x, y + \epsilon a_y, R)$, the stem along $+a$ (the side away
-    from the centre of mass: up at $\theta = 0$, down at $\theta = \pi$; the model is an eccentric
-    sphere and has no stem, so it is only a marker, clipped at the table), the rim of the flat
+    from the centre of mass: up at $\theta = 0$, down at $\theta = \pi$; without a `tj.Stem` the
+    model is an eccentric sphere, so it is only a marker, clipped at the table; with one it is
+    the modelled rod and the outline of its tip's sphere, and the top rises onto it), the rim of the flat
     face around it, the centre of mass $O = \mathcal C - \epsilon a$ (black dot), the contact point
     $Q = \mathcal C - R e_Z$ and its trace on the table, and a title with $t$, $\theta$ and the
     model. The solution's save times are resampled to the frame times (`frame_geometry`).
@@ -385,6 +402,8 @@ def animate(
     (front_meridian,) = ax.plot([], [], [], color="tab:red", lw=1.8, zorder=4.5)
     (front_rim,) = ax.plot([], [], [], color="tab:green", lw=1.4, zorder=4.5)
     (stem_front,) = ax.plot([], [], [], color="tab:green", lw=4, zorder=5, solid_capstyle="round")
+    # the stem's tip, a sphere of radius r2 (its outline), for a top with a modelled stem
+    (stem_tip,) = ax.plot([], [], [], color="tab:green", lw=1.6, zorder=5, gid="stem_tip")
     (cm_dot,) = ax.plot([], [], [], "o", color="k", ms=3, zorder=6)
     (contact_dot,) = ax.plot([], [], [], "o", color="tab:blue", ms=3.5, zorder=6)
     heading = title if title is not None else f"tippejax: {sol.model} model"
@@ -426,6 +445,8 @@ def animate(
         facing = a @ view >= -0.35  # the stem's base seen beside or in front of the sphere
         stem_front.set_data_3d(*(stem if facing else np.full((3, 2), np.nan)))
         stem_back.set_data_3d(*(np.full((3, 2), np.nan) if facing else stem))
+        if top.stem is not None:
+            stem_tip.set_data_3d(*(geom.stem_tip[i] + float(top.stem.radius) * circle).T)
         cm_dot.set_data_3d(*geom.centre_of_mass[i : i + 1].T)
         contact_dot.set_data_3d(*geom.contact[i : i + 1].T)
         theta = geom.theta[i]

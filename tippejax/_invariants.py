@@ -13,6 +13,7 @@ from ._models._rigid_body import (
     friction_per_normal_force,
     rigid_body_dynamics,
 )
+from ._models.stem import elastic_energy
 from ._state import State
 from ._top import TippeTop
 
@@ -84,7 +85,10 @@ def jellet_rate(top: TippeTop, y: State, *, model: str = "full") -> Float[Array,
 def energy(top: TippeTop, y: State, *, model: str = "full") -> Float[Array, "*batch"]:
     r"""Total energy $E = \tfrac12 m |v_O|^2 + \tfrac12\omega\cdot I\omega + m g h$ (Sec. 2.1).
 
-    $v_O = (\dot x, \dot y, \dot h)$, $h = R - \epsilon\cos\theta$. For `model="so3"` or
+    $v_O = (\dot x, \dot y, \dot h)$, $h = R - \epsilon\cos\theta$; for a state with a
+    height (`State.height`, a top with a stem) $h$ and $\dot h$ are the state's, and the elastic
+    energy of the compliant contacts, $\sum_i \tfrac25 k_i\delta_i^{5/2}$ (`tj.Stem`), is
+    added. For `model="so3"` or
     `"routhian"` the horizontal velocity is dropped ($E'$ of the Lagrangian $L'$). Along every
     model's flow $\dot E = R_n(f\cdot v_Q + m\,\omega_n) \le 0$ while $R_n \ge 0$, for every
     friction law (force $R_n f$, drilling torque $R_n m$); $-\mu R_n |v_Q|^2$ for the viscous law
@@ -97,7 +101,13 @@ def energy(top: TippeTop, y: State, *, model: str = "full") -> Float[Array, "*ba
         n = jnp.dot(y.omega, y.axis)
         rotational = 0.5 * (top.A * jnp.dot(y.omega, y.omega) + (top.C - top.A) * n**2)
         height = top.R - top.eps * y.axis[2]
-        return 0.5 * top.m * jnp.dot(v_o, v_o) + rotational + top.m * top.g * height
+        elastic = 0.0
+        if y.height is not None:  # a top with a stem: the height is a state, and the
+            # compliant contacts store elastic energy (zero at the ball's rigid contact)
+            height, v_o = y.height, v_o.at[2].set(y.height_rate)
+            elastic = elastic_energy(top, y.axis, y.height)
+        return (0.5 * top.m * jnp.dot(v_o, v_o) + rotational + top.m * top.g * height
+                + elastic)
 
     return _batched(one, y)
 

@@ -73,6 +73,10 @@ def inversion_time(
     $10^5$, and tighten `rtol` (with `atol`) for more (the gradients suite measures it: see
     the performance page).
 
+    **Pure Coulomb friction** (`tj.Coulomb`) has no inversion time of its own: the crossing
+    grows about like 1/`slip_scale` as the slip scale goes to 0 (`docs/friction.md`). It is
+    returned all the same, with a `UserWarning` (from `simulate`) for a concrete top.
+
     **Same crossing as `simulate`.** This runs `simulate` in summary mode, which does not carry
     the body vector ($\psi$). `simulate(...).t_invert` with its save grid carries it, so the
     two solves take different steps and their $t^*$ agree to the solve's tolerance, not to

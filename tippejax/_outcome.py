@@ -11,7 +11,7 @@ from ._analysis.steady_states import branch_pieces, find_branch_root
 from ._solution import OUTCOMES, RESULTS
 from ._top import TippeTop
 
-UPRIGHT, INVERTED, INTERMEDIATE, CONTACT_LOST, FAILED = range(len(OUTCOMES))
+UPRIGHT, INVERTED, INTERMEDIATE, CONTACT_LOST, FAILED, ON_STEM = range(len(OUTCOMES))
 
 SETTLE_TOL = 0.1
 """Tilt distance (rad) within which a run's end counts as `settled` on its outcome."""
@@ -52,6 +52,10 @@ def classify_end(top: TippeTop, J, theta_final, result, *, settle_tol):
 
     **Returns:** `(outcome, settled, expected)`: the code (int8, an index into `OUTCOMES`),
     the settled flag, and the tilt of the stable state (nan where there is none).
+
+    A top with a stem (`tj.Stem`) that ended tilted past `top.stem_angle` rests on its stem,
+    not on the ball: `ON_STEM`, settled within `settle_tol` of the vertical on the stem,
+    $\theta = \pi$ (the steady states above are the ball's).
     """
     theta, stable, kind = stable_states(top, J)
     distance = jnp.where(stable, jnp.abs(theta_final - theta), jnp.inf)
@@ -64,6 +68,11 @@ def classify_end(top: TippeTop, J, theta_final, result, *, settle_tol):
     for code in _CONTACT_CODES:
         contact = contact | (result == getattr(RESULTS, code))
     ok = (result == RESULTS.successful) & jnp.isfinite(theta_final)
+    if top.stem is not None:  # (the stem, not the ball, on the table: the stem's outcome)
+        on_stem = theta_final > top.stem_angle
+        outcome = jnp.where(on_stem, ON_STEM, outcome)
+        expected = jnp.where(on_stem, jnp.pi, expected)
+        settled = jnp.where(on_stem, jnp.abs(theta_final - jnp.pi) <= settle_tol, settled)
     outcome = jnp.where(contact, CONTACT_LOST, jnp.where(ok, outcome, FAILED))
     return outcome.astype(jnp.int8), settled & ok, jnp.where(ok, expected, jnp.nan)
 

@@ -422,8 +422,9 @@ def fit_figure(result, *, title: str | None = None):
 # ---------------------------------------------------------------------------------------------
 # Outcome maps
 
-OUTCOME_COLOURS = ("#6baed6", "#31a354", "#fd8d3c", "#252525", "#e7298a")
-"""One colour per entry of `OUTCOMES`: upright, inverted, intermediate, contact lost, failed."""
+OUTCOME_COLOURS = ("#6baed6", "#31a354", "#fd8d3c", "#252525", "#e7298a", "#756bb1")
+"""One colour per entry of `OUTCOMES`: upright, inverted, intermediate, contact lost, failed,
+on the stem."""
 
 
 @jax.jit

@@ -11,8 +11,9 @@ from jaxtyping import Array, Bool, Float, Int
 
 from . import _export
 
-OUTCOMES = ("upright", "inverted", "intermediate", "contact_lost", "failed")
-"""Outcome codes of `outcome_map` and `sol.outcome`: `tj.OUTCOMES[int(om.outcome[i, j])]`."""
+OUTCOMES = ("upright", "inverted", "intermediate", "contact_lost", "failed", "on_stem")
+"""Outcome codes of `outcome_map` and `sol.outcome`: `tj.OUTCOMES[int(om.outcome[i, j])]`.
+New outcomes are appended, so that the codes of the others keep their values."""
 
 
 class RESULTS(eqxi.Enumeration):
@@ -177,21 +178,35 @@ class Solution(eqx.Module):
     - `jellet`: $J$; `energy`: $E$; `normal_force`: $R_n$; `slip_speed`: $|v_Q|$.
     - `states`: the `State`s at `ts` (in a level's own terms: a level without translation
       keeps the centre of mass at rest there).
-    - `model`: the level used (str); "routhian->so3" when a Routhian run left its chart.
+    - `model`: the level used (str); "routhian->so3" when a Routhian run left its chart;
+      "full->stem" when the run of a top with a stem went on to the stem level (two compliant
+      contacts, `docs/friction.md`). From there `energy` includes the contacts' elastic
+      energy, `normal_force` is the table's whole normal force (ball and stem) and
+      `slip_speed` that of the contact carrying more of it; `states.height` is the height of
+      the centre of mass.
       A gyroscopic run that leaves the domain of gyroscopic balance stops there
       (`result == RESULTS.no_gyroscopic_balance`) and stays "gyroscopic".
     - `result`: a `RESULTS` code (`sol.result == tj.RESULTS.successful`); `sol.message()`
       gives its text (an array of texts for a batch).
     - `t_invert`: first upward crossing of $\theta = \pi/2$ (nan if none).
     - `t_contact_loss`: first time $R_n = 0$ (nan if never).
-    - `t_chart_switch`: time a Routhian run left its chart near a pole (nan otherwise).
+    - `t_chart_switch`: time a Routhian run left its chart near a pole, or the full level of a
+      top with a stem handed over to the stem level, just before the stem touched (nan
+      otherwise).
+    - `t_stem`: the first touch of the stem (`tj.Stem`) on the table (nan if none, and for a
+      top without a stem).
+    - `t_ball_return`: the first time the ball touches the table again after it left it on
+      the stem level (nan if it does not by `t_final`, and for a top without a stem).
     - `t_final`: the time the integration reached (t1 unless it stopped early).
     - `num_steps`, `num_rejected_steps`: solver statistics (all segments together).
     - `outcome`: where the run ended, an index into `tj.OUTCOMES` ("upright", "inverted",
-      "intermediate", "contact_lost", "failed"): the stable steady state of the launch's
-      Jellet $J$ nearest to the tilt where the run ended, classified as `tj.outcome_map` does
-      (`tippejax/_maps.py`); "contact_lost" when $R_n$ reached 0, "failed" for any other
-      failure. `tj.OUTCOMES[int(sol.outcome)]` is its name.
+      "intermediate", "contact_lost", "failed", "on_stem"): the stable steady state of the
+      launch's Jellet $J$ nearest to the tilt where the run ended, classified as
+      `tj.outcome_map` does (`tippejax/_maps.py`); "contact_lost" when $R_n$ reached 0,
+      "failed" for any other failure; "on_stem" for a top with a stem that ended tilted past
+      `top.stem_angle`, where the stem and not the ball rests on the table (settled within
+      0.1 rad of the vertical $\theta = \pi$ on the stem). `tj.OUTCOMES[int(sol.outcome)]` is
+      its name.
     - `settled`: the final tilt is within 0.1 rad of that state (`print(sol)` says "on its
       way" for a run that is not). A run still on its way at
       `t1` is classified by the state it is nearest to; only `outcome == inverted` with
@@ -246,6 +261,8 @@ class Solution(eqx.Module):
     settled: Bool[Array, "*batch"] | None = None
     inputs: dict | None = None
     grid: tuple[str, ...] | None = eqx.field(static=True, default=None)
+    t_stem: Float[Array, "*batch"] | None = None
+    t_ball_return: Float[Array, "*batch"] | None = None
 
     def message(self):
         """The message of `result`: a `str`, or a numpy array of `str` for a batch
@@ -275,6 +292,9 @@ class Solution(eqx.Module):
                  f"t_final={seconds(self.t_final)}", f"saves={ts.size}",
                  f"t_invert={seconds(self.t_invert)}",
                  f"t_contact_loss={seconds(self.t_contact_loss)}"]
+        if "->stem" in self.model:  # (a top with a stem that reached the stem level)
+            parts += [f"t_stem={seconds(self.t_stem)}",
+                      f"t_ball_return={seconds(self.t_ball_return)}"]
         if self.outcome is not None:
             name = OUTCOMES[int(self.outcome)]
             if self.settled is not None and not bool(self.settled) and name in (

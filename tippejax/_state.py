@@ -32,6 +32,11 @@ class State(eqx.Module):
     - `omega`: angular velocity $\omega$ in the inertial frame (rad/s).
     - `body`: a unit vector fixed in the body and perpendicular to `axis`. It does not enter
       the dynamics; it only serves to read off the Euler angle $\psi$.
+    - `height`, `height_rate`: the height $z_O$ of the centre of mass (m) and its rate (m/s)
+      for a top with a stem (`tj.Stem`), whose contacts with the table are compliant from just
+      before the stem touches (the stem level): there the height is a state of its own. Before
+      that they are the ball's rigid contact's, $R - \epsilon a_Z$ and its rate. None (the
+      default) for a top without a stem.
 
     Leading batch dimensions are allowed on every field.
     """
@@ -41,6 +46,8 @@ class State(eqx.Module):
     axis: Float[Array, "*batch 3"]
     omega: Float[Array, "*batch 3"]
     body: Float[Array, "*batch 3"]
+    height: Float[Array, "*batch"] | None = None
+    height_rate: Float[Array, "*batch"] | None = None
 
 
 def _frame(theta, phi):

@@ -18,6 +18,7 @@ from ._friction.base import (
 )
 from ._friction.viscous import Viscous
 from ._plausibility import warn_if_implausible_top
+from ._stem import _FIELDS as _STEM_FIELDS, Stem, stem_angle
 
 _FIELDS = ("m", "R", "eps", "A", "C", "g", "mu")
 """The fields of a top with the viscous law (`mu` is the law's, `TippeTop.mu`)."""
@@ -62,6 +63,20 @@ def _checks(m, R, eps, A, C, g, mu=None):
     return checks
 
 
+def _with_stem_rules(rules, n, stem_tree):
+    """`rules` on the first `n` values, and the stem's rules with the ball (`Stem.ball_rules`)
+    on the values after them, where the top has a stem (`stem_tree` its structure)."""
+
+    def all_rules(*v):
+        out = rules(*v)
+        if v[n:]:
+            stem = jax.tree_util.tree_unflatten(stem_tree, list(v[n:]))
+            out = out + stem.ball_rules(v[1], v[2], array_module(*v))
+        return out
+
+    return all_rules
+
+
 def _is_default_mu(mu) -> bool:
     if mu is _DEFAULT_MU:
         return True
@@ -103,6 +118,10 @@ class TippeTop(eqx.Module):
       Default 0.3.
     - `friction`: the friction law (keyword only), any `AbstractFriction`; give it or `mu`,
       not both. Default `tj.Viscous(mu)`.
+    - `stem`: the stem (keyword only), a `tj.Stem` (a second sphere on the axis beyond the
+      ball's centre, which touches the table at the tilt `stem_angle`), or None (default):
+      the paper's eccentric sphere alone. A top with a stem runs at the full level, which
+      hands over to the stem level before the stem touches (`docs/friction.md`, "The stem").
     """
 
     m: Float[Array, "*batch"]
@@ -112,6 +131,7 @@ class TippeTop(eqx.Module):
     C: Float[Array, "*batch"]
     g: Float[Array, "*batch"]
     friction: AbstractFriction
+    stem: Stem | None
 
     def __init__(
         self,
@@ -124,6 +144,7 @@ class TippeTop(eqx.Module):
         mu: ArrayLike = _DEFAULT_MU,
         *,
         friction: AbstractFriction | None = None,
+        stem: Stem | None = None,
     ):
         if friction is not None:
             if not isinstance(friction, AbstractFriction):
@@ -137,34 +158,54 @@ class TippeTop(eqx.Module):
                     "law with its own mu), not both."
                 )
         body = [_as_float(v) for v in (m, R, eps, A, C, g)]
+        if stem is not None and not isinstance(stem, Stem):
+            raise TypeError(f"TippeTop.stem must be a tj.Stem or None, got {type(stem).__name__}.")
+        # (the stem's fields are broadcast and checked with the top's; none without a stem)
+        stem_leaves, stem_tree = jax.tree_util.tree_flatten(stem)
+        stem_names = tuple(f"stem.{k}" for k in _STEM_FIELDS) if stem is not None else ()
         if friction is None:
             # mu is checked here, with the top's messages, then again by Viscous.
-            values = broadcast_fields("TippeTop", _FIELDS, [*body, _as_float(mu)])
-            values = checked("TippeTop", _FIELDS, values, _checks)
-            body, friction = values[:-1], Viscous(values[-1])
+            names = (*_FIELDS, *stem_names)
+            values = broadcast_fields("TippeTop", names, [*body, _as_float(mu), *stem_leaves])
+            values = checked("TippeTop", names, values, _with_stem_rules(
+                lambda *v: _checks(*v[:7]), 7, stem_tree))
+            body, friction = values[:6], Viscous(values[6])
+            stem = jax.tree_util.tree_unflatten(stem_tree, list(values[7:]))
         else:
             law_leaves, law_tree = jax.tree_util.tree_flatten(friction)
-            names = (*_BODY_FIELDS, *(f"friction.{k}" for k in friction._array_field_names()))
-            values = broadcast_fields("TippeTop", names, [*body, *law_leaves])
-            n = len(body)
+            names = (*_BODY_FIELDS, *(f"friction.{k}" for k in friction._array_field_names()),
+                     *stem_names)
+            values = broadcast_fields("TippeTop", names, [*body, *law_leaves, *stem_leaves])
+            n, n_law = len(body), len(law_leaves)
 
             def rules(*v):
-                law = jax.tree_util.tree_unflatten(law_tree, list(v[n:]))
+                law = jax.tree_util.tree_unflatten(law_tree, list(v[n:n + n_law]))
                 return _checks(*v[:n]) + law.ball_rules(v[1], array_module(*v))
 
-            values = checked("TippeTop", names, values, rules)
+            values = checked("TippeTop", names, values,
+                             _with_stem_rules(rules, n + n_law, stem_tree))
             body = values[:n]
-            friction = jax.tree_util.tree_unflatten(law_tree, list(values[n:]))
+            friction = jax.tree_util.tree_unflatten(law_tree, list(values[n:n + n_law]))
+            stem = jax.tree_util.tree_unflatten(stem_tree, list(values[n + n_law:]))
         if not any(_is_traced(v) for v in body):
             warn_if_implausible_top(*body)
         self.m, self.R, self.eps, self.A, self.C, self.g = body
         self.friction = friction
+        self.stem = stem
 
     @property
     def mu(self) -> Float[Array, "*batch"]:
         """The friction law's coefficient $\\mu$ (`friction.mu`; s/m for the viscous law,
         dimensionless for the Coulomb laws)."""
         return self.friction.mu
+
+    @property
+    def stem_angle(self) -> Float[Array, "*batch"]:
+        r"""The tilt $\theta_s$ (rad) at which the stem touches the table with the ball on it,
+        $\cos\theta_s = (r_2 - R)/(a_2 - \epsilon)$ (`Stem`); nan without a stem."""
+        if self.stem is None:
+            return jnp.full(jnp.shape(self.R), jnp.nan, jnp.result_type(self.R))
+        return stem_angle(self.R, self.eps, self.stem)
 
     @property
     def batch_shape(self) -> tuple[int, ...]:
@@ -177,11 +218,12 @@ class TippeTop(eqx.Module):
         `top.replace(mu=0.1)`; `top.replace(mu=np.linspace(0.05, 1.0, 20))` is a batch of 20
         tops (the other fields broadcast), ready for `simulate_batch` or `jax.vmap`. `mu`
         replaces the friction law's coefficient (whatever the law); `friction=` replaces the
-        law. Besides the fields `m, R, eps, A, C, g, mu, friction`, the ratios may be given:
+        law; `stem=` replaces the stem (`tj.Stem`, or None to take it off). Besides the fields
+        `m, R, eps, A, C, g, mu, friction, stem`, the ratios may be given:
         `A_over_C` sets $A = (A/C)\,C$ at the top's $C$, `eps_over_R` sets
         $\epsilon = (\epsilon/R)\,R$ at its $R$ (after any new `C` or `R`).
         """
-        allowed = (*_FIELDS, "friction", "A_over_C", "eps_over_R")
+        allowed = (*_FIELDS, "friction", "stem", "A_over_C", "eps_over_R")
         unknown = sorted(set(changes) - set(allowed))
         if unknown:
             raise ValueError(
@@ -196,16 +238,18 @@ class TippeTop(eqx.Module):
         if "eps_over_R" in changes:
             values["eps"] = _as_float(changes["eps_over_R"]) * _as_float(values["R"])
         friction = changes.get("friction", self.friction)
+        stem = changes.get("stem", self.stem)
         if type(friction) is Viscous:  # (the law `mu=` means: the top's own messages)
-            return TippeTop(**values, mu=changes.get("mu", friction.mu))
+            return TippeTop(**values, mu=changes.get("mu", friction.mu), stem=stem)
         if "mu" in changes:
             friction = friction.replace(mu=changes["mu"])
-        return TippeTop(**values, friction=friction)
+        return TippeTop(**values, friction=friction, stem=stem)
 
     def __repr__(self) -> str:
         try:
             values = {k: np.asarray(getattr(self, k)) for k in _BODY_FIELDS}
             law = repr(self.friction)
+            stem = "" if self.stem is None else f", stem={self.stem!r}"
         except Exception:  # noqa: BLE001 - traced fields have no values to show
             return super().__repr__()
         viscous = type(self.friction) is Viscous
@@ -213,7 +257,8 @@ class TippeTop(eqx.Module):
             values["mu"] = np.asarray(self.friction.mu)
         if self.batch_shape == ():
             body = ", ".join(f"{k}={v.item():.6g}" for k, v in values.items())
-            return f"TippeTop({body})" if viscous else f"TippeTop({body}, friction={law})"
+            body += "" if viscous else f", friction={law}"
+            return f"TippeTop({body}{stem})"
         parts = []
         for k, v in values.items():
             if v.size and np.all(v == v.flat[0]):
@@ -222,7 +267,7 @@ class TippeTop(eqx.Module):
                 parts.append(f"{k}={np.array2string(v, precision=6, threshold=8)}")
         if not viscous:
             parts.append(f"friction={law}")
-        return f"TippeTop(batch_shape={self.batch_shape}, {', '.join(parts)})"
+        return f"TippeTop(batch_shape={self.batch_shape}, {', '.join(parts)}{stem})"
 
     @classmethod
     def from_ratios(
@@ -236,12 +281,13 @@ class TippeTop(eqx.Module):
         g: ArrayLike = 9.81,
         C: ArrayLike | None = None,
         friction: AbstractFriction | None = None,
+        stem: Stem | None = None,
     ) -> TippeTop:
         r"""Build a top from the two ratios that fix its group, $A/C$ and $\epsilon/R$.
 
         $C = 0.4\, m R^2$ (a homogeneous sphere) unless given; $A = (A/C)\, C$,
         $\epsilon = (\epsilon/R)\, R$. `mu` (the viscous law's, s/m) or `friction` (any
-        law) as in `TippeTop`.
+        law) and `stem` as in `TippeTop`.
         """
         m_ = _as_float(m)
         R_ = _as_float(R)
@@ -255,6 +301,7 @@ class TippeTop(eqx.Module):
             g=g,
             mu=mu,
             friction=friction,
+            stem=stem,
         )
 
     @property

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import diffrax
 import equinox as eqx
 import jax
@@ -62,6 +64,9 @@ class ChainOutput(eqx.Module):
     num_steps: Array
     num_rejected_steps: Array
     lowest: dict[str, Float[Array, ""]]  # see `run_chain(lowest=...)`
+    # first downward crossing of each level's own observed events (`observed_events`), by
+    # name (nan if none): the stem level's stem touch and ball return
+    level_events: dict[str, Float[Array, ""]]
 
 
 class _Carry(eqx.Module):
@@ -78,6 +83,7 @@ class _Carry(eqx.Module):
     num_steps: Array
     num_rejected_steps: Array
     lowest: dict[str, Float[Array, ""]]
+    level_events: dict[str, Float[Array, ""]]
     state: State  # the common state the next segment starts from
     t_start: Float[Array, ""]
     active: Array  # whether the member runs the next segment
@@ -94,8 +100,9 @@ class _Start(eqx.Module):
 
 
 def _chain_start(level: AbstractLevel, top, state0: State, t0, ts, stop_on_contact: bool,
-                 lowest=()):
-    """The carry of one member before its first segment: the checks at `t0`."""
+                 lowest=(), event_names: tuple[str, ...] = ()):
+    """The carry of one member before its first segment: the checks at `t0`; `event_names`:
+    the chain's levels' own observed events."""
     dtype = jnp.result_type(top.m)
     nan = jnp.array(jnp.nan, dtype)
     friction_model = level.friction_model
@@ -115,7 +122,8 @@ def _chain_start(level: AbstractLevel, top, state0: State, t0, ts, stop_on_conta
         states=states, state_end=state0, t_final=t_start, result=result, t_invert=nan,
         t_contact_loss=jnp.where(lost0, t_start, nan), t_chart_switch=nan,
         num_steps=jnp.array(0), num_rejected_steps=jnp.array(0),
-        lowest={name: jnp.array(jnp.inf, dtype) for name in lowest}, state=state0,
+        lowest={name: jnp.array(jnp.inf, dtype) for name in lowest},
+        level_events={name: nan for name in event_names}, state=state0,
         t_start=t_start, active=~dead0,
     )
 
@@ -128,6 +136,10 @@ def _segment_start(chain, i: int, top, carry: _Carry, t1, y0=None) -> _Start:
     # conversion from a singular chart makes nans that would poison gradients.
     stand_in = state_from_euler(1.0, 0.0, 0.0, 0.0, 0.0, 1.0)
     stand_in = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), stand_in)
+    # (states of a chain through the stem level carry the height: the stand-in keeps the
+    # state's, which no level reads on entry)
+    stand_in = dataclasses.replace(stand_in, height=carry.state.height,
+                                   height_rate=carry.state.height_rate)
     active, state, result = carry.active, carry.state, carry.result
     runs = active & lvl.in_chart(top, state)
     chart_end = _chart_end_code(lvl)
@@ -155,7 +167,7 @@ def _segment_events(lvl: AbstractLevel, stop_on_contact: bool, inversion: bool):
         ("contact",) if stop_on_contact else ()
     )
     observed = (("upright",) if inversion else ()) + (() if stop_on_contact else ("contact",))
-    return terminating, observed
+    return terminating, observed + lvl.observed_events
 
 
 def _segment_end(chain, i: int, top, carry: _Carry, start: _Start, seg, ts, *,
@@ -190,6 +202,10 @@ def _segment_end(chain, i: int, top, carry: _Carry, start: _Start, seg, ts, *,
         contact = seg.observed["contact"]
     t_contact_loss = carry.t_contact_loss
     t_contact_loss = jnp.where(runs & jnp.isnan(t_contact_loss), contact, t_contact_loss)
+    level_events = dict(carry.level_events)  # the level's own events: their first crossing
+    for name in lvl.observed_events:
+        level_events[name] = jnp.where(runs & jnp.isnan(level_events[name]),
+                                       seg.observed[name], level_events[name])
     state, active, t_chart_switch = carry.state, carry.active, carry.t_chart_switch
     if not last:
         switch = runs & seg.fired["chart"] & (seg_result == RESULTS.successful)
@@ -210,6 +226,7 @@ def _segment_end(chain, i: int, top, carry: _Carry, start: _Start, seg, ts, *,
         num_rejected_steps=carry.num_rejected_steps + seg.num_rejected_steps,
         lowest={name: jnp.where(runs, jnp.minimum(low, seg.lowest[name].astype(low.dtype)), low)
                 for name, low in carry.lowest.items()},
+        level_events=level_events,
         state=state,
         t_start=t_start,
         active=active,
@@ -235,6 +252,7 @@ def _chain_output(carry: _Carry, stop_on_contact: bool) -> ChainOutput:
         num_steps=carry.num_steps,
         num_rejected_steps=carry.num_rejected_steps,
         lowest=carry.lowest,
+        level_events=carry.level_events,
     )
 
 
@@ -279,16 +297,22 @@ def run_chain(
     lowest value over the run, at the start and at the end of every accepted step, is
     returned in `ChainOutput.lowest` (inf where no segment ran): how near the run came to an
     event, for an outcome map's indicators. Not with shared steps."""
+    # The level as it runs this top, and the launch in the form its chain carries: the full
+    # level of a top with a stem goes on to the stem level, whose states carry the height.
+    level = level.for_top(top)
+    state0 = level.common_state(top, state0)
     chain = level_chain(level)
     if shared_steps and (len(chain) != 1 or level.has_chart):
         raise ValueError(
-            f"shared steps run one segment; the {level.name!r} level chains segments."
+            f"shared steps run one segment; the {level.name!r} level chains segments for this "
+            f"top ({' -> '.join(lvl.name for lvl in chain)})."
         )
     if shared_steps and lowest:
         raise ValueError("run_chain: lowest= is not kept with shared steps.")
+    event_names = tuple(dict.fromkeys(e for lvl in chain for e in lvl.observed_events))
     each = _each_member(top) if shared_steps else _as_one
     carry = each(lambda top, s: _chain_start(chain[0], top, s, t0, ts, stop_on_contact,
-                                             lowest))(top, state0)
+                                             lowest, event_names))(top, state0)
     for i, lvl in enumerate(chain):
         start = each(lambda top, c: _segment_start(chain, i, top, c, t1, y0))(top, carry)
         terminating, observed = _segment_events(lvl, stop_on_contact, inversion)

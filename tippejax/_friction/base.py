@@ -152,6 +152,11 @@ class AbstractFriction(eqx.Module):
         (`CoulombContensou`) gives its coefficient at zero slip while the contact drills."""
         return self.zero_slip_coefficient()
 
+    def inversion_time_caveat(self) -> str | None:
+        """Why the law's inversion times are not a property of the top, or None (default):
+        `simulate` and `inversion_time` warn with it (`UserWarning`, concrete tops)."""
+        return None
+
     @abc.abstractmethod
     def _rules(self, values, xp) -> list:
         """(failed, message) for every rule on the law's own fields (`values` in field order)."""

@@ -3,6 +3,7 @@ from __future__ import annotations
 from typing import ClassVar
 
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .base import AbstractFriction
@@ -29,7 +30,9 @@ class Coulomb(AbstractFriction):
         With this law alone the inversion time of a top launched spinning about its axis
         does not converge as $\delta\to0$: the top reaches near-rolling within a fraction of
         a second and then rises only by creep below $\delta$, so that the time grows roughly
-        like $1/\delta$ (`docs/friction.md`). Only the drilling torque of a Contensou law
+        like $1/\delta$ and has no limit (`docs/friction.md`; the measured times are in
+        `benchmarks/RESULTS.md`, `real_tops.py --slip`). `simulate` and `inversion_time` say
+        so with a `UserWarning` and still run. Only the drilling torque of a Contensou law
         (`CoulombContensou`) makes the rise a property of the physics.
 
     **Arguments:**
@@ -57,3 +60,15 @@ class Coulomb(AbstractFriction):
 
     def zero_slip_coefficient(self):
         return self.mu / self.slip_scale
+
+    def inversion_time_caveat(self):
+        scales = np.unique(np.asarray(self.slip_scale))
+        shown = ", ".join(f"{x:.3g}" for x in scales[:3]) + (", ..." if scales.size > 3 else "")
+        return (
+            f"tj.Coulomb has no drilling torque: under it the inversion time of a top spinning "
+            f"about its axis depends on slip_scale (here {shown} m/s) and grows roughly like "
+            "1/slip_scale as slip_scale goes to 0, with no limit, so sol.t_invert and "
+            "inversion_time are properties of slip_scale, not of the top. Coulomb-Contensou "
+            "friction (tj.CoulombContensou) has a rise that converges (docs/friction.md, 'A "
+            "trap: pure Coulomb friction')."
+        )

@@ -209,7 +209,7 @@ class CoulombContensou(AbstractFriction):
         Hertz law, 1 for the ellipse with $R_b$ for $\rho$), which does not depend on $\delta$
         while $\rho|\omega_n| \gg \delta$. A spinning top therefore meets the regularised
         bound `zero_slip_coefficient` only where it stops drilling, and an explicit solver is
-        the cheaper at small slip scales (`benchmarks/RESULTS.md`, friction_solvers.py). A top
+        the cheaper at small slip scales (`benchmarks/RESULTS.md`, `real_tops.py --wp`). A top
         that drills much slower is stiffer than this says: pass `solver=diffrax.Kvaerno5()` if
         its steps run into `max_steps`."""
         return self._slope_at_zero_slip(REFERENCE_DRILLING_RATE * jnp.ones_like(self.mu))

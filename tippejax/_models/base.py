@@ -15,8 +15,11 @@ motion and fall through zero at the event:
 - `upright`: the vertical component of the symmetry axis, $a_Z = \cos\theta$; it falls through
   zero when $\theta$ crosses $\pi/2$ upwards (the inversion);
 - `chart`: positive inside the level's chart (the Routhian chart ends near the poles; the
-  gyroscopic level's domain ends where gyroscopic balance is lost); a level without a chart edge
-  returns 1.
+  gyroscopic level's domain ends where gyroscopic balance is lost; the full level of a top with
+  a stem ends just before the stem touches the table, and hands over to the stem level); a
+  level without a chart edge returns 1;
+- `events`: a level's own observed events (`AbstractLevel.observed_events`), by name: the stem
+  level's stem touch and the ball's return to the table.
 """
 
 from __future__ import annotations
@@ -42,9 +45,10 @@ class Conditions(eqx.Module):
     singular: Float[Array, ""]
     upright: Float[Array, ""]
     chart: Float[Array, ""]
+    events: dict[str, Float[Array, ""]] = eqx.field(default_factory=dict)
 
     def get(self, name: str) -> Float[Array, ""]:
-        return getattr(self, name)
+        return self.events[name] if name in self.events else getattr(self, name)
 
 
 CONDITION_NAMES = ("contact", "singular", "upright", "chart")
@@ -66,6 +70,9 @@ class AbstractLevel(eqx.Module):
     - `friction_laws`: the friction laws (`AbstractFriction` subclasses) the level is derived
       for; `takes_friction` asks it. Default: the viscous law alone (the Routhian and
       gyroscopic reductions use its form); the full and SO(3) levels take every law.
+    - `observed_events`: the names of the level's own observed events (keys of
+      `Conditions.events`); the chain reports the first downward crossing of each
+      (`ChainOutput.level_events`). Default: none.
 
     **Static option:** `body` (default True), see below.
     """
@@ -80,6 +87,7 @@ class AbstractLevel(eqx.Module):
     at the save times the level produced (the SO(3) and Routhian levels drop the translation;
     the gyroscopic level also the nutation's body angle, normal force and slip)."""
     friction_laws: ClassVar[tuple[type[AbstractFriction], ...]] = (Viscous,)
+    observed_events: ClassVar[tuple[str, ...]] = ()
     body: bool = eqx.field(static=True, default=True, kw_only=True)
     r"""Whether the level carries the body vector (`State.body`, and with it $\psi$). The full
     and SO(3) levels carry it as 4 more state components (`full.spin_frame_rates`); without it
@@ -120,6 +128,19 @@ class AbstractLevel(eqx.Module):
     def fallback(self) -> AbstractLevel | None:
         """The level a run continues in when this one's chart ends (None: no chart)."""
         return None
+
+    def for_top(self, top: TippeTop) -> AbstractLevel:
+        """The level as it runs `top` (the chain asks it first): itself, unless the top's
+        structure changes it (the full level of a top with a stem: `FullLevel.stem`)."""
+        del top
+        return self
+
+    def common_state(self, top: TippeTop, state: State) -> State:
+        """A launch's common `State` in the form this level's chain carries from segment to
+        segment (the chain asks it after `for_top`; leading axes allowed): `state` itself,
+        unless the chain's states carry more (a chain through the stem level: the height)."""
+        del top
+        return state
 
     def error_norm(self, scaled_error: PyTree) -> Array:
         """Norm of the scaled local error used by the step-size controller (RMS by default)."""

@@ -14,6 +14,8 @@ $v_Q = v_O + \omega\times q$ including the horizontal velocity. Takes every fric
 
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -23,7 +25,15 @@ from .._friction.base import AbstractFriction
 from .._state import State
 from .._top import TippeTop
 from ._rigid_body import rigid_body_algebra, rigid_body_dynamics
+from ._spin_frame import body_of as body_of, spin_frame_rates as spin_frame_rates
 from .base import AbstractLevel, Conditions
+from .stem import (
+    HAND_OVER_DEFLECTIONS,
+    StemLevel,
+    rigid_height,
+    static_deflection,
+    stem_gap,
+)
 
 
 def translation_rate(top: TippeTop, normal_force, omega, v_q):
@@ -108,33 +118,6 @@ def pole_linearisation(top: TippeTop, J, *, north: bool = True) -> Array:
     return jac[:3, :3] + 1j * jac[3:, :3]
 
 
-def spin_frame_rates(axis, omega, frame):
-    r"""$(\dot c, \dot\sigma)$ of the body vector $b = \cos\sigma\, c + \sin\sigma\, a\times c$.
-
-    The body vector obeys $\dot b = \omega\times b$; it turns about the axis at the spin
-    rate $n = \omega\cdot a$ (150 rad/s for a fast top), much faster than anything else in
-    the state, and an error-controlled solver would take its steps for it. Split
-    $\omega = n a + \omega_\perp$: the frame vector $c \perp a$ follows the slow part,
-    $\dot c = \omega_\perp\times c$, and the angle takes the fast one, $\dot\sigma = n$, a
-    smooth quadrature. Then $b$ above obeys $\dot b = \omega\times b$: with $\dot a =
-    \omega\times a = \omega_\perp\times a$, the $\sin\sigma$ terms agree by the Jacobi identity
-    $\omega_\perp\times(a\times c) = a\times(\omega_\perp\times c) + \dot a\times c$, and
-    $c\cdot a$ stays 0 (checked against $\dot b = \omega\times b$ in `tests/test_engine.py`).
-    """
-    if frame is None:  # a level without the body vector
-        return None, None
-    n = jnp.dot(omega, axis)
-    return jnp.cross(omega - n * axis, frame), n
-
-
-def body_of(axis, frame, angle):
-    r"""$b = \cos\sigma\, c + \sin\sigma\, a\times c$ (see `spin_frame_rates`); nan for a level
-    without the body vector (`frame` None)."""
-    if frame is None:
-        return jnp.full_like(axis, jnp.nan)
-    return jnp.cos(angle) * frame + jnp.sin(angle) * jnp.cross(axis, frame)
-
-
 class FullLevelState(eqx.Module):
     """State of the full level: the common state with the body vector as (frame, angle), both
     None for a level without it (`body=False`)."""
@@ -148,13 +131,50 @@ class FullLevelState(eqx.Module):
 
 
 class FullLevel(AbstractLevel):
-    """The full model with translation; the common `State`, with the body vector carried as a
+    r"""The full model with translation; the common `State`, with the body vector carried as a
     frame vector and a spin angle (`spin_frame_rates`), so that it does not set the steps.
-    Takes every friction law."""
+    Takes every friction law.
+
+    **Static option:** `stem` (default False; `for_top` sets it for a top with a `tj.Stem`).
+    The level then has a chart: the ball's rigid contact, until the stem's gap above the table,
+    $z_O + a_2 a_Z - r_2$ with $z_O = R - \epsilon a_Z$, falls to `HAND_OVER_DEFLECTIONS`
+    static deflections of the ball, just before the stem touches, or until the ball's $R_n$
+    falls to 0 (a lift-off before the touch: no contact loss then). There the run goes on in the
+    stem level (`StemLevel`: two compliant contacts), and the chain's common states carry the
+    height of the centre of mass (`State.height`, here the rigid contact's)."""
 
     name = "full"
     friction_model = "full"
     friction_laws = (AbstractFriction,)
+    stem: bool = eqx.field(static=True, default=False, kw_only=True)
+
+    # -- a top with a stem (see the class docstring); nothing changes without one ----------
+
+    @property
+    def has_chart(self) -> bool:  # (a class attribute of the other levels)
+        return self.stem
+
+    def for_top(self, top):
+        return dataclasses.replace(self, stem=top.stem is not None)
+
+    def common_state(self, top, state):
+        if not self.stem:
+            return state
+        height, height_rate = rigid_height(top, state.axis, state.omega)
+        return dataclasses.replace(state, height=height, height_rate=height_rate)
+
+    def _stem_chart(self, top, axis):
+        """Positive while the stem is clear of the hand-over gap (`HAND_OVER_DEFLECTIONS`)."""
+        gap = stem_gap(top, axis, rigid_height(top, axis, jnp.zeros_like(axis))[0])
+        return gap - HAND_OVER_DEFLECTIONS * static_deflection(top)
+
+    def in_chart(self, top, state):
+        if not self.stem:
+            return jnp.array(True)
+        return self._stem_chart(top, state.axis) > 0
+
+    def fallback(self):
+        return StemLevel(body=self.body) if self.stem else None
 
     def from_state(self, top, state):
         if not self.body:
@@ -166,10 +186,11 @@ class FullLevel(AbstractLevel):
         )
 
     def to_state(self, top, y):
-        return State(
+        state = State(
             position=y.position, velocity=y.velocity, axis=y.axis, omega=y.omega,
             body=body_of(y.axis, y.frame, y.angle),
         )
+        return self.common_state(top, state)
 
     def vector_field(self, t, y, top):
         dynamics, cross_ = rigid_body_algebra(self.by_components)
@@ -185,5 +206,14 @@ class FullLevel(AbstractLevel):
         )
 
     def conditions(self, top, y):
-        return vector_conditions(top, y.axis, y.omega, y.velocity,
-                                 by_components=self.by_components)
+        conditions = vector_conditions(top, y.axis, y.omega, y.velocity,
+                                       by_components=self.by_components)
+        if self.stem:
+            # The chart also ends where the ball would leave the table (R_n falling through
+            # 0): the stem level's compliant contacts carry the flight, so the run hands over
+            # there instead of stopping at a contact loss (the reference model does the same).
+            lift = conditions.contact / (top.m * top.g)
+            gap = self._stem_chart(top, y.axis) / top.R
+            conditions = dataclasses.replace(
+                conditions, chart=jnp.minimum(gap, lift), contact=jnp.ones_like(lift))
+        return conditions

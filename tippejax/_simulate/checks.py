@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -46,6 +48,45 @@ def check_top_and_state(top: TippeTop, y0: State):
             f"simulate takes one state, but y0.axis has shape {y0.axis.shape}. Use jax.vmap over "
             "states (or tj.simulate_batch) for a batch."
         )
+
+
+def check_stem(model: str, top: TippeTop, y0: State) -> None:
+    """A top with a stem runs at the full level only, from a launch whose stem is clear of the
+    table (concrete values); else a `ValueError` saying what is allowed."""
+    if top.stem is None:
+        return
+    if jnp.result_type(top.m) != jnp.float64:
+        raise ValueError(
+            "A top with a stem (tj.Stem) runs in float64 only: the stem level's compliant "
+            "contacts are pressed in by about (m g/k)^(2/3) (1e-7 m for a hard top), which a "
+            "float32 height and axis resolve to a part in a few hundred at a top's size, and "
+            "the noisy contact forces stall the steps. Pass a float64 top (the default)."
+        )
+    if model != "full":
+        raise ValueError(
+            f"model={model!r}: a top with a stem (tj.Stem) runs at the full level only, which "
+            "hands over to the stem level (two compliant contacts) before the stem touches. "
+            "Use model='full' (or 'auto'), or take the stem off: top.replace(stem=None)."
+        )
+    if concrete(top, y0.axis):
+        theta0 = float(np.arccos(np.clip(np.asarray(y0.axis)[2], -1.0, 1.0)))
+        theta_s = float(top.stem_angle)
+        if theta0 >= theta_s:
+            raise ValueError(
+                f"The launch tilt theta0 = {theta0:.6g} rad puts the stem on or below the table "
+                f"(with the ball on it the stem touches at theta_s = {theta_s:.6g} rad, "
+                "top.stem_angle). Launch a top with a stem at theta0 < theta_s."
+            )
+
+
+def warn_of_friction(top: TippeTop) -> None:
+    """A `UserWarning` for a law whose inversion time is not a property of the top
+    (`AbstractFriction.inversion_time_caveat`; concrete tops)."""
+    if not concrete(top):
+        return
+    caveat = top.friction.inversion_time_caveat()
+    if caveat is not None:
+        warnings.warn(caveat, UserWarning, stacklevel=3)  # (at the caller of simulate)
 
 
 _STATE_TOL = 1e-6

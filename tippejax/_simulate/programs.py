@@ -16,6 +16,7 @@ from .._engine.segment import FORWARD_MODE_PACK_WIDTH, PACK_WIDTH
 from .._engine.sensitivity import ForwardSensitivities, forward_sensitivities, jacobian_of
 from .._engine.solver_choice import IMPLICIT_RATE, friction_rate
 from .._invariants import energy, jellet, normal_force, slip_velocity
+from .._models.stem import stem_observables
 from .._outcome import classify
 from .._solution import RESULTS
 from .._state import State, euler_angles, euler_rates, spin
@@ -188,6 +189,7 @@ def outputs(top, y0, ts, out, result, *, level, names=OBSERVED):
         states = jax.tree_util.tree_map(lambda x: x[None], out.state_end)
         valid = jnp.ones(1, bool)
         fields = _observe(top, states, friction_model, valid, names)
+        fields = _stem_phase(top, times, states, out, fields)
     else:
         times = ts
         states = out.states
@@ -195,6 +197,7 @@ def outputs(top, y0, ts, out, result, *, level, names=OBSERVED):
         # (the normal force is needed for the safety net below; it is dropped after)
         fields = _observe(top, states, friction_model, valid,
                           tuple(dict.fromkeys(names + ("normal_force",))))
+        fields = _stem_phase(top, times, states, out, fields)
         # Safety net: R_n < 0 at a save time before any located contact loss means a dip
         # shorter than the event watch's resolution went unseen. Report it; return nothing
         # from that save time on, nor a later loss time as if it were the first.
@@ -227,7 +230,7 @@ def outputs(top, y0, ts, out, result, *, level, names=OBSERVED):
         ts=times.astype(dtype), states=states, result=result, t_invert=out.t_invert,
         t_contact_loss=t_contact_loss, t_chart_switch=out.t_chart_switch,
         t_final=out.t_final, num_steps=out.num_steps,
-        num_rejected_steps=out.num_rejected_steps, **fields,
+        num_rejected_steps=out.num_rejected_steps, **_stem_events(top, out), **fields,
     )
 
 
@@ -246,6 +249,25 @@ def _mask_unmodelled(fields: dict, level, times, t_switch) -> dict:
         drop = drop.reshape(drop.shape + (1,) * (value.ndim - drop.ndim))
         out[name] = jnp.where(drop, jnp.nan, value)
     return out
+
+
+def _stem_phase(top, times, states, out, fields):
+    """`fields` with the stem level's normal force and slip speed (`stem_observables`) at the
+    save times from the hand-over to it on (a top with a stem; else `fields` as they are)."""
+    if top.stem is None or not {"normal_force", "slip_speed"} & set(fields):
+        return fields
+    on_stem_level = times >= out.t_chart_switch  # (False where it is nan)
+    stem_fields = stem_observables(top, states)
+    return {k: jnp.where(on_stem_level, stem_fields[k], v) if k in stem_fields else v
+            for k, v in fields.items()}
+
+
+def _stem_events(top, out) -> dict:
+    """`sol.t_stem` and `sol.t_ball_return`: the stem level's own events (nan without a stem,
+    or where the run did not reach them)."""
+    nan = jnp.full_like(out.t_final, jnp.nan)
+    events = out.level_events
+    return dict(t_stem=events.get("stem_touch", nan), t_ball_return=events.get("ball_return", nan))
 
 
 _outputs_program = eqx.filter_jit(outputs)

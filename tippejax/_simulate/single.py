@@ -27,11 +27,13 @@ from .._top import TippeTop
 from .checks import (
     as_dtype,
     check_run_options,
+    check_stem,
     check_top_and_state,
     checked_state,
     concrete,
     save_times,
     tolerances_for,
+    warn_of_friction,
 )
 from .programs import outcome_of, run, run_traced, trim_saves
 
@@ -95,7 +97,10 @@ def simulate(
       `"auto"` (the cheapest of `"full"`, `"so3"`, `"routhian"`, `"gyroscopic"` whose measured
       error for the top's group and the launch's regime is below `tolerance`; the gyroscopic
       level only for a launch it accepts; the full model where that group and regime were
-      not measured; see the levels page).
+      not measured; see the levels page). A top with a stem (`tj.Stem`) runs at the full
+      level (`"auto"` picks it): just before the stem touches the table it hands over to the
+      stem level, two compliant contacts (`sol.model == "full->stem"`, `sol.t_stem`,
+      `sol.t_ball_return`; `docs/friction.md`, "The stem").
     - `saveat`: save times within `[t0, t1]`, non-decreasing (default: 1001 points from `t0`
       to `t1`). Grids are padded internally to the next power of two (at least 16), so
       lengths that share that bucket share one compilation. Events (inversion, contact loss,
@@ -160,8 +165,11 @@ def simulate(
     check_run_options(max_steps, event_pieces, t0, t1, rtol, atol, summary, saveat, body)
     dtype = jnp.result_type(top.m)
     if model == "auto":
-        model = choose_model(top, y0, tolerance=tolerance)
+        # (a top with a stem runs at the full level, which hands over to the stem level)
+        model = "full" if top.stem is not None else choose_model(top, y0, tolerance=tolerance)
     check_friction(model, top)
+    check_stem(model, top, y0)
+    warn_of_friction(top)
     rtol, atol = tolerances_for(dtype, rtol, atol)
     ts, n_save = save_times(summary, saveat, t0, t1, dtype)
     y0 = jax.tree_util.tree_map(lambda x: as_dtype(x, dtype), y0)
@@ -205,9 +213,10 @@ def simulate(
             out["outcome"], out["settled"] = outcome_of(top, out, classify_program)
     out = trim_saves(out, n_save)
     name = model
-    if LEVELS[model].fallback() is not None:
+    ran = level.for_top(top)  # (the full level of a top with a stem goes on to the stem level)
+    if ran.fallback() is not None:
         switch = out["t_chart_switch"]
-        fallback = LEVELS[model].fallback().name
+        fallback = ran.fallback().name
         if concrete(switch):
             if bool(np.any(np.isfinite(np.asarray(switch)))):
                 name = f"{model}->{fallback}"
