@@ -71,7 +71,6 @@ from ._models.routhian import CHART_SIN_MIN as _CHART_SIN_MIN
 from ._outcome import OUTCOMES as OUTCOMES
 from ._simulate import MODELS as MODELS, simulate as simulate
 from ._solution import RESULTS as RESULTS, Solution as Solution
-from ._stem import Stem as Stem
 from ._state import (
     State as State,
     euler_angles as euler_angles,
@@ -79,6 +78,7 @@ from ._state import (
     initial_state as initial_state,
     state_from_euler as state_from_euler,
 )
+from ._stem import Stem as Stem
 from ._top import TippeTop as TippeTop, default_top as default_top
 
 try:
