@@ -5,6 +5,7 @@ from __future__ import annotations
 import equinox as eqx
 import equinox.internal as eqxi
 import jax
+import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
@@ -156,14 +157,24 @@ class Solution(eqx.Module):
     seen); `jellet` is exact.
     - `jellet`: $J$; `energy`: $E$; `normal_force`: $R_n$; `slip_speed`: $|v_Q|$.
     - `states`: the `State`s at `ts`.
-    - `model`: the level used (str); "routhian->so3" when a Routhian run left its chart.
-      A gyroscopic run that leaves the domain of gyroscopic balance stops there
-      (`result == RESULTS.no_gyroscopic_balance`) and stays "gyroscopic".
+    - `model`: the level used (str); "routhian->so3" when a Routhian run left its chart,
+      "gyroscopic->full" when a gyroscopic run handed over to the full model (see
+      `t_hand_over`).
     - `result`: a `RESULTS` code (`sol.result == tj.RESULTS.successful`); `sol.message()`
       gives its text (an array of texts for a batch).
     - `t_invert`: first upward crossing of $\theta = \pi/2$ (nan if none).
     - `t_contact_loss`: first time $R_n = 0$ (nan if never).
-    - `t_chart_switch`: time a Routhian run left its chart near a pole (nan otherwise).
+    - `t_chart_switch`: time a run left its level's chart for the level's fallback (nan
+      otherwise): a Routhian run near a pole, a gyroscopic run where its chart ends.
+    - `t_hand_over` (property): the same time, for a gyroscopic run, read as the hand-over
+      from the slow flow (G3) to the full model: the slow flow runs from `t0` to
+      `t_hand_over`, the full model from `t_hand_over` (from the state on the slow manifold
+      there) to `t_final`, and nothing of the full model runs before it. The level hands
+      over where its chart condition falls through zero: the nutation it drops starts to
+      grow, $-\sigma/\nu$ below `HAND_OVER_MARGIN` (the slow manifold repels), or the
+      gyroscopic balance (G2) loses its real root (`docs/derivations/gyroscopic-averaging.md`).
+      `t0` for a launch outside the chart (the full model runs the whole run), nan for a run
+      that never hands over (the slow flow runs it all) and for every other level.
     - `t_final`: the time the integration reached (t1 unless it stopped early).
     - `num_steps`, `num_rejected_steps`: solver statistics (all segments together).
     - `outcome`: where the run ended, an index into `tj.OUTCOMES` ("upright", "inverted",
@@ -244,6 +255,14 @@ class Solution(eqx.Module):
             parts.append(f"theta_end={float(theta[finite][-1]):.6g} rad")
         parts.append(f"steps={int(self.num_steps)}")
         return "Solution(" + ", ".join(parts) + ")"
+
+    @property
+    def t_hand_over(self):
+        """The time a gyroscopic run handed over from the slow flow to the full model (nan
+        where none; see the class docstring). Leading batch axes as `t_final`."""
+        if self.model.startswith("gyroscopic"):
+            return self.t_chart_switch
+        return jnp.full_like(self.t_chart_switch, jnp.nan)
 
     @property
     def succeeded(self):
