@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import functools
 import itertools
+import math
 import re
 import statistics
 
@@ -522,12 +523,85 @@ One top per group (mu 0.3), theta0 0.1, omega = n a at n0 = 3 n1 (3 n2 in group 
     fig.savefig(h.figure_path("gyroscopic_work_precision.png", args), dpi=100)
 
 
+
+def cost_mode(args):
+    """The gyroscopic level's cost against the full model per group and spin, with the share
+    of the run in each model (`sol.t_hand_over`), and the eager/jit ratio of every level."""
+    t1, n_save = (2.0, 201) if args.smoke else (20.0, 2001)
+    rounds = args.rounds or (1 if args.smoke else 3)
+    ts = jnp.linspace(0.0, t1, n_save)
+    std = tj.default_top()
+    scenes = [("standard", std, n0) for n0 in ((100.0,) if args.smoke else (100.0, 150.0, 300.0))]
+    for group in () if args.smoke else GROUP_TOPS:
+        top = tj.TippeTop.from_ratios(*GROUP_TOPS[group], mu=0.3)
+        th = tj.thresholds(top)
+        n_ref = float(th.n1) if np.isfinite(float(th.n1)) else float(th.n2)
+        scenes.append((group, top, 3.0 * n_ref))
+
+    def program(model):  # the top traced: one program per level for every scene
+        return eqx.filter_jit(
+            lambda top, y0: tj.simulate(top, y0, t1, model=model, saveat=ts, throw=False)
+        )
+
+    jitted = {m: program(m) for m in ("gyroscopic", "full")}
+    rows, worst = [], {}
+    for name, top, n0 in scenes:
+        y0 = tj.initial_state(top, 0.1, n0)
+        fns = {m: functools.partial(jitted[m], top, y0) for m in jitted}
+        tm = h.interleaved(fns, rounds)
+        (tg, sol), (tf, ref) = tm["gyroscopic"], tm["full"]
+        hand = float(sol.t_hand_over)
+        route = "gyroscopic" + ("->full" if np.isfinite(hand) else "")
+        end = float(sol.t_final)
+        share = 1.0 if not np.isfinite(hand) else (hand - 0.0) / max(end, 1e-300)
+        steps = int(sol.num_steps)
+        outcome = "" if sol.result == tj.RESULTS.successful else f" ({tj.RESULTS.message(sol.result)[:40]}...)"
+        ratio = h.paired(tf, tg)[0]
+        worst[route] = min(worst.get(route, INF), ratio)
+        rows.append(
+            f"{name} | {n0:.0f} | {route}{outcome} | {fmt(hand, '.3f') if np.isfinite(hand) else '-'} | {100 * share:.0f}% / {100 * (1 - share):.0f}% | "
+            f"{1e3 * tg.wall:.2f} ({steps}) | {1e3 * tf.wall:.2f} ({int(ref.num_steps)}) | **{ratio:.1f}x** | "
+            f"{fmt(float(sol.t_invert), '.4f')} / {fmt(float(ref.t_invert), '.4f')}"
+        )
+    # eager against jit, per level: the standard top at n0 100
+    y0 = tj.initial_state(std, 0.1, 100.0)
+    eager_rows = []
+    for m in ("full", "so3", "routhian", "gyroscopic"):
+        jit_m = jitted.get(m) or program(m)
+        fns = {
+            "jit": functools.partial(jit_m, std, y0),
+            "eager": lambda m=m: tj.simulate(std, y0, t1, model=m, saveat=ts, throw=False),
+        }
+        tm = h.interleaved(fns, rounds)
+        r = h.paired(tm["eager"][0], tm["jit"][0])[0]
+        eager_rows.append(
+            f"{m} | {1e3 * tm['jit'][0].wall:.2f} | {1e3 * tm['eager'][0].wall:.2f} | {r:.2f} {h.verdict(r <= 1.5)}"
+        )
+    own = [r for r in rows if r.startswith("standard | 100 |")]
+    target = float(own[0].split("**")[1][:-1]) if own else math.nan
+    h.write(
+        "levels.py --cost",
+        "The gyroscopic level at its price: cost against the full model, and the hand-over",
+        f"""
+theta0 0.1, omega = n a, {t1:g} s, {n_save} saves, default solvers and rtol; standard top and one top per group (mu 0.3, spin 3 x n1, n2 in group I). Median wall time after compilation of `tj.simulate` in the caller's `jax.jit` (the top traced), {rounds} interleaved rounds; the cost ratio is the median of the rounds' full / gyroscopic ratios. Hand-over: `sol.t_hand_over` (`-` where the slow flow runs the whole run); share: of the run in the slow flow / in the full model. Target at n0 100 (standard top): the gyroscopic level at least 50x cheaper than the full model: {target:.1f}x, {h.verdict(target >= 50)}.
+
+{h.table("top | n0 (rad/s) | route | t_hand_over (s) | share slow / full | gyroscopic ms (steps) | full ms (steps) | full / gyroscopic | t_invert gyro / full (s)", rows)}
+
+Eager call against the same call in `jax.jit` (standard top, n0 100, the saves above; target at most 1.5x):
+
+{h.table("level | jit (ms) | eager (ms) | eager / jit", eager_rows)}
+""",
+        args,
+    )
+
+
 MODES = {
     "scenes": (scenes_mode, "scenes of the standard top; the IIb table"),
     "groups": (groups_mode, "a grid of launches in every group; the MEASURED table"),
     "gyro": (gyro_mode, "the gyroscopic level over the spin and mu; its speed"),
     "spun": (spun_mode, "omega = n a launches: the launch projection"),
     "wp": (wp_mode, "work-precision per group; gyroscopic_work_precision.png"),
+    "cost": (cost_mode, "the gyroscopic level's cost and hand-over per group and spin"),
 }
 
 if __name__ == "__main__":

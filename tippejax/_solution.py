@@ -179,8 +179,9 @@ class Solution(eqx.Module):
     - `states`: the `State`s at `ts` (in a level's own terms: a level without translation
       keeps the centre of mass at rest there).
     - `model`: the level used (str); "routhian->so3" when a Routhian run left its chart;
-      "full->stem" when the run of a top with a stem went on to the stem level (two compliant
-      contacts, `docs/friction.md`). From there `energy` includes the contacts' elastic
+      "gyroscopic->full" when a gyroscopic run handed over to the full model (see
+      `t_hand_over`); "full->stem" when the run of a top with a stem went on to the stem
+      level (two compliant contacts, `docs/friction.md`). From there `energy` includes the contacts' elastic
       energy, `normal_force` is the table's whole normal force (ball and stem) and
       `slip_speed` that of the contact carrying more of it; `states.height` is the height of
       the centre of mass.
@@ -190,9 +191,18 @@ class Solution(eqx.Module):
       gives its text (an array of texts for a batch).
     - `t_invert`: first upward crossing of $\theta = \pi/2$ (nan if none).
     - `t_contact_loss`: first time $R_n = 0$ (nan if never).
-    - `t_chart_switch`: time a Routhian run left its chart near a pole, or the full level of a
-      top with a stem handed over to the stem level, just before the stem touched (nan
-      otherwise).
+    - `t_chart_switch`: time a run left its level's chart for the level's fallback (nan
+      otherwise): a Routhian run near a pole, a gyroscopic run where its chart ends, the full
+      level of a top with a stem just before the stem touched (the stem level follows).
+    - `t_hand_over` (property): the same time, for a gyroscopic run, read as the hand-over
+      from the slow flow (G3) to the full model: the slow flow runs from `t0` to
+      `t_hand_over`, the full model from `t_hand_over` (from the state on the slow manifold
+      there) to `t_final`, and nothing of the full model runs before it. The level hands
+      over where its chart condition falls through zero: the nutation it drops starts to
+      grow, $-\sigma/\nu$ below `HAND_OVER_MARGIN` (the slow manifold repels), or the
+      gyroscopic balance (G2) loses its real root (`docs/derivations/gyroscopic-averaging.md`).
+      `t0` for a launch outside the chart (the full model runs the whole run), nan for a run
+      that never hands over (the slow flow runs it all) and for every other level.
     - `t_stem`: the first touch of the stem (`tj.Stem`) on the table (nan if none, and for a
       top without a stem).
     - `t_ball_return`: the first time the ball touches the table again after it left it on
@@ -351,6 +361,14 @@ class Solution(eqx.Module):
         coordinates over the batch's dimensions. Needs xarray (`pip install xarray`)."""
         return _export.to_xarray(self.to_dict(), batch_shape=np.shape(self.t_final),
                                  grid=self.grid, model=self.model)
+
+    @property
+    def t_hand_over(self):
+        """The time a gyroscopic run handed over from the slow flow to the full model (nan
+        where none; see the class docstring). Leading batch axes as `t_final`."""
+        if self.model.startswith("gyroscopic"):
+            return self.t_chart_switch
+        return jnp.full_like(self.t_chart_switch, jnp.nan)
 
     @property
     def succeeded(self):

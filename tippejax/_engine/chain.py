@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
-import dataclasses
+import functools
 
 import diffrax
 import equinox as eqx
+import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float, PyTree
@@ -281,7 +282,9 @@ def run_chain(
     `inversion=False`: `t_invert` is nan, and a caller that needs only the motion, a fit's
     residuals, compiles a smaller program). The chain is static (it depends on the level
     only), so under `jit`/`vmap` every segment is compiled once and a member that does not
-    need a segment runs it with zero length. `y0`: the first level's own state at `t0`, for a
+    need a segment runs it with zero length; the last (fallback) segment is skipped where no
+    member enters it (`_last_fallback`). `solver`: one solver for every segment, or a tuple of
+    one per level of the chain (`level_chain`'s order). `y0`: the first level's own state at `t0`, for a
     caller that has it (default `level.from_state(top, state0)`); `state0` must be its common
     state.
 
@@ -317,16 +320,55 @@ def run_chain(
         start = each(lambda top, c: _segment_start(chain, i, top, c, t1, y0))(top, carry)
         terminating, observed = _segment_events(lvl, stop_on_contact, inversion)
         events = dict(terminating=terminating, observed=observed, **segment_options)
+        events["solver"] = _solver_of(events["solver"], i)
+        if not shared_steps:
+            events["lowest"] = lowest
+        end = functools.partial(_segment_end, chain, i, ts=ts, stop_on_contact=stop_on_contact,
+                                inversion=inversion)
         if shared_steps:
             seg = run_segment_shared(lvl, top, start.y_start, t0, t1, ts, idle=~start.runs,
                                      **events)
-        else:
+            carry = each(end)(top, carry, start, seg)
+        elif i == 0:
             seg = run_segment(lvl, top, start.y_start, carry.t_start, start.t_stop, ts,
-                              lowest=lowest, **events)
-        carry = each(lambda top, c, st, sg: _segment_end(
-            chain, i, top, c, st, sg, ts, stop_on_contact=stop_on_contact,
-            inversion=inversion))(top, carry, start, seg)
+                              **events)
+            carry = end(top, carry, start, seg)
+        elif i == len(chain) - 1:
+            carry = _last_fallback(lvl, top, carry, start, ts, events, end)
+        else:  # (no chain has a fallback that falls back again: a segment for every member)
+            seg = run_segment(lvl, top, start.y_start, carry.t_start, start.t_stop, ts,
+                              **events)
+            carry = end(top, carry, start, seg)
     return each(lambda top, c: _chain_output(c, stop_on_contact))(top, carry)
+
+
+def _solver_of(solver, i: int):
+    """The solver of segment `i`: `solver` itself, or its `i`-th entry where it is a tuple of
+    one solver per level of the chain (`level_chain`'s order; `simulate`'s default solvers,
+    which for the gyroscopic level's chain are the slow flow's and the full model's own)."""
+    return solver[i] if isinstance(solver, tuple) else solver
+
+
+def _last_fallback(lvl: AbstractLevel, top, carry: _Carry, start: _Start, ts, events,
+                   end) -> _Carry:
+    """The carry after the chain's last segment, a fallback level's (`end(top, carry, start,
+    segment)`, `_segment_end`): integrated, and its states at the save times converted and
+    merged, only where some member enters it (`lax.cond`). A run that never leaves its first
+    level's chart (a gyroscopic run that does not hand over, a Routhian run that stays away
+    from the poles) pays nothing for the fallback. Under `vmap` the segment runs for the whole
+    batch as soon as one member needs it (the members that do not run it with zero length).
+    Where none enters it, the carry is what `_segment_end` makes of a segment a member does
+    not run: unchanged but for the result `_segment_start` gave it."""
+
+    def integrate():
+        seg = run_segment(lvl, top, start.y_start, carry.t_start, start.t_stop, ts, **events)
+        out = end(top, carry, start, seg)
+        # (the same dtypes in both branches of `lax.cond`)
+        return jax.tree_util.tree_map(lambda x, ref: jnp.asarray(x).astype(ref.dtype), out,
+                                      skipped)
+
+    skipped = eqx.tree_at(lambda c: c.result, carry, start.result)
+    return jax.lax.cond(eqxi.unvmap_any(start.runs), integrate, lambda: skipped)
 
 
 def _as_one(fn):

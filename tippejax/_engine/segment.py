@@ -101,9 +101,7 @@ def ravel_state(y: PyTree, width: int = PACK_WIDTH):
     on two threads (it runs a program sequentially only if it is a chain or all its buffers
     are at most 512 bytes), which for steps this small costs more than it gains. So one top
     keeps its state in one vector (`ONE_TOP_PACK_WIDTH`), also when differentiated in forward
-    mode (each vector then carries a batch of tangents; `FORWARD_MODE_PACK_WIDTH`). The
-    gyroscopic level's chain (slow flow, then the full model from the hand-over) is the
-    exception: it runs faster with the batch layout, so `simulate` keeps that for it. A
+    mode (each vector then carries a batch of tangents; `FORWARD_MODE_PACK_WIDTH`). A
     vmapped batch keeps `PACK_WIDTH`.
     """
     leaves, treedef = jax.tree_util.tree_flatten(y)

@@ -289,11 +289,17 @@ def outcome_of(top, out, classify):
 
 def trim_saves(out: dict, n_save: int | None, axis: int = 0) -> dict:
     """`out` with its save-time outputs (`SAVED`) cut back from the bucket's length to the
-    `n_save` times asked for, along `axis` (1 for a batch whose members lead)."""
+    `n_save` times asked for, along `axis` (1 for a batch whose members lead): in one program
+    (`_trimmed`) for concrete outputs, not one dispatched slice per field."""
     if n_save is None or out["ts"].shape[axis] == n_save:
         return out
-    index = (slice(None),) * axis + (slice(None, n_save),)
     out = dict(out)
-    for key in SAVED:
-        out[key] = jax.tree_util.tree_map(lambda x: x[index], out[key])
+    out.update(_trimmed({key: out[key] for key in SAVED}, n_save, axis))
     return out
+
+
+@functools.partial(jax.jit, static_argnums=(1, 2))
+def _trimmed(saved: dict, n_save: int, axis: int) -> dict:
+    """The leaves of `saved` cut to their first `n_save` entries along `axis`."""
+    index = (slice(None),) * axis + (slice(None, n_save),)
+    return jax.tree_util.tree_map(lambda x: x[index], saved)

@@ -13,8 +13,9 @@ from jaxtyping import ArrayLike
 
 from .._auto import choose_model
 from .._cache import cacheable, cached_call, calling_context
+from .._engine.chain import level_chain
 from .._engine.cpu import own_compiler_options
-from .._engine.segment import PACK_WIDTH, pack_width_for
+from .._engine.segment import pack_width_for
 from .._engine.sensitivity import ForwardSensitivities
 from .._engine.solver_choice import IMPLICIT_RATE, STIFF_RATE, default_solver, friction_rate
 from .._engine.watch import EVENT_PIECES
@@ -39,6 +40,14 @@ from .programs import outcome_of, run, run_traced, trim_saves
 
 MODELS = (*LEVELS, "auto")
 """The levels `simulate` runs (`model=`), and `"auto"`."""
+
+
+def default_solvers(top: TippeTop, level):
+    """`default_solver` of every level of `level`'s chain (`level_chain`): one solver where
+    they agree, else a tuple of one per level (the gyroscopic level's slow flow runs Dopri5,
+    and the full model it hands over to runs its own default, Dopri8 for moderate friction)."""
+    solvers = tuple(default_solver(top, slow_flow=lvl.slow_flow) for lvl in level_chain(level))
+    return solvers[0] if all(s == solvers[0] for s in solvers) else solvers
 
 
 def _differentiated_eagerly(args) -> bool:
@@ -176,7 +185,7 @@ def simulate(
     y0 = checked_state(y0)
     guard_stiff = solver is None and not concrete(top)
     if solver is None:
-        solver = default_solver(top, slow_flow=LEVELS[model].slow_flow)
+        solver = default_solvers(top, LEVELS[model])
     if adjoint is None:
         adjoint = ForwardSensitivities()
     level = dataclasses.replace(LEVELS[model], body=not summary if body is None else bool(body))
@@ -184,12 +193,9 @@ def simulate(
         level=level, solver=solver, guard_stiff=guard_stiff,
         stop_on_contact=on_contact_loss == "stop", max_steps=int(max_steps),
         adjoint=adjoint, progress=progress, pieces=int(event_pieces),
-        # (a slow-flow level's chain, which hands over to the full model, runs faster in the
-        # batch layout)
-        pack_width=PACK_WIDTH if LEVELS[model].slow_flow else pack_width_for(
-            top, y0, t0, t1, rtol, atol, ts, adjoint=adjoint),
-        jacobian_pack_width=PACK_WIDTH if LEVELS[model].slow_flow else pack_width_for(
-            top, y0, t0, t1, rtol, atol, ts, adjoint=diffrax.ForwardMode()),
+        pack_width=pack_width_for(top, y0, t0, t1, rtol, atol, ts, adjoint=adjoint),
+        jacobian_pack_width=pack_width_for(top, y0, t0, t1, rtol, atol, ts,
+                                           adjoint=diffrax.ForwardMode()),
     )
     args = (top, y0, ts, *(as_dtype(x, dtype) for x in (t0, t1, rtol, atol)))
     with cacheable():
@@ -247,7 +253,7 @@ def simulate_tilt(top: TippeTop, y0: State, ts, *, t0, t1, model: str, rtol, ato
         rtol, atol = jnp.maximum(rtol, 1e-5), jnp.maximum(atol, 1e-7)
     guard_stiff = solver is None and not concrete(top)
     if solver is None:
-        solver = default_solver(top, slow_flow=LEVELS[model].slow_flow)
+        solver = default_solvers(top, LEVELS[model])
     out = run(
         top, y0, jnp.asarray(ts, dtype), jnp.asarray(t0, dtype), jnp.asarray(t1, dtype),
         jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype),
