@@ -21,8 +21,9 @@ def cardillo_worker(checkout, dt, t_final, out):
 
     if not hasattr(discrete, "RigidBodyEuler"):  # the example imports it; unused, gone at 1c667a30
         discrete.RigidBodyEuler = type("RigidBodyEuler", (), {})
-    spec = importlib.util.spec_from_file_location("cardillo_tippetop",
-                                                  root / "examples" / "tippetop.py")
+    spec = importlib.util.spec_from_file_location(
+        "cardillo_tippetop", root / "examples" / "tippetop.py"
+    )
     example = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(example)
     system, top, _, _ = example.make_system(discrete.RigidBody)

@@ -89,10 +89,20 @@ def draw(seed: int, index: int, attempt: int) -> dict | None:
     noise_seed = int(rng.integers(2**31))
     n = int(math.floor(length * rate))
     try:
-        out = rr.solve(params, law, theta0, spin_factor * n1, (n + 0.5) / rate,
-                       mu=friction["mu"], rho=friction.get("patch_radius", 5e-4),
-                       delta=friction.get("slip_scale", 1e-6), stem=False, contact="rigid",
-                       dt_sample=1.0 / rate, rtol=RTOL)
+        out = rr.solve(
+            params,
+            law,
+            theta0,
+            spin_factor * n1,
+            (n + 0.5) / rate,
+            mu=friction["mu"],
+            rho=friction.get("patch_radius", 5e-4),
+            delta=friction.get("slip_scale", 1e-6),
+            stem=False,
+            contact="rigid",
+            dt_sample=1.0 / rate,
+            rtol=RTOL,
+        )
     except RuntimeError as err:
         print(f"law record {index} attempt {attempt}: {err}", file=sys.stderr)
         return None
@@ -103,11 +113,24 @@ def draw(seed: int, index: int, attempt: int) -> dict | None:
         return None  # contact lost too early
     obs = clean + sigma * np.random.default_rng(noise_seed).standard_normal(ts.size)
     return dict(
-        index=index, seed=seed, attempt=attempt, law=law, group=group, params=params,
-        friction=friction, n1=n1, spin_over_n1=spin_factor,
-        launch=dict(theta0=theta0, spin=spin_factor * n1), ts=ts, theta_clean=clean,
-        theta_obs=obs, sigma=sigma, rate_hz=rate, length_s=float(ts[-1]),
-        contact_lost=bool(ts[-1] < (n - 0.5) / rate), t_half=float(out["t_half"]),
+        index=index,
+        seed=seed,
+        attempt=attempt,
+        law=law,
+        group=group,
+        params=params,
+        friction=friction,
+        n1=n1,
+        spin_over_n1=spin_factor,
+        launch=dict(theta0=theta0, spin=spin_factor * n1),
+        ts=ts,
+        theta_clean=clean,
+        theta_obs=obs,
+        sigma=sigma,
+        rate_hz=rate,
+        length_s=float(ts[-1]),
+        contact_lost=bool(ts[-1] < (n - 0.5) / rate),
+        t_half=float(out["t_half"]),
     )
 
 

@@ -60,14 +60,14 @@ def law_of(kind: str, fields: dict) -> tj.AbstractFriction:
         return tj.Viscous(fields["mu"])
     if kind == "coulomb":
         return tj.Coulomb(fields["mu"], fields["slip_scale"])
-    return tj.CoulombContensou(fields["mu"], fields["patch_radius"], fields["slip_scale"],
-                               pressure=kind)
+    return tj.CoulombContensou(
+        fields["mu"], fields["patch_radius"], fields["slip_scale"], pressure=kind
+    )
 
 
 def top_of(rec, law) -> tj.TippeTop:
     p = rec["params"]
-    return tj.TippeTop(m=p["m"], R=p["R"], eps=p["eps"], A=p["A"], C=p["C"], g=p["g"],
-                       friction=law)
+    return tj.TippeTop(m=p["m"], R=p["R"], eps=p["eps"], A=p["A"], C=p["C"], g=p["g"], friction=law)
 
 
 def truth(rec) -> dict:
@@ -87,8 +87,10 @@ def off(rec, names, index) -> dict:
 def score(values, errors, free, want) -> dict:
     values, errors = np.asarray(values, float), np.asarray(errors, float)
     target = np.array([want[k] for k in free])
-    return dict(rel_error=((values - target) / np.abs(target)).tolist(),
-                z=((values - target) / errors).tolist())
+    return dict(
+        rel_error=((values - target) / np.abs(target)).tolist(),
+        z=((values - target) / errors).tolist(),
+    )
 
 
 def succeeded(part) -> bool:
@@ -107,16 +109,25 @@ def accepted(seed, index, verbose=True):
         top = top_of(rec, law)
         free = COMMON + identifiable(law)
         y0 = tj.initial_state(top, rec["launch"]["theta0"], rec["launch"]["spin"])
-        wall, _, res = h.call(lambda: tj.fit(top, y0, rec["ts"], rec["theta_obs"], free=free,
-                                             sigma=rec["sigma"]))
+        wall, _, res = h.call(
+            lambda: tj.fit(top, y0, rec["ts"], rec["theta_obs"], free=free, sigma=rec["sigma"])
+        )
         se_rel = np.asarray(res.std_errors) / np.abs(np.asarray(res.values))
-        from_truth = dict(score(res.values, res.std_errors, free, truth(rec)), wall=wall,
-                          converged=bool(res.converged), se_rel=se_rel.tolist(), free=free)
+        from_truth = dict(
+            score(res.values, res.std_errors, free, truth(rec)),
+            wall=wall,
+            converged=bool(res.converged),
+            se_rel=se_rel.tolist(),
+            free=free,
+        )
         last = (rec, from_truth)
         if verbose:
-            print(f"  record {index} attempt {attempt}: {rec['law']}, {rec['group']}, "
-                  f"{rec['rate_hz']:.0f} Hz, {rec['length_s']:.1f} s, sigma {rec['sigma']:.3f}; "
-                  f"se_rel max {se_rel.max():.2e} ({wall:.0f} s)", flush=True)
+            print(
+                f"  record {index} attempt {attempt}: {rec['law']}, {rec['group']}, "
+                f"{rec['rate_hz']:.0f} Hz, {rec['length_s']:.1f} s, sigma {rec['sigma']:.3f}; "
+                f"se_rel max {se_rel.max():.2e} ({wall:.0f} s)",
+                flush=True,
+            )
         if bool(np.all(se_rel <= MAX_SE_REL)):
             return rec, dict(from_truth, weak=False)
     if last is None:
@@ -137,28 +148,49 @@ def compare_row(seed, index) -> dict:
         guesses.append(law_of(other, fields))
     start = off(rec, COMMON, index)
     p = rec["params"]
-    top = tj.TippeTop(m=p["m"], R=p["R"], eps=start["eps"], A=p["A"], C=p["C"], g=p["g"],
-                      mu=0.3)
+    top = tj.TippeTop(m=p["m"], R=p["R"], eps=start["eps"], A=p["A"], C=p["C"], g=p["g"], mu=0.3)
     y0 = tj.initial_state(top, rec["launch"]["theta0"], start["spin"])
-    wall, _, cmp = h.call(lambda: tj.compare_laws(top, y0, rec["ts"], rec["theta_obs"], guesses,
-                                                  free=COMMON, sigma=rec["sigma"]))
+    wall, _, cmp = h.call(
+        lambda: tj.compare_laws(
+            top, y0, rec["ts"], rec["theta_obs"], guesses, free=COMMON, sigma=rec["sigma"]
+        )
+    )
     laws = []
     for i, other in enumerate(flr.LAWS):
         res = cmp.fits[i]
         fit_curve = np.asarray(res.theta_fit, float)
         differs = float(np.sqrt(np.nanmean((fit_curve - rec["theta_clean"]) ** 2)) / rec["sigma"])
-        part = dict(kind=other, free=list(res.free), values=np.asarray(res.values).tolist(),
-                    converged=bool(res.converged), message=res.message()[:60],
-                    chi2_dof=float(cmp.chi2[i] / cmp.dof[i]), p=float(cmp.p_value[i]),
-                    white=bool(cmp.white[i]), bic=float(cmp.bic[i]),
-                    ruled_out=bool(cmp.ruled_out[i]), differs=differs)
+        part = dict(
+            kind=other,
+            free=list(res.free),
+            values=np.asarray(res.values).tolist(),
+            converged=bool(res.converged),
+            message=res.message()[:60],
+            chi2_dof=float(cmp.chi2[i] / cmp.dof[i]),
+            p=float(cmp.p_value[i]),
+            white=bool(cmp.white[i]),
+            bic=float(cmp.bic[i]),
+            ruled_out=bool(cmp.ruled_out[i]),
+            differs=differs,
+        )
         if other == kind:
             part.update(score(res.values, res.std_errors, res.free, truth(rec)))
         laws.append(part)
     preferred = None if cmp.preferred_index < 0 else flr.LAWS[cmp.preferred_index]
-    return dict(index=index, seed=seed, law=kind, group=rec["group"], rate=rec["rate_hz"],
-                length=rec["length_s"], sigma=rec["sigma"], attempt=rec["attempt"],
-                from_truth=from_truth, laws=laws, preferred=preferred, wall=wall)
+    return dict(
+        index=index,
+        seed=seed,
+        law=kind,
+        group=rec["group"],
+        rate=rec["rate_hz"],
+        length=rec["length_s"],
+        sigma=rec["sigma"],
+        attempt=rec["attempt"],
+        from_truth=from_truth,
+        laws=laws,
+        preferred=preferred,
+        wall=wall,
+    )
 
 
 def summary(rows) -> str:
@@ -176,11 +208,19 @@ def summary(rows) -> str:
         fit_rows.append(
             f"{NAMES.get(kind, kind)} | {len(sub)} | {sum(truth_ok)}/{len(sub)} | "
             f"{sum(ok)}/{len(sub)} | {flagged}/{len(bad)} | {len(bad) - flagged} | "
-            f"{sum(r['from_truth']['weak'] for r in sub)}")
-    lines += ["With the right law (success: every free parameter within 2% of the truth and 3 "
-              "standard errors):", "",
-              h.table("law | records | success from truth | success from 30% off | failures "
-                      "flagged | unflagged failures | records above the 0.5% cut", fit_rows), ""]
+            f"{sum(r['from_truth']['weak'] for r in sub)}"
+        )
+    lines += [
+        "With the right law (success: every free parameter within 2% of the truth and 3 "
+        "standard errors):",
+        "",
+        h.table(
+            "law | records | success from truth | success from 30% off | failures "
+            "flagged | unflagged failures | records above the 0.5% cut",
+            fit_rows,
+        ),
+        "",
+    ]
     pair_rows = []
     total = [0, 0, 0]
     for kind in flr.LAWS:
@@ -189,47 +229,68 @@ def summary(rows) -> str:
             if other == kind:
                 cells.append("-")
                 continue
-            parts = [next(x for x in r["laws"] if x["kind"] == other)
-                     for r in rows if r["law"] == kind]
+            parts = [
+                next(x for x in r["laws"] if x["kind"] == other) for r in rows if r["law"] == kind
+            ]
             differ = [x for x in parts if x["differs"] > 1.0]
             rejected = sum(x["ruled_out"] for x in differ)
             total[0] += rejected
             total[1] += len(differ)
             total[2] += sum(x["ruled_out"] for x in parts if x["differs"] <= 1.0)
-            cells.append(f"{rejected}/{len(differ)}" + (
-                f" (+{len(parts) - len(differ)} alike)" if len(parts) > len(differ) else ""))
+            cells.append(
+                f"{rejected}/{len(differ)}"
+                + (f" (+{len(parts) - len(differ)} alike)" if len(parts) > len(differ) else "")
+            )
         pair_rows.append(f"{NAMES[kind]} | " + " | ".join(cells))
     rate = total[0] / total[1] if total[1] else float("nan")
-    lines += [f"The wrong law ruled out, on the records where its best fit is further than the "
-              f"noise (rms) from the clean signal: {total[0]}/{total[1]} ({rate:.1%}); "
-              f"ruled out where it is not (alike): {total[2]}. Rows: the record's law; columns: "
-              "the law fitted.", "",
-              h.table("record's law | " + " | ".join(NAMES[k] for k in flr.LAWS), pair_rows), ""]
+    lines += [
+        f"The wrong law ruled out, on the records where its best fit is further than the "
+        f"noise (rms) from the clean signal: {total[0]}/{total[1]} ({rate:.1%}); "
+        f"ruled out where it is not (alike): {total[2]}. Rows: the record's law; columns: "
+        "the law fitted.",
+        "",
+        h.table("record's law | " + " | ".join(NAMES[k] for k in flr.LAWS), pair_rows),
+        "",
+    ]
     choice_rows = []
     for kind in (*flr.LAWS, "all"):
         sub = [r for r in rows if kind in ("all", r["law"])]
         if not sub:
             continue
         chosen = sum(r["preferred"] == r["law"] for r in sub)
-        distinct = [r for r in sub if all(x["differs"] > 1.0 for x in r["laws"]
-                                          if x["kind"] != r["law"])]
+        distinct = [
+            r for r in sub if all(x["differs"] > 1.0 for x in r["laws"] if x["kind"] != r["law"])
+        ]
         none = sum(r["preferred"] is None for r in sub)
         choice_rows.append(
             f"{NAMES.get(kind, kind)} | {chosen}/{len(sub)} | "
             f"{sum(r['preferred'] == r['law'] for r in distinct)}/{len(distinct)} | {none} | "
-            f"{np.median([r['wall'] for r in sub]):.0f}")
-    lines += ["The law chosen (`preferred`: the lowest BIC among the laws not ruled out):", "",
-              h.table("record's law | chosen right | right where every other law differs | "
-                      "none chosen | median s / record (one fit per law)", choice_rows)]
+            f"{np.median([r['wall'] for r in sub]):.0f}"
+        )
+    lines += [
+        "The law chosen (`preferred`: the lowest BIC among the laws not ruled out):",
+        "",
+        h.table(
+            "record's law | chosen right | right where every other law differs | "
+            "none chosen | median s / record (one fit per law)",
+            choice_rows,
+        ),
+    ]
     wrong = [r for r in rows if r["preferred"] != r["law"]]
     if wrong:
         lines += ["", "Records where the law chosen is not the record's:"]
-        lines += [f"- record {r['index']} ({NAMES[r['law']]}, {r['group']}, {r['rate']:.0f} Hz, "
-                  f"{r['length']:.1f} s, sigma {r['sigma']:.3f}): chose "
-                  f"{NAMES.get(r['preferred'], r['preferred'])}; "
-                  + "; ".join(f"{NAMES[x['kind']]} chi2/dof {x['chi2_dof']:.2f}, "
-                              f"{'white' if x['white'] else 'not white'}, differs "
-                              f"{x['differs']:.2f}" for x in r["laws"]) for r in wrong]
+        lines += [
+            f"- record {r['index']} ({NAMES[r['law']]}, {r['group']}, {r['rate']:.0f} Hz, "
+            f"{r['length']:.1f} s, sigma {r['sigma']:.3f}): chose "
+            f"{NAMES.get(r['preferred'], r['preferred'])}; "
+            + "; ".join(
+                f"{NAMES[x['kind']]} chi2/dof {x['chi2_dof']:.2f}, "
+                f"{'white' if x['white'] else 'not white'}, differs "
+                f"{x['differs']:.2f}"
+                for x in r["laws"]
+            )
+            for r in wrong
+        ]
     return "\n".join(lines)
 
 
@@ -253,9 +314,12 @@ def laws(args):
         row = compare_row(args.seed, i)
         rows.append(row)
         chosen = "right" if row["preferred"] == row["law"] else f"WRONG ({row['preferred']})"
-        print(f"record {i} ({row['law']}, {row['group']}): law chosen {chosen}, right law "
-              f"{'ok' if succeeded(next(x for x in row['laws'] if x['kind'] == row['law'])) else 'FAIL'}"
-              f"; {row['wall']:.0f} s ({time.perf_counter() - start:.0f} s so far)", flush=True)
+        print(
+            f"record {i} ({row['law']}, {row['group']}): law chosen {chosen}, right law "
+            f"{'ok' if succeeded(next(x for x in row['laws'] if x['kind'] == row['law'])) else 'FAIL'}"
+            f"; {row['wall']:.0f} s ({time.perf_counter() - start:.0f} s so far)",
+            flush=True,
+        )
         if not args.smoke:
             path.parent.mkdir(parents=True, exist_ok=True)
             path.write_text(json.dumps(rows))
@@ -279,8 +343,9 @@ def laws(args):
 
 def mujoco(args):
     """MuJoCo's own top (`examples/data/mujoco_tippe_top.csv`): every law on the whole record."""
-    data = np.genfromtxt(h.HERE.parent / "examples" / "data" / "mujoco_tippe_top.csv",
-                         delimiter=",", names=True)
+    data = np.genfromtxt(
+        h.HERE.parent / "examples" / "data" / "mujoco_tippe_top.csv", delimiter=",", names=True
+    )
     ts, theta = data["t"], data["theta"]
     if args.smoke:
         keep = ts <= 1.0
@@ -289,13 +354,16 @@ def mujoco(args):
     guesses = (tj.Viscous(3.0), tj.Coulomb(0.3, 3e-3), tj.CoulombContensou(0.3, 5e-4, 1e-5))
     y0 = tj.initial_state(true, float(theta[0]), 100.0)
     kw = dict(max_steps=3) if args.smoke else {}
-    wall, _, cmp = h.call(lambda: tj.compare_laws(true, y0, ts, theta, guesses,
-                                                  free=("eps", "spin"), **kw))
+    wall, _, cmp = h.call(
+        lambda: tj.compare_laws(true, y0, ts, theta, guesses, free=("eps", "spin"), **kw)
+    )
     rows = []
     for name, res in zip(cmp.names, cmp.fits):
-        rows.append(f"{name} | {', '.join(f'{n} = {float(v):.4g}' for n, v in zip(res.free, np.asarray(res.values)))} | "
-                    f"{float(res.rms):.4g} | {float(res.noise):.3g} | "
-                    f"{float(res.rms) / float(res.noise):.2f} | {res.message()[:40] or 'converged'}")
+        rows.append(
+            f"{name} | {', '.join(f'{n} = {float(v):.4g}' for n, v in zip(res.free, np.asarray(res.values)))} | "
+            f"{float(res.rms):.4g} | {float(res.noise):.3g} | "
+            f"{float(res.rms) / float(res.noise):.2f} | {res.message()[:40] or 'converged'}"
+        )
     best = int(np.argmin([float(f.rms) / float(f.noise) for f in cmp.fits]))
     ratio = float(cmp.fits[best].rms) / float(cmp.fits[best].noise)
     h.write(

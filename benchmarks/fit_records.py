@@ -73,13 +73,18 @@ GAP_FRACTION = 1.0 / 3.0
 # are those of one smooth discrete map and converge as h -> 0 (checked down to 1e-4 of these
 # steps); steps 100x larger (rel 1e-4 mu/eps, 1e-5 spin, abs 1e-3 theta_dot) are NOT small enough
 # on records whose bound is ~1e-5 of the value: record 52 of seed 0 got a bound on mu 8x too small.
-FD_STEPS = {"mu": ("rel", 1e-6), "eps": ("rel", 1e-6), "spin": ("rel", 1e-7),
-            "theta_dot": ("abs", 1e-5)}
+FD_STEPS = {
+    "mu": ("rel", 1e-6),
+    "eps": ("rel", 1e-6),
+    "spin": ("rel", 1e-7),
+    "theta_dot": ("abs", 1e-5),
+}
 CUT_ON = ("mu", "eps", "spin")  # max_crb_rel applies to these (theta_dot's bound is reported)
 RTOL_DATA, RTOL_FD = 1e-12, 1e-10
 MAX_CRB_REL = 0.005
-CACHE_ROOT = pathlib.Path(os.environ.get("TIPPEJAX_BENCH_CACHE",
-                                         pathlib.Path.home() / ".cache" / "tippejax-bench"))
+CACHE_ROOT = pathlib.Path(
+    os.environ.get("TIPPEJAX_BENCH_CACHE", pathlib.Path.home() / ".cache" / "tippejax-bench")
+)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -93,9 +98,11 @@ def _classify_numpy(a, e):
     disc = 1.0 - a - e**2
     with np.errstate(invalid="ignore", divide="ignore"):
         x_b = (e - np.sqrt(3.0) / 3.0 * np.sqrt(a) * np.sqrt(np.where(disc > 0, disc, 1.0))) / (
-            np.where(disc > 0, 1.0 - a, 1.0))
-    out = np.where(disc > 0, np.where(np.abs(x_b) < 1, "IIa", np.where(x_b < -1, "IIc", "IIb")),
-                   "IIb").astype(object)
+            np.where(disc > 0, 1.0 - a, 1.0)
+        )
+    out = np.where(
+        disc > 0, np.where(np.abs(x_b) < 1, "IIa", np.where(x_b < -1, "IIc", "IIb")), "IIb"
+    ).astype(object)
     out[a - 1.0 > e] = "III"
     out[a - 1.0 < -e] = np.where(x_b[a - 1.0 < -e] < -1, "Ia", "Ib")
     return out
@@ -127,8 +134,15 @@ def _draw_top(rng, group):
         ok = np.nonzero((groups == group) & (n1 < N1_MAX))[0]
         if ok.size:
             i = ok[0]
-            params = dict(m=float(m[i]), R=float(R[i]), eps=float(e[i] * R[i]),
-                          A=float(a[i] * C[i]), C=float(C[i]), g=9.81, mu=float(mu[i]))
+            params = dict(
+                m=float(m[i]),
+                R=float(R[i]),
+                eps=float(e[i] * R[i]),
+                A=float(a[i] * C[i]),
+                C=float(C[i]),
+                g=9.81,
+                mu=float(mu[i]),
+            )
             if abs(_n1(params) - n1[i]) > 1e-9 * n1[i]:
                 raise AssertionError("tj.thresholds(top).n1 disagrees with eq. n1")
             return params, float(n1[i])
@@ -172,8 +186,9 @@ def sensitivities(params, launch, free, ts, *, rtol=RTOL_FD, step_scale=1.0):
     ys, _ = vr.solve_batch(plist, ylist, ts, rtol=rtol, atol=rtol * 1e-2)
     a = ys[:, :, 4:7]
     theta = np.arctan2(np.hypot(a[..., 0], a[..., 1]), a[..., 2])  # (T, K)
-    jac = np.stack([(theta[:, 1 + 2 * j] - theta[:, 2 + 2 * j]) / (2 * h)
-                    for j, h in enumerate(steps)], axis=1)
+    jac = np.stack(
+        [(theta[:, 1 + 2 * j] - theta[:, 2 + 2 * j]) / (2 * h) for j, h in enumerate(steps)], axis=1
+    )
     return theta[:, 0], jac
 
 
@@ -199,11 +214,13 @@ def _draw_one(seed, index, max_crb_rel):
         spin_factor = math.exp(rng.uniform(math.log(1.5), math.log(8.0)))
         spin = spin_factor * n1
         if upright:
-            launch = dict(theta0=0.0, spin=spin, theta_dot=float(rng.uniform(0.2, 2.0)),
-                          phi_dot=0.0)
+            launch = dict(
+                theta0=0.0, spin=spin, theta_dot=float(rng.uniform(0.2, 2.0)), phi_dot=0.0
+            )
         else:
-            launch = dict(theta0=float(rng.uniform(0.02, 0.5)), spin=spin, theta_dot=0.0,
-                          phi_dot=0.0)
+            launch = dict(
+                theta0=float(rng.uniform(0.02, 0.5)), spin=spin, theta_dot=0.0, phi_dot=0.0
+            )
         length = float(rng.uniform(3.0, 20.0))
         rate = float(math.exp(rng.uniform(math.log(20.0), math.log(500.0))))
         sigma = float(math.exp(rng.uniform(math.log(0.002), math.log(0.03))))
@@ -211,9 +228,17 @@ def _draw_one(seed, index, max_crb_rel):
         noise_seed = int(rng.integers(2**31))
         ts = np.arange(int(math.floor(length * rate)) + 1) / rate
         try:
-            sol = vr.solve(params, launch["theta0"], spin, ts, theta_dot=launch["theta_dot"],
-                           phi_dot=launch["phi_dot"], rtol=RTOL_DATA, atol=1e-14,
-                           stop_at_contact_loss=True)
+            sol = vr.solve(
+                params,
+                launch["theta0"],
+                spin,
+                ts,
+                theta_dot=launch["theta_dot"],
+                phi_dot=launch["phi_dot"],
+                rtol=RTOL_DATA,
+                atol=1e-14,
+                stop_at_contact_loss=True,
+            )
         except RuntimeError as err:
             rejected["solver_failed"] += 1
             print(f"record {index}: draw {attempt} rejected: {err}", file=sys.stderr)
@@ -236,7 +261,7 @@ def _draw_one(seed, index, max_crb_rel):
             lo = int(round(0.05 * ts.size))
             hi = max(lo, int(round(0.95 * ts.size)) - n_gap)
             start = lo + int(round(gap_pos * (hi - lo)))
-            obs[start:start + n_gap] = np.nan
+            obs[start : start + n_gap] = np.nan
             gap = (float(ts[start]), float(ts[min(start + n_gap, ts.size) - 1]))
         free = ("mu", "eps", "spin") + (("theta_dot",) if upright else ())
         truth = {name: float(_truth_value(params, launch, name)) for name in free}
@@ -249,22 +274,39 @@ def _draw_one(seed, index, max_crb_rel):
             continue  # the data do not pin the parameters down: redraw everything
         t_inv = sol["t_invert"]
         return dict(
-            index=index, seed=seed, group=group, params=params, n1=n1,
-            spin_over_n1=spin_factor, launch=launch, upright=upright, ts=ts,
-            theta_clean=theta_clean, theta_obs=obs, sigma=sigma, rate_hz=rate,
-            length_s=float(ts[-1]), gap=gap, free=free, truth=truth,
+            index=index,
+            seed=seed,
+            group=group,
+            params=params,
+            n1=n1,
+            spin_over_n1=spin_factor,
+            launch=launch,
+            upright=upright,
+            ts=ts,
+            theta_clean=theta_clean,
+            theta_obs=obs,
+            sigma=sigma,
+            rate_hz=rate,
+            length_s=float(ts[-1]),
+            gap=gap,
+            free=free,
+            truth=truth,
             crb=dict(zip(free, map(float, crb))),
-            crb_rel=crb_rel, crb_cov=cov.tolist(),
+            crb_rel=crb_rel,
+            crb_cov=cov.tolist(),
             crb_corr=(cov / np.outer(crb, crb)).tolist(),
             t_invert=None if not np.isfinite(t_inv) or t_inv > ts[-1] else float(t_inv),
             contact_lost=contact_lost,
             t_contact_loss=float(t_loss) if contact_lost else None,
             min_normal_force=float(normal.min()),
             fd_data_gap=float(np.max(np.abs(theta_fd - theta_clean))),
-            attempts=attempt + 1, rejected=rejected, max_crb_rel=max_crb_rel,
+            attempts=attempt + 1,
+            rejected=rejected,
+            max_crb_rel=max_crb_rel,
         )
-    raise RuntimeError(f"record {index}: no draw in 200 kept contact for 3 s with crb_rel <= "
-                       f"{max_crb_rel}")
+    raise RuntimeError(
+        f"record {index}: no draw in 200 kept contact for 3 s with crb_rel <= {max_crb_rel}"
+    )
 
 
 # ----------------------------------------------------------------------------------------------
@@ -283,8 +325,12 @@ def _source_hash():
 
 def _cache_path(seed, index, max_crb_rel):
     cut = "all" if max_crb_rel is None else f"crb{max_crb_rel:g}"
-    return (CACHE_ROOT / f"fit_records-v{VERSION}-{_source_hash()}" / f"seed{seed}-{cut}"
-            / f"{index:05d}.npz")
+    return (
+        CACHE_ROOT
+        / f"fit_records-v{VERSION}-{_source_hash()}"
+        / f"seed{seed}-{cut}"
+        / f"{index:05d}.npz"
+    )
 
 
 def _save(path, rec):
@@ -305,8 +351,14 @@ def _load(path):
     return rec
 
 
-def draw_records(n: int, seed: int, *, max_crb_rel: float | None = MAX_CRB_REL, cache: bool = True,
-                 verbose: bool = False) -> list[dict]:
+def draw_records(
+    n: int,
+    seed: int,
+    *,
+    max_crb_rel: float | None = MAX_CRB_REL,
+    cache: bool = True,
+    verbose: bool = False,
+) -> list[dict]:
     """Records 0..n-1 of `seed` (see the module docstring); cached per record.
 
     `max_crb_rel`: a draw whose Cramer-Rao bound on mu, eps or spin exceeds this fraction of the
@@ -333,9 +385,12 @@ def draw_records(n: int, seed: int, *, max_crb_rel: float | None = MAX_CRB_REL, 
         if not warned:
             warned = True
             if not vr.HAVE_NUMBA:
-                print("fit_records: numba is not installed, so the reference integrator runs "
-                      "as plain Python, about 100x slower (a record can take many minutes); "
-                      "`pip install -e \".[bench]\"` installs it", file=sys.stderr)
+                print(
+                    "fit_records: numba is not installed, so the reference integrator runs "
+                    "as plain Python, about 100x slower (a record can take many minutes); "
+                    '`pip install -e ".[bench]"` installs it',
+                    file=sys.stderr,
+                )
         t0 = time.perf_counter()
         rec = _draw_one(seed, index, max_crb_rel)
         rec["seconds"] = time.perf_counter() - t0

@@ -352,10 +352,15 @@ def options(prs):
         "--compare", type=int, default=8, help="records also fitted with the other strategies"
     )
     prs.add_argument("--copies", type=int, default=4, help="--coverage: noise draws per record")
-    prs.add_argument("--resume", action="store_true",
-                     help="--table, --laws: keep the fits already made")
-    prs.add_argument("--minutes", type=float, default=None,
-                     help="--laws: start no new record after this many minutes")
+    prs.add_argument(
+        "--resume", action="store_true", help="--table, --laws: keep the fits already made"
+    )
+    prs.add_argument(
+        "--minutes",
+        type=float,
+        default=None,
+        help="--laws: start no new record after this many minutes",
+    )
 
 
 MODES = {

@@ -523,7 +523,6 @@ One top per group (mu 0.3), theta0 0.1, omega = n a at n0 = 3 n1 (3 n2 in group 
     fig.savefig(h.figure_path("gyroscopic_work_precision.png", args), dpi=100)
 
 
-
 def cost_mode(args):
     """The gyroscopic level's cost against the full model per group and spin, with the share
     of the run in each model (`sol.t_hand_over`), and the eager/jit ratio of every level."""
@@ -555,7 +554,11 @@ def cost_mode(args):
         end = float(sol.t_final)
         share = 1.0 if not np.isfinite(hand) else (hand - 0.0) / max(end, 1e-300)
         steps = int(sol.num_steps)
-        outcome = "" if sol.result == tj.RESULTS.successful else f" ({tj.RESULTS.message(sol.result)[:40]}...)"
+        outcome = (
+            ""
+            if sol.result == tj.RESULTS.successful
+            else f" ({tj.RESULTS.message(sol.result)[:40]}...)"
+        )
         ratio = h.paired(tf, tg)[0]
         worst[route] = min(worst.get(route, INF), ratio)
         rows.append(

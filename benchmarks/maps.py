@@ -354,7 +354,8 @@ def agreement(dense, adaptive) -> dict:
     differ = d != a
     dist = distance_to_boundary(d)
     return dict(
-        agree=float(np.mean(~differ)), differ=int(differ.sum()),
+        agree=float(np.mean(~differ)),
+        differ=int(differ.sum()),
         worst=int(dist[differ].max()) if differ.any() else 0,
         share=adaptive.share_simulated,
         steps=float(np.sum(np.asarray(adaptive.num_steps)) / np.sum(np.asarray(dense.num_steps))),
@@ -364,8 +365,12 @@ def agreement(dense, adaptive) -> dict:
 def boundary_cells(om) -> str:
     parts = []
     for b in om.boundaries():
-        theory = f", {b.distance:.2f} (max {b.distance_max:.1f}) from {b.theory}" if b.theory else ""
-        parts.append(f"{b.outcomes[0]}/{b.outcomes[1]} {b.cells} cells, D {b.dimension:.2f}{theory}")
+        theory = (
+            f", {b.distance:.2f} (max {b.distance_max:.1f}) from {b.theory}" if b.theory else ""
+        )
+        parts.append(
+            f"{b.outcomes[0]}/{b.outcomes[1]} {b.cells} cells, D {b.dimension:.2f}{theory}"
+        )
     return "; ".join(parts)
 
 
@@ -391,18 +396,28 @@ def adaptive_agreement(args):
         load0 = load_line()
         t_dense, _, dense = h.call(lambda top=top, axes=axes: tj.outcome_map(top, **axes, t1=t1))
         t_adapt, _, adaptive = h.call(
-            lambda top=top, axes=axes: tj.outcome_map(top, **axes, t1=t1, refine=k))
+            lambda top=top, axes=axes: tj.outcome_map(top, **axes, t1=t1, refine=k)
+        )
         c = agreement(dense, adaptive)
-        rows.append([
-            f"{group} ({ratios[0]}, {ratios[1]})", f"{n} x {n}",
-            f"{theta[0]:.2f}-{theta[1]:.2f}", f"{spin[0]:.0f}-{spin[1]:.0f}",
-            ", ".join(f"{name} {v}" for name, v in dense.counts().items() if v),
-            f"{100 * c['agree']:.3f}% ({c['differ']})", c["worst"],
-            f"{100 * c['share']:.2f}%", f"{c['steps']:.3f}", f"{t_adapt / t_dense:.3f}",
-        ])
-        notes.append(f"- {group}: {boundary_cells(adaptive)}"
-                     + (f"; refinement stopped in {adaptive.unresolved}" if adaptive.unresolved else "")
-                     + f" ({load0})")
+        rows.append(
+            [
+                f"{group} ({ratios[0]}, {ratios[1]})",
+                f"{n} x {n}",
+                f"{theta[0]:.2f}-{theta[1]:.2f}",
+                f"{spin[0]:.0f}-{spin[1]:.0f}",
+                ", ".join(f"{name} {v}" for name, v in dense.counts().items() if v),
+                f"{100 * c['agree']:.3f}% ({c['differ']})",
+                c["worst"],
+                f"{100 * c['share']:.2f}%",
+                f"{c['steps']:.3f}",
+                f"{t_adapt / t_dense:.3f}",
+            ]
+        )
+        notes.append(
+            f"- {group}: {boundary_cells(adaptive)}"
+            + (f"; refinement stopped in {adaptive.unresolved}" if adaptive.unresolved else "")
+            + f" ({load0})"
+        )
     h.write(
         "maps.py --adaptive-agreement",
         "Adaptive maps against dense maps",
@@ -444,15 +459,22 @@ def adaptive_speed(args):
         load0 = load_line()
         t_dense, _, dense = h.call(lambda n=n: tj.outcome_map(top, **standard_axes(n), t1=t1))
         t_adapt, _, adaptive = h.call(
-            lambda n=n, k=k: tj.outcome_map(top, **standard_axes(n), t1=t1, refine=k))
+            lambda n=n, k=k: tj.outcome_map(top, **standard_axes(n), t1=t1, refine=k)
+        )
         c = agreement(dense, adaptive)
-        rows.append([
-            f"{n} x {n}", k, f"{t_dense:.0f}", f"{t_adapt:.1f}",
-            f"{int(np.sum(np.asarray(adaptive.simulated)))} ({100 * c['share']:.2f}%)",
-            f"**1/{1 / c['share']:.0f}**", f"**1/{t_dense / t_adapt:.0f}**",
-            f"{100 * c['agree']:.3f}% ({c['differ']}, worst {c['worst']})",
-            f"{load0}; after: {load_line()}",
-        ])
+        rows.append(
+            [
+                f"{n} x {n}",
+                k,
+                f"{t_dense:.0f}",
+                f"{t_adapt:.1f}",
+                f"{int(np.sum(np.asarray(adaptive.simulated)))} ({100 * c['share']:.2f}%)",
+                f"**1/{1 / c['share']:.0f}**",
+                f"**1/{t_dense / t_adapt:.0f}**",
+                f"{100 * c['agree']:.3f}% ({c['differ']}, worst {c['worst']})",
+                f"{load0}; after: {load_line()}",
+            ]
+        )
         dimension = boundary_cells(adaptive)
     big_rows = []
     report(args, t1, sizes, (), rows, big_rows, dimension)  # (kept if a large map is stopped)
@@ -461,20 +483,27 @@ def adaptive_speed(args):
         tj.outcome_map(top, **standard_axes(n), t1=0.01, refine=k)  # compiles its program
         load0 = load_line()
         wall, cpu, om = h.call(
-            lambda n=n, k=k: tj.outcome_map(top, **standard_axes(n), t1=t1, refine=k))
-        big_rows.append([
-            f"{n} x {n}", k, f"{wall:.1f}", f"{cpu:.0f}",
-            f"{int(np.sum(np.asarray(om.simulated)))} ({100 * om.share_simulated:.3f}%)",
-            f"{len(om.levels)}", f"{len(om.unresolved)}", f"{load0}; after: {load_line()}",
-        ])
+            lambda n=n, k=k: tj.outcome_map(top, **standard_axes(n), t1=t1, refine=k)
+        )
+        big_rows.append(
+            [
+                f"{n} x {n}",
+                k,
+                f"{wall:.1f}",
+                f"{cpu:.0f}",
+                f"{int(np.sum(np.asarray(om.simulated)))} ({100 * om.share_simulated:.3f}%)",
+                f"{len(om.levels)}",
+                f"{len(om.unresolved)}",
+                f"{load0}; after: {load_line()}",
+            ]
+        )
         report(args, t1, sizes, big[: len(big_rows)], rows, big_rows, dimension)
 
 
 def report(args, t1, sizes, big, rows, big_rows, dimension):
     """The block of `--adaptive-speed` with the maps run so far."""
     limits = {512: 20, 1024: 50}
-    not_run = [n for n in (512, 1024) if n not in sizes] + [n for n in (1000, 4096)
-                                                             if n not in big]
+    not_run = [n for n in (512, 1024) if n not in sizes] + [n for n in (1000, 4096) if n not in big]
     h.write(
         "maps.py --adaptive-speed",
         "Adaptive maps: cost against the dense map",
@@ -500,10 +529,20 @@ def options(prs):
     prs.add_argument("--launches", type=int, default=100_000, help="--scale")
     prs.add_argument("--tops", type=int, default=12, help="--auto-random")
     prs.add_argument("--resolution", type=int, default=256, help="--adaptive-agreement")
-    prs.add_argument("--sizes", type=int, nargs="+", default=[512, 1024],
-                     help="--adaptive-speed: grids (points per axis) run dense and adaptive")
-    prs.add_argument("--big", type=int, nargs="*", default=[1000, 4096],
-                     help="--adaptive-speed: grids run adaptive only")
+    prs.add_argument(
+        "--sizes",
+        type=int,
+        nargs="+",
+        default=[512, 1024],
+        help="--adaptive-speed: grids (points per axis) run dense and adaptive",
+    )
+    prs.add_argument(
+        "--big",
+        type=int,
+        nargs="*",
+        default=[1000, 4096],
+        help="--adaptive-speed: grids run adaptive only",
+    )
 
 
 MODES = {

@@ -59,22 +59,36 @@ def law(name: str, slip_scale: float = DELTA, rho: float = RHO):
 
 
 def lg_top(name="ellipse", *, stem=True, slip_scale=DELTA, rho=RHO, **contact):
-    return tj.TippeTop(**LG_BODY, friction=law(name, slip_scale, rho),
-                       stem=tj.Stem(R2, A2, **contact) if stem else None)
+    return tj.TippeTop(
+        **LG_BODY,
+        friction=law(name, slip_scale, rho),
+        stem=tj.Stem(R2, A2, **contact) if stem else None,
+    )
 
 
 def lg_run(top, t1, *, saves=None, solver=None, rtol=1e-8, **kw):
     """`simulate` of the scene's launch; `saves` None: every 10 ms."""
     y0 = tj.initial_state(top, theta=THETA0, spin=SPIN)
     ts = np.linspace(0.0, t1, int(round(t1 / 0.01)) + 1) if saves is None else saves
-    return tj.simulate(top, y0, t1, saveat=ts, solver=solver, rtol=rtol, atol=rtol * 1e-2,
-                       max_steps=1_000_000, throw=False, **kw)
+    return tj.simulate(
+        top,
+        y0,
+        t1,
+        saveat=ts,
+        solver=solver,
+        rtol=rtol,
+        atol=rtol * 1e-2,
+        max_steps=1_000_000,
+        throw=False,
+        **kw,
+    )
 
 
 def reference():
     """`tests/real_top_reference.py`, imported by path (it imports no tippejax)."""
-    spec = importlib.util.spec_from_file_location("real_top_reference",
-                                                  ROOT / "tests" / "real_top_reference.py")
+    spec = importlib.util.spec_from_file_location(
+        "real_top_reference", ROOT / "tests" / "real_top_reference.py"
+    )
     module = importlib.util.module_from_spec(spec)
     sys.modules["real_top_reference"] = module
     spec.loader.exec_module(module)
@@ -92,25 +106,30 @@ def ref_events(r) -> dict:
     after = [(t, n) for t, n, _ in r["events"] if np.isfinite(t_stem) and t >= t_stem]
     off = next((t for t, n in after if n == "ball_liftoff"), math.nan)
     again = next((t for t, n in after if n == "ball_touchdown" and t > off), math.nan)
-    return dict(t_half=r["t_half"], t_stem=t_stem, theta_stem=r["theta_stem"],
-                ball_return=again)
+    return dict(t_half=r["t_half"], t_stem=t_stem, theta_stem=r["theta_stem"], ball_return=again)
 
 
 def tj_events(sol, saves=None) -> dict:
     """tippejax's events; with `saves`, theta at the touch interpolated from the save times."""
     t_stem = float(sol.t_stem)
-    theta_stem = (float(np.interp(t_stem, saves, np.asarray(sol.theta)))
-                  if saves is not None and np.isfinite(t_stem) else math.nan)
-    return dict(t_half=float(sol.t_invert), t_stem=t_stem, theta_stem=theta_stem,
-                ball_return=float(sol.t_ball_return))
+    theta_stem = (
+        float(np.interp(t_stem, saves, np.asarray(sol.theta)))
+        if saves is not None and np.isfinite(t_stem)
+        else math.nan
+    )
+    return dict(
+        t_half=float(sol.t_invert),
+        t_stem=t_stem,
+        theta_stem=theta_stem,
+        ball_return=float(sol.t_ball_return),
+    )
 
 
 def theta_error(ts, theta, r, until) -> float:
     """max |theta - theta_reference| at the save times before `until` (the reference's 1 ms
     samples, interpolated linearly)."""
     keep = ts < until
-    return float(np.max(np.abs(np.asarray(theta)[keep] - np.interp(ts[keep], r["t"],
-                                                                    r["theta"]))))
+    return float(np.max(np.abs(np.asarray(theta)[keep] - np.interp(ts[keep], r["t"], r["theta"]))))
 
 
 def f(x, digits=4) -> str:
@@ -133,17 +152,31 @@ def cardillo_run(args, dt, t_final):
         if not args.cardillo:
             return None
         cache.mkdir(parents=True, exist_ok=True)
-        cmd = ["nice", "-n", "10", args.cardillo_python, str(h.HERE / "_cardillo_worker.py"),
-               args.cardillo, repr(dt), repr(t_final), str(out)]
+        cmd = [
+            "nice",
+            "-n",
+            "10",
+            args.cardillo_python,
+            str(h.HERE / "_cardillo_worker.py"),
+            args.cardillo,
+            repr(dt),
+            repr(t_final),
+            str(out),
+        ]
         with open(out.with_suffix(".log"), "w") as log:
-            subprocess.run(cmd, check=True, stdout=log, stderr=subprocess.STDOUT,
-                           env={**os.environ, "MPLBACKEND": "Agg"})
+            subprocess.run(
+                cmd,
+                check=True,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                env={**os.environ, "MPLBACKEND": "Agg"},
+            )
     return dict(np.load(out))
 
 
 def _crossing(t, values, start=0):
     """First time after index `start` where `values` goes from < 0 to >= 0 (linear)."""
-    idx = np.nonzero((values[start:-1] < 0) & (values[start + 1:] >= 0))[0]
+    idx = np.nonzero((values[start:-1] < 0) & (values[start + 1 :] >= 0))[0]
     if idx.size == 0:
         return math.nan
     i = start + idx[0]
@@ -158,10 +191,16 @@ def cardillo_summary(run) -> dict:
     i = int(np.searchsorted(t, t_stem)) if np.isfinite(t_stem) else t.size - 1
     off = _crossing(t, gaps[:, 0], i)
     j = int(np.searchsorted(t, off)) if np.isfinite(off) else t.size - 1
-    return dict(t_half=_crossing(t, theta - math.pi / 2), t_stem=t_stem,
-                theta_stem=float(np.interp(t_stem, t, theta)) if np.isfinite(t_stem) else math.nan,
-                ball_return=_crossing(t, -gaps[:, 0], j), wall=float(run["wall"]),
-                steps=t.size - 1, t=t, theta=theta)
+    return dict(
+        t_half=_crossing(t, theta - math.pi / 2),
+        t_stem=t_stem,
+        theta_stem=float(np.interp(t_stem, t, theta)) if np.isfinite(t_stem) else math.nan,
+        ball_return=_crossing(t, -gaps[:, 0], j),
+        wall=float(run["wall"]),
+        steps=t.size - 1,
+        t=t,
+        theta=theta,
+    )
 
 
 def extrapolated(cards: dict, key: str) -> float:
@@ -186,68 +225,117 @@ def peers(args):
     rows = []
 
     def row(name, wall, ev, err, steps=""):
-        rows.append([name, g(wall), g(err), f(ev["t_half"], 6), f(ev["t_stem"], 6),
-                     f(ev.get("theta_stem", math.nan)), steps])
+        rows.append(
+            [
+                name,
+                g(wall),
+                g(err),
+                f(ev["t_half"], 6),
+                f(ev["t_stem"], 6),
+                f(ev.get("theta_stem", math.nan)),
+                steps,
+            ]
+        )
         return wall, err
 
     fns = {}
     top = lg_top()
     saves = np.arange(0.0, t1 + 5e-4, 1e-3)[: int(round(t1 / 1e-3)) + 1]
-    for rtol in ((1e-6,) if args.smoke else (1e-6, 1e-8, 1e-10)):
+    for rtol in (1e-6,) if args.smoke else (1e-6, 1e-8, 1e-10):
         fns[rtol] = lambda rtol=rtol: lg_run(top, t1, saves=saves, rtol=rtol)
     timed = h.interleaved(fns, args.rounds or (1 if args.smoke else 5))
     tj_points = {}
     for rtol, (timing, sol) in timed.items():
         err = theta_error(saves, sol.theta, truth, until)
         solver = type(tj.default_solver(top)).__name__
-        tj_points[rtol] = row(f"tippejax, rtol {rtol:g} ({solver})", timing.wall,
-                              tj_events(sol, saves), err, int(sol.num_steps))
+        tj_points[rtol] = row(
+            f"tippejax, rtol {rtol:g} ({solver})",
+            timing.wall,
+            tj_events(sol, saves),
+            err,
+            int(sol.num_steps),
+        )
     refs = {}
-    for rtol in ((1e-6,) if args.smoke else (1e-6, 1e-9)):
+    for rtol in (1e-6,) if args.smoke else (1e-6, 1e-9):
         runs = [ref_run(rr, t1=t1, rtol=rtol) for _ in range(1 if args.smoke else 3)]
         wall = float(np.median([r["wall"] for r in runs]))
-        refs[rtol] = row(f"scipy reference, rtol {rtol:g} (DOP853, then LSODA)", wall,
-                         ref_events(runs[0]), theta_error(truth["t"], runs[0]["theta"], truth,
-                                                          until), runs[0]["nfev"])
+        refs[rtol] = row(
+            f"scipy reference, rtol {rtol:g} (DOP853, then LSODA)",
+            wall,
+            ref_events(runs[0]),
+            theta_error(truth["t"], runs[0]["theta"], truth, until),
+            runs[0]["nfev"],
+        )
     cards = {}
-    for dt in ((1e-3,) if args.smoke else DTS):
+    for dt in (1e-3,) if args.smoke else DTS:
         run = cardillo_run(args, dt, T_PEERS)  # (cached: the smoke run reads it too)
         if run is not None:
             cards[dt] = cardillo_summary(run)
     for dt, c in cards.items():
         grid = truth["t"][truth["t"] < min(until, c["t"][-1])]
-        err = float(np.max(np.abs(np.interp(grid, c["t"], c["theta"])
-                                  - np.interp(grid, truth["t"], truth["theta"]))))
+        err = float(
+            np.max(
+                np.abs(
+                    np.interp(grid, c["t"], c["theta"])
+                    - np.interp(grid, truth["t"], truth["theta"])
+                )
+            )
+        )
         c["err"] = err
         row(f"cardillo MoreauClassical, dt {dt:g}", c["wall"], c, err, c["steps"])
     if len(cards) >= 2:
         fine = sorted(cards)[:2]
-        rows.append([f"cardillo, dt -> 0 (from dt {fine[1]:g} and {fine[0]:g})", "", "",
-                     *(f(extrapolated(cards, k), 6) for k in ("t_half", "t_stem")),
-                     f(extrapolated(cards, "theta_stem")), ""])
+        rows.append(
+            [
+                f"cardillo, dt -> 0 (from dt {fine[1]:g} and {fine[0]:g})",
+                "",
+                "",
+                *(f(extrapolated(cards, k), 6) for k in ("t_half", "t_stem")),
+                f(extrapolated(cards, "theta_stem")),
+                "",
+            ]
+        )
     verdict = ""
     if cards:
         finest = cards[min(cards)]
         good = [w for w, e in tj_points.values() if e <= finest["err"]]
         if good:
             ratio = min(good) / finest["wall"]
-            verdict = (f"\n\nTarget, tippejax at most 1/1000 of cardillo's time at equal or better "
-                       f"accuracy: cardillo at dt {min(cards):g} ({g(finest['wall'])} s, max "
-                       f"d theta {g(finest['err'])}) against tippejax's cheapest run at least as "
-                       f"accurate: {g(ratio)} of its time (1/{1 / ratio:.0f}), "
-                       f"{h.verdict(ratio <= 1e-3)}.")
-    h.write(f"{SUITE} --peers", "Leine & Glocker's top with its stem: tippejax, scipy, cardillo",
-            f"""
+            verdict = (
+                f"\n\nTarget, tippejax at most 1/1000 of cardillo's time at equal or better "
+                f"accuracy: cardillo at dt {min(cards):g} ({g(finest['wall'])} s, max "
+                f"d theta {g(finest['err'])}) against tippejax's cheapest run at least as "
+                f"accurate: {g(ratio)} of its time (1/{1 / ratio:.0f}), "
+                f"{h.verdict(ratio <= 1e-3)}."
+            )
+    h.write(
+        f"{SUITE} --peers",
+        "Leine & Glocker's top with its stem: tippejax, scipy, cardillo",
+        f"""
 Leine & Glocker's top with its stem, ellipse law (cardillo's), slip scale {DELTA:g} m/s, {t1:g} s.
 'max d theta': against the scipy reference at rtol 1e-11 (its 1 ms samples), up to 10 ms before
-the stem touches ({f(ev_truth['t_stem'], 6)} s). tippejax: median of interleaved warm runs with
-1 ms saves; the reference: median of its runs (numba {'on' if rr.HAVE_NUMBA else 'off'});
+the stem touches ({f(ev_truth["t_stem"], 6)} s). tippejax: median of interleaved warm runs with
+1 ms saves; the reference: median of its runs (numba {"on" if rr.HAVE_NUMBA else "off"});
 cardillo: one run each (cached; `--cardillo`), set-valued laws with impacts, whose times
 converge at first order in dt.
 
-{h.table(["run", "wall s", "max d theta before touch (rad)", "theta = pi/2 s", "stem touch s",
-          "theta at touch", "steps / f-evals"], rows)}{verdict}
-""", args)
+{
+            h.table(
+                [
+                    "run",
+                    "wall s",
+                    "max d theta before touch (rad)",
+                    "theta = pi/2 s",
+                    "stem touch s",
+                    "theta at touch",
+                    "steps / f-evals",
+                ],
+                rows,
+            )
+        }{verdict}
+""",
+        args,
+    )
 
 
 def batch(args):
@@ -260,35 +348,68 @@ def batch(args):
     rows, per_top = [], {}
     for name in ("ellipse", "hertz", "viscous"):
         top = lg_top(name)
-        fn = lambda top=top: tj.simulate_batch(top, theta0, spin, t1, grid=(),  # noqa: E731
-                                               summary=True)
-        (timing, sol), = h.interleaved({name: fn}, args.rounds or 1).values()
+
+        def fn(top=top):
+            return tj.simulate_batch(top, theta0, spin, t1, grid=(), summary=True)
+
+        ((timing, sol),) = h.interleaved({name: fn}, args.rounds or 1).values()
         per_top[name] = timing.wall / n
         ok = np.asarray(sol.result == tj.RESULTS.successful)
         on_stem = np.isfinite(np.asarray(sol.t_stem))
-        rows.append([name, n, g(timing.wall), g(1e3 * timing.wall / n), g(timing.compile),
-                     f"{int(ok.sum())}/{n}", f"{int(on_stem.sum())}/{n}",
-                     g(float(np.mean(np.asarray(sol.num_steps))))])
+        rows.append(
+            [
+                name,
+                n,
+                g(timing.wall),
+                g(1e3 * timing.wall / n),
+                g(timing.compile),
+                f"{int(ok.sum())}/{n}",
+                f"{int(on_stem.sum())}/{n}",
+                g(float(np.mean(np.asarray(sol.num_steps)))),
+            ]
+        )
     ratios = {k: per_top[k] / per_top["viscous"] for k in ("ellipse", "hertz")}
-    h.write(f"{SUITE} --batch", "A batch of tops with the stem, per law", f"""
+    h.write(
+        f"{SUITE} --batch",
+        "A batch of tops with the stem, per law",
+        f"""
 Leine & Glocker's top with its stem, {n} seeded launches (theta0 uniform in [0.05, 0.3] rad, spin
-in [150, 210] rad/s), {t1:g} s, `simulate_batch(top, theta0, spin, t1, grid=(), summary=True)` (per member,
+in [150, 210] rad/s), {
+            t1:g} s, `simulate_batch(top, theta0, spin, t1, grid=(), summary=True)` (per member,
 the default solver), the Contensou laws at slip scale {DELTA:g} m/s and the viscous law (mu 0.3
 s/m) on the same scene. Wall: the call after the compiling one.
 
-{h.table(["law", "tops", "wall s", "ms per top", "compile s", "successful", "reached the stem",
-          "mean steps"], rows)}
+{
+            h.table(
+                [
+                    "law",
+                    "tops",
+                    "wall s",
+                    "ms per top",
+                    "compile s",
+                    "successful",
+                    "reached the stem",
+                    "mean steps",
+                ],
+                rows,
+            )
+        }
 
-Target, per top at most 3x the viscous law's cost on the same scene: ellipse {ratios['ellipse']:.2f}x,
-hertz {ratios['hertz']:.2f}x, {h.verdict(max(ratios.values()) <= 3.0)}.
-""", args)
+Target, per top at most 3x the viscous law's cost on the same scene: ellipse {
+            ratios["ellipse"]:.2f}x,
+hertz {ratios["hertz"]:.2f}x, {h.verdict(max(ratios.values()) <= 3.0)}.
+""",
+        args,
+    )
 
 
 def work_precision(args):
     """Work against precision per law, and of the stem's compliant phase, per solver."""
     scenes = {  # name: (law, stem, t1)
-        "viscous": ("viscous", False, 1.2), "coulomb": ("coulomb", False, 1.2),
-        "hertz": ("hertz", False, 1.2), "ellipse": ("ellipse", False, 1.2),
+        "viscous": ("viscous", False, 1.2),
+        "coulomb": ("coulomb", False, 1.2),
+        "hertz": ("hertz", False, 1.2),
+        "ellipse": ("ellipse", False, 1.2),
         "ellipse, stem": ("ellipse", True, T_PEERS),
     }
     rtols = (1e-6,) if args.smoke else (1e-6, 1e-8, 1e-10)
@@ -302,17 +423,34 @@ def work_precision(args):
         ref = lg_run(top, t1, saves=saves, solver=diffrax.Dopri8(), rtol=1e-12)
         theta_ref = np.asarray(ref.theta)
         default = type(tj.default_solver(top)).__name__
-        fns = {(s, r): (lambda s=s, r=r: lg_run(top, t1, saves=saves, solver=SOLVERS[s](), rtol=r))
-               for s in solvers for r in rtols if not (s == "Kvaerno5" and r < 1e-8)}
-        for (s, r), (timing, sol) in h.interleaved(fns, args.rounds or (1 if args.smoke else 3)
-                                                   ).items():
+        fns = {
+            (s, r): (lambda s=s, r=r: lg_run(top, t1, saves=saves, solver=SOLVERS[s](), rtol=r))
+            for s in solvers
+            for r in rtols
+            if not (s == "Kvaerno5" and r < 1e-8)
+        }
+        for (s, r), (timing, sol) in h.interleaved(
+            fns, args.rounds or (1 if args.smoke else 3)
+        ).items():
             ok = bool(sol.result == tj.RESULTS.successful)
             err = float(np.nanmax(np.abs(np.asarray(sol.theta) - theta_ref))) if ok else math.nan
             curves.setdefault((scene, s), []).append((timing.wall, err))
-            rows.append([scene, s + (" (default)" if s == default else ""), f"{r:.0e}",
-                         g(timing.wall), g(timing.compile, 2), int(sol.num_steps),
-                         int(sol.num_rejected_steps), g(err, 2)])
-    h.write(f"{SUITE} --wp", "Work against precision per law, and on the stem", f"""
+            rows.append(
+                [
+                    scene,
+                    s + (" (default)" if s == default else ""),
+                    f"{r:.0e}",
+                    g(timing.wall),
+                    g(timing.compile, 2),
+                    int(sol.num_steps),
+                    int(sol.num_rejected_steps),
+                    g(err, 2),
+                ]
+            )
+    h.write(
+        f"{SUITE} --wp",
+        "Work against precision per law, and on the stem",
+        f"""
 Leine & Glocker's top launched as in the scene, full level, saves every 10 ms, through the first
 pi/2 crossing (1.2 s) without the stem, and to {T_PEERS:g} s with it (the compliant phase from about
 1.37 s: its contact's vibration sets the explicit steps). Laws: viscous (mu 0.3 s/m), Coulomb
@@ -320,18 +458,33 @@ pi/2 crossing (1.2 s) without the stem, and to {T_PEERS:g} s with it (the compli
 Dopri8 at rtol 1e-12; atol = rtol / 100; wall: median of interleaved warm runs; Kvaerno5 at the
 looser tolerances only (it is the slowest by far). Chart: `real_tops_wp.png`.
 
-{h.table(["scene", "solver", "rtol", "wall s", "compile s", "steps", "rejected", "max d theta"],
-         rows)}
-""", args)
+{
+            h.table(
+                [
+                    "scene",
+                    "solver",
+                    "rtol",
+                    "wall s",
+                    "compile s",
+                    "steps",
+                    "rejected",
+                    "max d theta",
+                ],
+                rows,
+            )
+        }
+""",
+        args,
+    )
     plt = h.pyplot()
-    fig, axes = plt.subplots(1, len(scenes), figsize=(3.3 * len(scenes), 3.4),
-                             constrained_layout=True, squeeze=False)
+    fig, axes = plt.subplots(
+        1, len(scenes), figsize=(3.3 * len(scenes), 3.4), constrained_layout=True, squeeze=False
+    )
     for ax, scene in zip(axes[0], scenes):
         for s in solvers:
             pts = sorted(curves.get((scene, s), []))
             if pts:
-                ax.loglog([p[0] for p in pts], [max(p[1], 1e-16) for p in pts], marker="o",
-                          label=s)
+                ax.loglog([p[0] for p in pts], [max(p[1], 1e-16) for p in pts], marker="o", label=s)
         ax.set(title=scene, xlabel="wall s")
         ax.grid(True, which="both", alpha=0.3)
     axes[0][0].set_ylabel("max |theta - theta_ref| (rad)")
@@ -354,24 +507,65 @@ def slip(args):
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
                 start = time.perf_counter()
-                t = float(tj.inversion_time(top, y0, t1=30.0, rtol=1e-8, atol=1e-10,
-                                            throw=False))
+                t = float(tj.inversion_time(top, y0, t1=30.0, rtol=1e-8, atol=1e-10, throw=False))
                 wall = time.perf_counter() - start
-            warned = any(issubclass(w.category, UserWarning) and "slip_scale" in str(w.message)
-                         for w in caught)
-            r = rr.solve(rr.LEINE_GLOCKER, name, THETA0, SPIN, 30.0, mu=MU, rho=RHO, delta=delta,
-                         stem=False, contact="rigid", stop_at_half=True, dt_sample=1e-2)
-            rows.append([name, g(delta), f(t, 7), f(r["t_half"], 7), g(abs(t - r["t_half"]), 2),
-                         g(t * delta), "yes" if warned else "no", g(wall)])
-    h.write(f"{SUITE} --slip", "The first pi/2 crossing against the slip scale", f"""
+            warned = any(
+                issubclass(w.category, UserWarning) and "slip_scale" in str(w.message)
+                for w in caught
+            )
+            r = rr.solve(
+                rr.LEINE_GLOCKER,
+                name,
+                THETA0,
+                SPIN,
+                30.0,
+                mu=MU,
+                rho=RHO,
+                delta=delta,
+                stem=False,
+                contact="rigid",
+                stop_at_half=True,
+                dt_sample=1e-2,
+            )
+            rows.append(
+                [
+                    name,
+                    g(delta),
+                    f(t, 7),
+                    f(r["t_half"], 7),
+                    g(abs(t - r["t_half"]), 2),
+                    g(t * delta),
+                    "yes" if warned else "no",
+                    g(wall),
+                ]
+            )
+    h.write(
+        f"{SUITE} --slip",
+        "The first pi/2 crossing against the slip scale",
+        f"""
 Leine & Glocker's top without the stem, launched as in the scene, `tj.inversion_time` (full level,
 the default solver, rtol 1e-8, the first call: it compiles) against the reference (rtol 1e-9).
 With Contensou friction the crossing converges as the slip scale goes to 0; with pure Coulomb
 friction it grows about like 1/delta (t x delta tends to a constant), and tippejax warns.
 
-{h.table(["law", "slip scale m/s", "tippejax pi/2 s", "reference pi/2 s", "difference s",
-          "t x delta (m)", "UserWarning", "tippejax wall s"], rows)}
-""", args)
+{
+            h.table(
+                [
+                    "law",
+                    "slip scale m/s",
+                    "tippejax pi/2 s",
+                    "reference pi/2 s",
+                    "difference s",
+                    "t x delta (m)",
+                    "UserWarning",
+                    "tippejax wall s",
+                ],
+                rows,
+            )
+        }
+""",
+        args,
+    )
 
 
 def contact(args):
@@ -379,43 +573,68 @@ def contact(args):
     t1 = 1.6 if args.smoke else T_AFTER
     variants = [("E* 5 GPa, c 200 s/m (defaults)", {})]
     if not args.smoke:
-        variants += [("E* x 10", dict(contact_modulus=5e10)),
-                     ("E* / 10", dict(contact_modulus=5e8)),
-                     ("c x 10", dict(contact_damping=2000.0)),
-                     ("c / 10", dict(contact_damping=20.0))]
+        variants += [
+            ("E* x 10", dict(contact_modulus=5e10)),
+            ("E* / 10", dict(contact_modulus=5e8)),
+            ("c x 10", dict(contact_damping=2000.0)),
+            ("c / 10", dict(contact_damping=20.0)),
+        ]
     rows = []
     saves = np.linspace(0.0, t1, int(round(t1 / 0.01)) + 1)
     runs = {(name, 1e-8): kw for name, kw in variants}
     if not args.smoke:  # (tippejax's own convergence)
         runs[(variants[0][0], 1e-10)] = {}
-    fns = {key: (lambda kw=kw, rtol=key[1]: lg_run(lg_top(**kw), t1, saves=saves, rtol=rtol))
-           for key, kw in runs.items()}
+    fns = {
+        key: (lambda kw=kw, rtol=key[1]: lg_run(lg_top(**kw), t1, saves=saves, rtol=rtol))
+        for key, kw in runs.items()
+    }
     for (name, rtol), (timing, sol) in h.interleaved(fns, args.rounds or 1).items():
         theta = np.asarray(sol.theta)
         on_stem = (saves > float(sol.t_stem)) & ~(saves >= float(sol.t_ball_return))
-        rows.append([name + ("" if rtol == 1e-8 else f", rtol {rtol:g}"),
-                     f(float(sol.t_stem), 6), f(float(sol.t_ball_return), 4),
-                     f(float(np.max(theta[on_stem])) if on_stem.any() else math.nan),
-                     *(f(float(np.interp(tq, saves, theta))) for tq in (2.5, 4.0) if tq <= t1),
-                     int(sol.num_steps), g(timing.wall)])
+        rows.append(
+            [
+                name + ("" if rtol == 1e-8 else f", rtol {rtol:g}"),
+                f(float(sol.t_stem), 6),
+                f(float(sol.t_ball_return), 4),
+                f(float(np.max(theta[on_stem])) if on_stem.any() else math.nan),
+                *(f(float(np.interp(tq, saves, theta))) for tq in (2.5, 4.0) if tq <= t1),
+                int(sol.num_steps),
+                g(timing.wall),
+            ]
+        )
     rr = reference()
     r = ref_run(rr, t1=t1)
     ev = ref_events(r)
     on = (saves > ev["t_stem"]) & ~(saves >= ev["ball_return"])  # (on the same saves)
-    rows.append(["reference (E* 5 GPa, c 200 s/m)", f(ev["t_stem"], 6), f(ev["ball_return"], 4),
-                 f(float(np.max(np.interp(saves[on], r["t"], r["theta"])))),
-                 *(f(rr.theta_at(r, tq)) for tq in (2.5, 4.0) if tq <= t1), r["nfev"],
-                 g(r["wall"])])
-    head = ["contact", "stem touch s", "ball returns s", "max theta on the stem"] + [
-        f"theta({tq:g})" for tq in (2.5, 4.0) if tq <= t1] + ["steps", "wall s"]
-    h.write(f"{SUITE} --contact", "Sensitivity to the contact parameters after the touch", f"""
+    rows.append(
+        [
+            "reference (E* 5 GPa, c 200 s/m)",
+            f(ev["t_stem"], 6),
+            f(ev["ball_return"], 4),
+            f(float(np.max(np.interp(saves[on], r["t"], r["theta"])))),
+            *(f(rr.theta_at(r, tq)) for tq in (2.5, 4.0) if tq <= t1),
+            r["nfev"],
+            g(r["wall"]),
+        ]
+    )
+    head = (
+        ["contact", "stem touch s", "ball returns s", "max theta on the stem"]
+        + [f"theta({tq:g})" for tq in (2.5, 4.0) if tq <= t1]
+        + ["steps", "wall s"]
+    )
+    h.write(
+        f"{SUITE} --contact",
+        "Sensitivity to the contact parameters after the touch",
+        f"""
 Leine & Glocker's top with its stem, ellipse law, {t1:g} s, tippejax at rtol 1e-8 (Dopri8, saves
 every 10 ms), the stem's `contact_modulus` E* and `contact_damping` c ten times larger and smaller;
 last row the reference. 'max theta on the stem': between the touch and the ball's return, on
 the 10 ms saves (the reference interpolated to them).
 
 {h.table(head, rows)}
-""", args)
+""",
+        args,
+    )
 
 
 def lg(args):
@@ -425,21 +644,37 @@ def lg(args):
     rows = []
     t1 = 0.3 if args.smoke else 1.6
     cards = {}
-    for dt in ((1e-3,) if args.smoke else DTS):
+    for dt in (1e-3,) if args.smoke else DTS:
         run = cardillo_run(args, dt, T_PEERS)  # (cached: the smoke run reads it too)
         if run is not None:
             cards[dt] = cardillo_summary(run)
     for pressure in ("hertz", "ellipse"):
         sol = lg_run(lg_top(pressure), t1)
         ref = ref_events(ref_run(rr, pressure, t1=t1))
-        rows.append([f"tippejax, {pressure}", f(float(sol.t_invert), 6), f(float(sol.t_stem), 6),
-                     f(_touch_angle(lg_top(pressure), float(sol.t_stem), t1))])
-        rows.append([f"reference, {pressure}", f(ref["t_half"], 6), f(ref["t_stem"], 6),
-                     f(ref["theta_stem"])])
+        rows.append(
+            [
+                f"tippejax, {pressure}",
+                f(float(sol.t_invert), 6),
+                f(float(sol.t_stem), 6),
+                f(_touch_angle(lg_top(pressure), float(sol.t_stem), t1)),
+            ]
+        )
+        rows.append(
+            [
+                f"reference, {pressure}",
+                f(ref["t_half"], 6),
+                f(ref["t_stem"], 6),
+                f(ref["theta_stem"]),
+            ]
+        )
     if len(cards) >= 2:
-        rows.append(["cardillo (ellipse), dt -> 0", *(f(extrapolated(cards, k), 6)
-                                                     for k in ("t_half", "t_stem")),
-                     f(extrapolated(cards, "theta_stem"))])
+        rows.append(
+            [
+                "cardillo (ellipse), dt -> 0",
+                *(f(extrapolated(cards, k), 6) for k in ("t_half", "t_stem")),
+                f(extrapolated(cards, "theta_stem")),
+            ]
+        )
     rows.append(["geometry, ball on the table", "", "", f(float(top.stem_angle))])
     rows.append(["Leine & Glocker 2003 (published)", "about 1", "about 1.5", "about 2.45"])
     radii = (5e-4,) if args.smoke else (5e-4, 5e-5, 1e-5)
@@ -448,14 +683,30 @@ def lg(args):
         row = [f"{rho * 1e3:g}"]
         for pressure in ("hertz", "ellipse"):
             stemless = lg_top(pressure, stem=False, rho=rho)
-            sol = lg_run(stemless, 0.5, saves=np.linspace(0.0, 0.5, 11), solver=diffrax.Tsit5(),
-                         rtol=1e-9)
-            r = rr.solve(rr.LEINE_GLOCKER, pressure, THETA0, SPIN, 0.5, mu=MU, rho=rho,
-                         delta=DELTA, stem=False, contact="rigid", dt_sample=0.05)
+            sol = lg_run(
+                stemless, 0.5, saves=np.linspace(0.0, 0.5, 11), solver=diffrax.Tsit5(), rtol=1e-9
+            )
+            r = rr.solve(
+                rr.LEINE_GLOCKER,
+                pressure,
+                THETA0,
+                SPIN,
+                0.5,
+                mu=MU,
+                rho=rho,
+                delta=DELTA,
+                stem=False,
+                contact="rigid",
+                dt_sample=0.05,
+            )
             row += [f(float(sol.theta[-1])), f(rr.theta_at(r, 0.5))]
         fig15.append(row)
-    h.write(f"{SUITE} --lg", "Leine & Glocker's figures", f"""
-Leine & Glocker's top with its stem, slip scale {DELTA:g} m/s. The stem's touch: tippejax (rtol 1e-8,
+    h.write(
+        f"{SUITE} --lg",
+        "Leine & Glocker's figures",
+        f"""
+Leine & Glocker's top with its stem, slip scale {
+            DELTA:g} m/s. The stem's touch: tippejax (rtol 1e-8,
 the default solver), the reference (rtol 1e-9), cardillo extrapolated to dt -> 0 (its cached runs),
 the geometric angle with the ball on the table, and what Leine & Glocker published (their own
 integration of the model puts the touch later than the two independent integrations here; see
@@ -466,9 +717,21 @@ integration of the model puts the touch later than the two independent integrati
 Their figure 15: theta at 0.5 s against the contact radius (before the stem can touch), tippejax
 (Tsit5, rtol 1e-9) and the reference.
 
-{h.table(["rho mm", "tippejax hertz", "reference hertz", "tippejax ellipse",
-          "reference ellipse"], fig15)}
-""", args)
+{
+            h.table(
+                [
+                    "rho mm",
+                    "tippejax hertz",
+                    "reference hertz",
+                    "tippejax ellipse",
+                    "reference ellipse",
+                ],
+                fig15,
+            )
+        }
+""",
+        args,
+    )
 
 
 def _touch_angle(top, t_stem, t1):

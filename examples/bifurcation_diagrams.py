@@ -24,8 +24,10 @@ def main():
     # One top per group, well inside it; C = 0.4 m R^2, m = 20 g, R = 25 mm.
     tops = {name: tj.TippeTop.from_ratios(a, e) for name, (a, e) in REPRESENTATIVES.items()}
     for name, top in tops.items():
-        print(f"Group {name:3s}: A/C = {float(top.A_over_C):g}, eps/R = {float(top.eps_over_R):g}"
-              f" -> classify: {tj.classify(top)}")
+        print(
+            f"Group {name:3s}: A/C = {float(top.A_over_C):g}, eps/R = {float(top.eps_over_R):g}"
+            f" -> classify: {tj.classify(top)}"
+        )
     fig = bifurcation_diagrams(tops)
     fig.savefig(out / "bifurcation_diagrams.png", dpi=130)
     plt.close(fig)

@@ -111,8 +111,7 @@ def top_of(u):
 def inversion_time(u, spin, t1):
     top = top_of(u)
     # throw=False: a launch that fails before turning over (contact loss) is nan, handled below.
-    return tj.inversion_time(top, tj.initial_state(top, THETA0, spin), t1=t1, throw=False,
-                             **DESIGN)
+    return tj.inversion_time(top, tj.initial_state(top, THETA0, spin), t1=t1, throw=False, **DESIGN)
 
 
 def full_turn_spin(u):
@@ -180,11 +179,15 @@ def optimise(name, objective, u0):
         u = optax.apply_updates(u, updates)
     wall = time.perf_counter() - start
     groups = sorted(set(tj.classify(tj.TippeTop.from_ratios(a, e)) for a, e in path))
-    print(f"  {name}: {len(path) - 1} Adam steps, {wall:.1f} s ({compiled:.1f} s for the first, "
-          f"compilation included); groups visited: {', '.join(groups)}")
+    print(
+        f"  {name}: {len(path) - 1} Adam steps, {wall:.1f} s ({compiled:.1f} s for the first, "
+        f"compilation included); groups visited: {', '.join(groups)}"
+    )
     for k in range(0, len(path), 8):
-        print(f"    step {k:3d}: A/C = {path[k][0]:.4f}, eps/R = {path[k][1]:.4f}, "
-              f"objective = {values[k]:.4f}")
+        print(
+            f"    step {k:3d}: A/C = {path[k][0]:.4f}, eps/R = {path[k][1]:.4f}, "
+            f"objective = {values[k]:.4f}"
+        )
     return u, np.array(path), values
 
 
@@ -195,8 +198,8 @@ _inversion_time = jax.jit(inversion_time)
 def _full_inversion_time(u, spin, t1):
     """The full model's t* (with its nutation), for the table."""
     top = top_of(u)
-    return tj.inversion_time(top, tj.initial_state(top, THETA0, spin), t1=t1, throw=False,
-                             **SOLVE)
+    return tj.inversion_time(top, tj.initial_state(top, THETA0, spin), t1=t1, throw=False, **SOLVE)
+
 
 _crossing_spin = jax.jit(crossing_spin)
 _lowest_spin = jax.jit(lowest_spin)
@@ -206,9 +209,19 @@ def describe(label, u):
     a, e = (float(x) for x in ratios(u))
     top = top_of(u)
     th = tj.thresholds(top)
-    return dict(label=label, a=a, e=e, group=tj.classify(top), n1=float(th.n1), n2=float(th.n2),
-                n_full=float(full_turn_spin(u)), t_star=float(_inversion_time(u, SPIN, T1)),
-                t_star_full=float(_full_inversion_time(u, SPIN, T1)), n_cross=float(_crossing_spin(u)), n_min=float(_lowest_spin(u)))
+    return dict(
+        label=label,
+        a=a,
+        e=e,
+        group=tj.classify(top),
+        n1=float(th.n1),
+        n2=float(th.n2),
+        n_full=float(full_turn_spin(u)),
+        t_star=float(_inversion_time(u, SPIN, T1)),
+        t_star_full=float(_full_inversion_time(u, SPIN, T1)),
+        n_cross=float(_crossing_spin(u)),
+        n_min=float(_lowest_spin(u)),
+    )
 
 
 def theta_curve(u, spin, t1):
@@ -229,22 +242,35 @@ def main():
     print(f"\nobjective 2: turn over within {T_LIMIT:g} s at the lowest spin")
     u_low, path_low, _ = optimise("lowest spin", lowest_spin, u0)
 
-    rows = [describe("standard (before)", u0), describe("fastest (after 1)", u_fast),
-            describe("lowest spin (after 2)", u_low)]
-    print(f"\n{'top':22s} {'A/C':>7s} {'eps/R':>7s} {'group':>6s} {'n1':>7s} {'n2':>7s} "
-          f"{'n_full':>7s} {'t* at ' + format(SPIN, 'g'):>10s} {'(full)':>8s} {'n_cross':>8s} "
-          f"{'n_min':>8s}")
-    print(f"{'':22s} {'':>7s} {'':>7s} {'':>6s} {'rad/s':>7s} {'rad/s':>7s} {'rad/s':>7s} "
-          f"{'s':>10s} {'s':>8s} {'rad/s':>8s} {'rad/s':>8s}")
+    rows = [
+        describe("standard (before)", u0),
+        describe("fastest (after 1)", u_fast),
+        describe("lowest spin (after 2)", u_low),
+    ]
+    print(
+        f"\n{'top':22s} {'A/C':>7s} {'eps/R':>7s} {'group':>6s} {'n1':>7s} {'n2':>7s} "
+        f"{'n_full':>7s} {'t* at ' + format(SPIN, 'g'):>10s} {'(full)':>8s} {'n_cross':>8s} "
+        f"{'n_min':>8s}"
+    )
+    print(
+        f"{'':22s} {'':>7s} {'':>7s} {'':>6s} {'rad/s':>7s} {'rad/s':>7s} {'rad/s':>7s} "
+        f"{'s':>10s} {'s':>8s} {'rad/s':>8s} {'rad/s':>8s}"
+    )
     for r in rows:
-        print(f"{r['label']:22s} {r['a']:7.4f} {r['e']:7.4f} {r['group']:>6s} {r['n1']:7.2f} "
-              f"{r['n2']:7.2f} {r['n_full']:7.2f} {r['t_star']:10.4f} {r['t_star_full']:8.4f} "
-              f"{r['n_cross']:8.2f} "
-              f"{r['n_min']:8.2f}")
-    print("t*: nutation-averaged inversion time (gyroscopic level, the design quantity); "
-          "(full): the full model's, with its nutation")
-    print(f"n_full: launch spin above which the top ends upside down (J > J2); n_cross: lowest "
-          f"spin crossing pi/2 within {T_LIMIT:g} s; n_min = max(n_full, n_cross)")
+        print(
+            f"{r['label']:22s} {r['a']:7.4f} {r['e']:7.4f} {r['group']:>6s} {r['n1']:7.2f} "
+            f"{r['n2']:7.2f} {r['n_full']:7.2f} {r['t_star']:10.4f} {r['t_star_full']:8.4f} "
+            f"{r['n_cross']:8.2f} "
+            f"{r['n_min']:8.2f}"
+        )
+    print(
+        "t*: nutation-averaged inversion time (gyroscopic level, the design quantity); "
+        "(full): the full model's, with its nutation"
+    )
+    print(
+        f"n_full: launch spin above which the top ends upside down (J > J2); n_cross: lowest "
+        f"spin crossing pi/2 within {T_LIMIT:g} s; n_min = max(n_full, n_cross)"
+    )
 
     fig = plt.figure(figsize=(13, 8.5), layout="constrained")
     grid = fig.add_gridspec(2, 2, width_ratios=(1.1, 1))
@@ -253,22 +279,42 @@ def main():
     e_line = np.linspace(*E_BOUNDS, 200)
     a_lo = np.maximum(A_BOUNDS[0], 1 - GROUP_MARGIN * e_line)
     a_hi = np.minimum(A_BOUNDS[1], 1 + GROUP_MARGIN * e_line)
-    ax_map.fill(np.concatenate([a_lo, a_hi[::-1]]), np.concatenate([e_line, e_line[::-1]]),
-                facecolor="none", edgecolor="black", linewidth=1.5, linestyle=":",
-                label="design region")
-    for path, colour, label in ((path_fast, "crimson", f"fastest at {SPIN:g} rad/s"),
-                                (path_low, "navy", f"lowest spin (within {T_LIMIT:g} s)")):
-        ax_map.plot(path[:, 0], path[:, 1], "o-", color=colour, markersize=3, linewidth=1.2,
-                    label=f"Adam path: {label}")
+    ax_map.fill(
+        np.concatenate([a_lo, a_hi[::-1]]),
+        np.concatenate([e_line, e_line[::-1]]),
+        facecolor="none",
+        edgecolor="black",
+        linewidth=1.5,
+        linestyle=":",
+        label="design region",
+    )
+    for path, colour, label in (
+        (path_fast, "crimson", f"fastest at {SPIN:g} rad/s"),
+        (path_low, "navy", f"lowest spin (within {T_LIMIT:g} s)"),
+    ):
+        ax_map.plot(
+            path[:, 0],
+            path[:, 1],
+            "o-",
+            color=colour,
+            markersize=3,
+            linewidth=1.2,
+            label=f"Adam path: {label}",
+        )
         ax_map.plot(path[-1, 0], path[-1, 1], "s", color=colour, markersize=8)
     ax_map.set_xlim(0.5, 1.4)
     ax_map.set_ylim(0.0, 0.6)
     ax_map.set_title("Design region and the optimiser's paths on the group map")
     groups = ax_map.get_legend()  # group_map's legend: the group colours and boundaries
     handles, labels = ax_map.get_legend_handles_labels()
-    ax_map.legend(list(groups.legend_handles) + handles,
-                  [t.get_text() for t in groups.get_texts()] + labels,
-                  loc="upper left", fontsize=8, framealpha=0.95, ncols=2)
+    ax_map.legend(
+        list(groups.legend_handles) + handles,
+        [t.get_text() for t in groups.get_texts()] + labels,
+        loc="upper left",
+        fontsize=8,
+        framealpha=0.95,
+        ncols=2,
+    )
 
     ax1 = fig.add_subplot(grid[0, 1])
     for u, style, label in ((u0, "--", "standard"), (u_fast, "-", "designed (objective 1)")):

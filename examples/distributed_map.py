@@ -34,15 +34,21 @@ def main(argv=None) -> int:
     p.add_argument("--coordinator", help="host:port of process 0")
     p.add_argument("--num-processes", type=int)
     p.add_argument("--process-id", type=int)
-    p.add_argument("--auto-cluster", action="store_true",
-                   help="let jax.distributed.initialize() read the cluster from the environment")
+    p.add_argument(
+        "--auto-cluster",
+        action="store_true",
+        help="let jax.distributed.initialize() read the cluster from the environment",
+    )
     p.add_argument("--n-theta", type=int, default=8)
     p.add_argument("--n-spin", type=int, default=16)
     p.add_argument("--t1", type=float, default=12.0)
     p.add_argument("--chunk-size", type=int, default=4096)
-    p.add_argument("--refine", type=int, default=None,
-                   help="an adaptive map: levels of refinement (each level spread over every "
-                        "process)")
+    p.add_argument(
+        "--refine",
+        type=int,
+        default=None,
+        help="an adaptive map: levels of refinement (each level spread over every process)",
+    )
     p.add_argument("--out", default="distributed_map.npz")
     args = p.parse_args(argv)
 
@@ -67,17 +73,25 @@ def main(argv=None) -> int:
     theta0 = np.linspace(0.05, 1.5, args.n_theta)
     spin = np.linspace(15.0, 200.0, args.n_spin)
     start = time.perf_counter()
-    om = tj.outcome_map(top, theta0, spin, t1=args.t1, model="full", chunk_size=args.chunk_size,
-                        refine=args.refine)
+    om = tj.outcome_map(
+        top, theta0, spin, t1=args.t1, model="full", chunk_size=args.chunk_size, refine=args.refine
+    )
     elapsed = time.perf_counter() - start
     n = theta0.size * spin.size
     if jax.process_index() == 0:
         np.savez(
-            args.out, theta0=theta0, spin=spin, outcome=np.asarray(om.outcome),
-            theta_final=np.asarray(om.theta_final), t_invert=np.asarray(om.t_invert),
-            jellet=np.asarray(om.jellet), num_steps=np.asarray(om.num_steps),
-            simulated=np.asarray(om.simulated), levels=np.array(om.levels, dtype=int),
-            process_count=jax.process_count(), device_count=jax.device_count(),
+            args.out,
+            theta0=theta0,
+            spin=spin,
+            outcome=np.asarray(om.outcome),
+            theta_final=np.asarray(om.theta_final),
+            t_invert=np.asarray(om.t_invert),
+            jellet=np.asarray(om.jellet),
+            num_steps=np.asarray(om.num_steps),
+            simulated=np.asarray(om.simulated),
+            levels=np.array(om.levels, dtype=int),
+            process_count=jax.process_count(),
+            device_count=jax.device_count(),
         )
         print(
             f"{jax.process_count()} processes, {jax.device_count()} devices: {n} launches in "

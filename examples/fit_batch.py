@@ -47,8 +47,10 @@ def main():
         top = tj.TippeTop(m=m, R=R, eps=eps, A=A, C=C, mu=mu)
         sol = tj.simulate(top, tj.initial_state(top, THETA0, spin), TS[-1], saveat=TS)
         theta_obs[b] = np.asarray(sol.theta) + NOISE * rng.standard_normal(TS.size)
-        print(f"recording {b}: mu = {mu:g} s/m, spin = {spin:g} rad/s, "
-              f"inverts at t = {float(sol.t_invert):.2f} s")
+        print(
+            f"recording {b}: mu = {mu:g} s/m, spin = {spin:g} rad/s, "
+            f"inverts at t = {float(sol.t_invert):.2f} s"
+        )
 
     mu_guess, eps_guess, spin_guess = MU_FACTOR * MUS, EPS_FACTOR * eps, SPIN_FACTOR * SPINS
     guess = tj.TippeTop(m=m, R=R, eps=jnp.asarray(eps_guess), A=A, C=C, mu=jnp.asarray(mu_guess))
@@ -69,22 +71,30 @@ def main():
     wall_loop = time.perf_counter() - start
 
     values, errors = np.asarray(batch.values), np.asarray(batch.std_errors)
-    print(f"\n{'':3s} {'':5s} {'true':>10s} {'guess':>10s} {'batch fit':>10s} {'std error':>10s} "
-          f"{'(fit-true)/se':>13s} {'loop fit':>10s}")
+    print(
+        f"\n{'':3s} {'':5s} {'true':>10s} {'guess':>10s} {'batch fit':>10s} {'std error':>10s} "
+        f"{'(fit-true)/se':>13s} {'loop fit':>10s}"
+    )
     for b in range(len(MUS)):
         truth = {"mu": MUS[b], "eps": eps, "spin": SPINS[b]}
         start_values = {"mu": mu_guess[b], "eps": eps_guess[b], "spin": spin_guess[b]}
         for i, name in enumerate(FREE):
             v, e, t = values[b, i], errors[b, i], truth[name]
             single = float(singles[b].values[i])
-            print(f"[{b}] {name:5s} {t:10.5g} {start_values[name]:10.5g} {v:10.6g} {e:10.2g} "
-                  f"{(v - t) / e:13.2f} {single:10.6g}")
-        print(f"    rms {float(batch.rms[b]):.4g} rad, {int(batch.num_steps[b])} steps, "
-              f"{batch.message()[b]} (loop: rms {float(singles[b].rms):.4g}, "
-              f"{int(singles[b].num_steps)} steps)")
+            print(
+                f"[{b}] {name:5s} {t:10.5g} {start_values[name]:10.5g} {v:10.6g} {e:10.2g} "
+                f"{(v - t) / e:13.2f} {single:10.6g}"
+            )
+        print(
+            f"    rms {float(batch.rms[b]):.4g} rad, {int(batch.num_steps[b])} steps, "
+            f"{batch.message()[b]} (loop: rms {float(singles[b].rms):.4g}, "
+            f"{int(singles[b].num_steps)} steps)"
+        )
     print(f"\nwall time, 4 recordings at once (vmapped):  {wall_batch:6.1f} s (incl. compilation)")
-    print(f"wall time, 4 fits in a loop:                {wall_loop:6.1f} s (incl. compilation; "
-          f"first fit {wall_first:.1f} s, the other three {wall_loop - wall_first:.1f} s)")
+    print(
+        f"wall time, 4 fits in a loop:                {wall_loop:6.1f} s (incl. compilation; "
+        f"first fit {wall_first:.1f} s, the other three {wall_loop - wall_first:.1f} s)"
+    )
     print(f"loop / batch: {wall_loop / wall_batch:.2f}")
 
     fig = fit_figure(batch)

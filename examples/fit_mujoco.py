@@ -41,7 +41,12 @@ def main():
     runs = {
         "whole record, trim=False": (ts_all, theta_all, ("mu", "eps", "spin"), False),
         "whole record": (ts_all, theta_all, ("mu", "eps", "spin"), True),
-        "rise (t <= 1.4 s)": (ts_all[ts_all <= 1.4], theta_all[ts_all <= 1.4], ("mu", "eps", "spin"), True),
+        "rise (t <= 1.4 s)": (
+            ts_all[ts_all <= 1.4],
+            theta_all[ts_all <= 1.4],
+            ("mu", "eps", "spin"),
+            True,
+        ),
         "rise, mu only": (ts_all[ts_all <= 1.4], theta_all[ts_all <= 1.4], ("mu",), True),
     }
     fig, axes = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
@@ -53,9 +58,11 @@ def main():
         print(f"\n== {name}: {ts.size} samples, {wall:.1f} s")
         print(res.table())
         print(f"fitted on t <= {float(res.fitted_until):.3f} s")
-        print(f"t_invert of the fitted model: "
-              f"{float(tj.simulate(res.top, res.y0, float(ts[-1]) + 10.0, summary=True, throw=False).t_invert):.3f} s "
-              "(MuJoCo: 1.066 s)")
+        print(
+            f"t_invert of the fitted model: "
+            f"{float(tj.simulate(res.top, res.y0, float(ts[-1]) + 10.0, summary=True, throw=False).t_invert):.3f} s "
+            "(MuJoCo: 1.066 s)"
+        )
         axes[0].plot(ts, np.asarray(res.theta_fit), lw=1.2, label=f"fit: {name}")
         axes[1].plot(ts, np.asarray(res.residuals), lw=0.8, label=name)
     axes[0].set(ylabel=r"$\theta$ (rad)", title="tippejax (viscous friction) fitted to MuJoCo data")

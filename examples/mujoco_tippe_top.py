@@ -50,15 +50,27 @@ EPS = EPS_R * R
 STEM_RADIUS, STEM_LENGTH = 0.003, 0.012  # capsule radius, length of its segment (m)
 
 
-def build_xml(friction, stem=False, condim=3, solref=(0.002, 1.0), timestep=1e-4,
-              integrator="RK4", cone="elliptic"):
+def build_xml(
+    friction,
+    stem=False,
+    condim=3,
+    solref=(0.002, 1.0),
+    timestep=1e-4,
+    integrator="RK4",
+    cone="elliptic",
+):
     """The MJCF model: a plane floor and a free eccentric sphere (frame at the centre of mass)."""
     # Torsional/rolling coefficients: MuJoCo's defaults, used only with condim 4 or 6.
-    contact = (f'condim="{condim}" friction="{friction} 0.005 0.0001" '
-               f'solref="{solref[0]} {solref[1]}"')
+    contact = (
+        f'condim="{condim}" friction="{friction} 0.005 0.0001" solref="{solref[0]} {solref[1]}"'
+    )
     z0 = EPS + 0.8 * R  # the stem leaves the sphere on the side away from the centre of mass
-    stem_geom = (f'<geom name="stem" type="capsule" size="{STEM_RADIUS}" '
-                 f'fromto="0 0 {z0} 0 0 {z0 + STEM_LENGTH}" {contact}/>' if stem else "")
+    stem_geom = (
+        f'<geom name="stem" type="capsule" size="{STEM_RADIUS}" '
+        f'fromto="0 0 {z0} 0 0 {z0 + STEM_LENGTH}" {contact}/>'
+        if stem
+        else ""
+    )
     return f"""
 <mujoco model="tippe_top">
   <option timestep="{timestep}" integrator="{integrator}" cone="{cone}" gravity="0 0 -9.81">
@@ -120,9 +132,13 @@ def simulate(spin, theta0, friction, duration, stem=False, rate=200.0, **options
         energy_prev = energy
     out[:, 2] = np.unwrap(out[:, 2])
     diagnostics = dict(
-        steps=(n_samples - 1) * per_sample, max_penetration=max_pen, max_gap=max_gap,
+        steps=(n_samples - 1) * per_sample,
+        max_penetration=max_pen,
+        max_gap=max_gap,
         steps_without_contact=steps_without_contact,
-        energy0=energy0, energy1=data.energy.sum(), max_energy_rise=max_energy_rise,
+        energy0=energy0,
+        energy1=data.energy.sum(),
+        max_energy_rise=max_energy_rise,
     )
     return out, diagnostics
 
@@ -137,17 +153,30 @@ def main():
     parser.add_argument("--condim", type=int, default=3, choices=(3, 4, 6))
     parser.add_argument("--solref", type=float, nargs=2, default=(0.002, 1.0))
     parser.add_argument("--timestep", type=float, default=1e-4)
-    parser.add_argument("--integrator", default="RK4",
-                        choices=("Euler", "RK4", "implicit", "implicitfast"))
+    parser.add_argument(
+        "--integrator", default="RK4", choices=("Euler", "RK4", "implicit", "implicitfast")
+    )
     parser.add_argument("--cone", default="elliptic", choices=("elliptic", "pyramidal"))
-    parser.add_argument("--out", type=pathlib.Path,
-                        default=pathlib.Path(__file__).parent / "data" / "mujoco_tippe_top.csv")
+    parser.add_argument(
+        "--out",
+        type=pathlib.Path,
+        default=pathlib.Path(__file__).parent / "data" / "mujoco_tippe_top.csv",
+    )
     args = parser.parse_args()
 
     start = time.perf_counter()
-    traj, diag = simulate(args.spin, args.theta0, args.friction, args.duration, args.stem,
-                          condim=args.condim, solref=tuple(args.solref),
-                          timestep=args.timestep, integrator=args.integrator, cone=args.cone)
+    traj, diag = simulate(
+        args.spin,
+        args.theta0,
+        args.friction,
+        args.duration,
+        args.stem,
+        condim=args.condim,
+        solref=tuple(args.solref),
+        timestep=args.timestep,
+        integrator=args.integrator,
+        cone=args.cone,
+    )
     wall = time.perf_counter() - start
 
     args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -161,13 +190,19 @@ def main():
         print(f"theta first crosses pi/2 at t = {t_half:.3f} s")
     else:
         print("theta never crosses pi/2")
-    print(f"final theta = {theta[-1]:.4f} rad (pi - theta = {np.pi - theta[-1]:.2e}), "
-          f"max theta = {theta.max():.4f}")
-    print(f"max penetration = {diag['max_penetration'] * 1e6:.2f} um, max ball lift-off = "
-          f"{diag['max_gap'] * 1e6:.2f} um, steps without contact = "
-          f"{diag['steps_without_contact']} of {diag['steps']}")
-    print(f"energy {diag['energy0'] * 1e3:.4f} mJ -> {diag['energy1'] * 1e3:.4f} mJ, largest rise "
-          f"between samples {diag['max_energy_rise'] * 1e6:.3g} uJ")
+    print(
+        f"final theta = {theta[-1]:.4f} rad (pi - theta = {np.pi - theta[-1]:.2e}), "
+        f"max theta = {theta.max():.4f}"
+    )
+    print(
+        f"max penetration = {diag['max_penetration'] * 1e6:.2f} um, max ball lift-off = "
+        f"{diag['max_gap'] * 1e6:.2f} um, steps without contact = "
+        f"{diag['steps_without_contact']} of {diag['steps']}"
+    )
+    print(
+        f"energy {diag['energy0'] * 1e3:.4f} mJ -> {diag['energy1'] * 1e3:.4f} mJ, largest rise "
+        f"between samples {diag['max_energy_rise'] * 1e6:.3g} uJ"
+    )
     print(f"wall time = {wall:.2f} s; wrote {args.out}")
 
 

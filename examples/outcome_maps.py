@@ -47,7 +47,9 @@ def main(argv=None) -> int:
         print(f"--- {name} top (Group {tj.classify(top)})")
         print(om.summary())
         n = theta0.size * spin.size
-        print(f"{n} launches in {elapsed:.1f} s: {n / elapsed:.1f} launches/s (compilation included)")
+        print(
+            f"{n} launches in {elapsed:.1f} s: {n / elapsed:.1f} launches/s (compilation included)"
+        )
         fig = outcome_map_figure(om)
         path = os.path.join(args.out, f"outcome_map_{name}.png")
         fig.savefig(path, dpi=100)

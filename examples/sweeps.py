@@ -18,8 +18,9 @@ print(top)
 mus = np.array([0.05, 0.1, 0.3, 1.0, 3.0])
 sol = tj.simulate_batch(top.replace(mu=mus), 0.1, 100.0, 20.0, grid=(), summary=True)
 print("\nmu (s/m)  t_invert (s)  outcome       settled  message")
-for mu, t, o, s, msg in zip(mus, np.asarray(sol.t_invert), np.asarray(sol.outcome),
-                            np.asarray(sol.settled), sol.message()):
+for mu, t, o, s, msg in zip(
+    mus, np.asarray(sol.t_invert), np.asarray(sol.outcome), np.asarray(sol.settled), sol.message()
+):
     print(f"{mu:8.2f}  {t:12.2f}  {tj.OUTCOMES[o]:12s}  {s!s:7s}  {msg}")
 
 # Inertia ratio A/C at two spins: the tops on one grid axis, the spins on the other.
@@ -30,13 +31,17 @@ print("\nA/C   group  spin  t_invert (s)  outcome       theta(20 s)")
 for i, ratio in enumerate(ratios):
     group = tj.classify(top.replace(A_over_C=ratio))
     for j, spin in enumerate([60.0, 150.0]):
-        print(f"{ratio:4.2f}  {group:5s}  {spin:4.0f}  {float(sol.t_invert[i, j]):12.2f}  "
-              f"{tj.OUTCOMES[int(sol.outcome[i, j])]:12s}  {float(sol.theta[i, j]):.3f}")
+        print(
+            f"{ratio:4.2f}  {group:5s}  {spin:4.0f}  {float(sol.t_invert[i, j]):12.2f}  "
+            f"{tj.OUTCOMES[int(sol.outcome[i, j])]:12s}  {float(sol.theta[i, j]):.3f}"
+        )
 
 # Spin: the default top at theta0 = 0.1 loses contact (R_n = 0) from about 157 rad/s.
 spins = np.array([99.0, 150.0, 155.0, 157.0, 160.0, 200.0])
 sol = tj.simulate_batch(top, 0.1, spins, 12.0, summary=True)
 print("\nspin  t_invert (s)  t_contact_loss (s)  outcome")
 for j, spin in enumerate(spins):
-    print(f"{spin:4.0f}  {float(sol.t_invert[0, j]):12.2f}  {float(sol.t_contact_loss[0, j]):18.2f}  "
-          f"{tj.OUTCOMES[int(sol.outcome[0, j])]}")
+    print(
+        f"{spin:4.0f}  {float(sol.t_invert[0, j]):12.2f}  {float(sol.t_contact_loss[0, j]):18.2f}  "
+        f"{tj.OUTCOMES[int(sol.outcome[0, j])]}"
+    )

@@ -63,9 +63,20 @@ def _free_compiled_code_between_modules():
     gc.collect()
 
 
-LONGEST_FIRST = ("test_fit.py", "test_simulate.py", "test_shared_steps.py", "test_engine.py",
-                 "test_gyroscopic.py", "test_maps.py", "test_grad.py", "test_batch.py",
-                 "test_projection.py", "test_unrolled.py", "test_cache.py", "test_inversion.py")
+LONGEST_FIRST = (
+    "test_fit.py",
+    "test_simulate.py",
+    "test_shared_steps.py",
+    "test_engine.py",
+    "test_gyroscopic.py",
+    "test_maps.py",
+    "test_grad.py",
+    "test_batch.py",
+    "test_projection.py",
+    "test_unrolled.py",
+    "test_cache.py",
+    "test_inversion.py",
+)
 """The test files that take longest (`--durations=0` of the README's test command, summed per
 file, longest first). They are collected first, so that
 pytest-xdist, which hands out whole files in collection order (`--dist loadfile`), starts them

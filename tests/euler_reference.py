@@ -74,22 +74,26 @@ def _accelerations(z, p, variant):
     kph = -mu * eps * s * u
     kps = -mu * R * s * u
     Cc = C * c
-    M = np.array([
-        [m, 0.0, 0.0, 0.0, 0.0, -kx],
-        [0.0, m, 0.0, 0.0, 0.0, -ky],
-        [0.0, 0.0, A + m * hp * hp, 0.0, 0.0, -kth],
-        [0.0, 0.0, 0.0, A * s * s + Cc * c, Cc, -kph],
-        [0.0, 0.0, 0.0, Cc, C, -kps],
-        [0.0, 0.0, -m * hp, 0.0, 0.0, 1.0],
-    ])
-    b = np.array([
-        0.0,
-        0.0,
-        -m * hp * hpp * thd * thd + A * s * c * phd * phd - C * n * s * phd - m * g * hp,
-        (-2.0 * A * s * c * phd + C * n * s + Cc * s * phd) * thd,
-        C * s * thd * phd,
-        m * (g + hpp * thd * thd),
-    ])
+    M = np.array(
+        [
+            [m, 0.0, 0.0, 0.0, 0.0, -kx],
+            [0.0, m, 0.0, 0.0, 0.0, -ky],
+            [0.0, 0.0, A + m * hp * hp, 0.0, 0.0, -kth],
+            [0.0, 0.0, 0.0, A * s * s + Cc * c, Cc, -kph],
+            [0.0, 0.0, 0.0, Cc, C, -kps],
+            [0.0, 0.0, -m * hp, 0.0, 0.0, 1.0],
+        ]
+    )
+    b = np.array(
+        [
+            0.0,
+            0.0,
+            -m * hp * hpp * thd * thd + A * s * c * phd * phd - C * n * s * phd - m * g * hp,
+            (-2.0 * A * s * c * phd + C * n * s + Cc * s * phd) * thd,
+            C * s * thd * phd,
+            m * (g + hpp * thd * thd),
+        ]
+    )
     return np.linalg.solve(M, b)
 
 
@@ -113,7 +117,9 @@ def jellet(z, params):
     th, phd, psd = z[..., 2], z[..., 8], z[..., 9]
     s, c = np.sin(th), np.cos(th)
     n = psd + phd * c
-    return params["C"] * n * (params["R"] * c - params["eps"]) + params["A"] * phd * params["R"] * s**2
+    return (
+        params["C"] * n * (params["R"] * c - params["eps"]) + params["A"] * phd * params["R"] * s**2
+    )
 
 
 def energy(z, params, variant="full"):
@@ -124,8 +130,12 @@ def energy(z, params, variant="full"):
     s, c = np.sin(th), np.cos(th)
     n = psd + phd * c
     trans = 0.0 if variant == "so3" else p["m"] * (xd**2 + yd**2)
-    T = 0.5 * (trans + (p["A"] + p["m"] * (p["eps"] * s) ** 2) * thd**2
-               + p["A"] * s**2 * phd**2 + p["C"] * n**2)
+    T = 0.5 * (
+        trans
+        + (p["A"] + p["m"] * (p["eps"] * s) ** 2) * thd**2
+        + p["A"] * s**2 * phd**2
+        + p["C"] * n**2
+    )
     return T + p["m"] * p["g"] * (p["R"] - p["eps"] * c)
 
 
@@ -144,8 +154,22 @@ def initial_vector(theta0, spin, *, theta_dot=0.0, phi_dot=0.0, phi=0.0, psi=0.0
     return np.array([0.0, 0.0, theta0, phi, psi, vx, vy, theta_dot, phi_dot, psi_dot], float)
 
 
-def solve(params, theta0, spin, t_eval, *, theta_dot=0.0, phi_dot=0.0, phi=0.0, psi=0.0,
-          vx=0.0, vy=0.0, variant="full", rtol=1e-12, atol=1e-12):
+def solve(
+    params,
+    theta0,
+    spin,
+    t_eval,
+    *,
+    theta_dot=0.0,
+    phi_dot=0.0,
+    phi=0.0,
+    psi=0.0,
+    vx=0.0,
+    vy=0.0,
+    variant="full",
+    rtol=1e-12,
+    atol=1e-12,
+):
     """Integrate a launch with DOP853 from t = 0 to t_eval[-1]; fields sampled at t_eval.
 
     Returns a dict of arrays (t, theta, phi, psi, theta_dot, phi_dot, psi_dot, spin, x, y, vx, vy,
@@ -155,26 +179,46 @@ def solve(params, theta0, spin, t_eval, *, theta_dot=0.0, phi_dot=0.0, phi=0.0, 
     t_eval = np.asarray(t_eval, float)
     if min(theta0, math.pi - theta0) <= POLE_MARGIN:
         raise RuntimeError(f"theta0={theta0} is within {POLE_MARGIN} rad of a pole")
-    z0 = initial_vector(theta0, spin, theta_dot=theta_dot, phi_dot=phi_dot, phi=phi, psi=psi,
-                        vx=vx, vy=vy)
-    sol = solve_ivp(rhs, (0.0, float(t_eval[-1])), z0, method="DOP853", t_eval=t_eval,
-                    args=(params, variant), rtol=rtol, atol=atol, events=_pole_event)
+    z0 = initial_vector(
+        theta0, spin, theta_dot=theta_dot, phi_dot=phi_dot, phi=phi, psi=psi, vx=vx, vy=vy
+    )
+    sol = solve_ivp(
+        rhs,
+        (0.0, float(t_eval[-1])),
+        z0,
+        method="DOP853",
+        t_eval=t_eval,
+        args=(params, variant),
+        rtol=rtol,
+        atol=atol,
+        events=_pole_event,
+    )
     if sol.status == 1:
         raise RuntimeError(
             f"theta came within {POLE_MARGIN} rad of a pole at t = {sol.t_events[0][0]:.6g} s: "
-            "the Euler-angle chart is singular there; use tippejax's vector form instead.")
+            "the Euler-angle chart is singular there; use tippejax's vector form instead."
+        )
     if not sol.success:
         raise RuntimeError(f"solve_ivp failed: {sol.message}")
     z = sol.y.T
     th, phd, psd = z[:, 2], z[:, 8], z[:, 9]
     return {
-        "t": sol.t, "z": z,
-        "theta": th, "phi": z[:, 3], "psi": z[:, 4],
-        "theta_dot": z[:, 7], "phi_dot": phd, "psi_dot": psd,
+        "t": sol.t,
+        "z": z,
+        "theta": th,
+        "phi": z[:, 3],
+        "psi": z[:, 4],
+        "theta_dot": z[:, 7],
+        "phi_dot": phd,
+        "psi_dot": psd,
         "spin": psd + phd * np.cos(th),
-        "x": z[:, 0], "y": z[:, 1], "vx": z[:, 5], "vy": z[:, 6],
+        "x": z[:, 0],
+        "y": z[:, 1],
+        "vx": z[:, 5],
+        "vy": z[:, 6],
         "normal_force": np.array([normal_force(zi, params, variant) for zi in z]),
         "jellet": jellet(z, params),
         "energy": energy(z, params, variant),
-        "nfev": sol.nfev, "success": sol.success,
+        "nfev": sol.nfev,
+        "success": sol.success,
     }

@@ -184,15 +184,34 @@ def hertz_contensou(v, omega_n, rho, delta, *, n_ray=N_RAY, n_angle=N_ANGLE, pol
     **Returns:** (force (2,), torque) with force/(mu R_n) dimensionless and torque/(mu R_n) in m.
     """
     gx, gw = np.polynomial.legendre.leggauss(int(n_ray))
-    fx, fy, mz = _hertz(float(v[0]), float(v[1]), float(omega_n), float(rho), float(delta),
-                        0.5 * (gx + 1.0), 0.5 * gw, int(n_angle), bool(pole_rays))
+    fx, fy, mz = _hertz(
+        float(v[0]),
+        float(v[1]),
+        float(omega_n),
+        float(rho),
+        float(delta),
+        0.5 * (gx + 1.0),
+        0.5 * gw,
+        int(n_angle),
+        bool(pole_rays),
+    )
     return np.array([fx, fy]), mz
 
 
 def friction(law, v, omega_n, *, mu=1.0, rho=5e-4, delta=1e-6):
     """Friction of `law` per unit normal force: (force (2,), torque about e_z), mu included."""
-    fx, fy, mz = _friction(LAWS[law], float(v[0]), float(v[1]), float(omega_n), float(mu),
-                           float(rho), float(delta), _GX, _GW, N_ANGLE)
+    fx, fy, mz = _friction(
+        LAWS[law],
+        float(v[0]),
+        float(v[1]),
+        float(omega_n),
+        float(mu),
+        float(rho),
+        float(delta),
+        _GX,
+        _GW,
+        N_ANGLE,
+    )
     return np.array([fx, fy]), mz
 
 
@@ -230,8 +249,11 @@ def _rhs_rigid(y, P, out, gx, gw):
     w1x, w1y, w1z = _inv_inertia(A, C, ax, ay, az, t1x, t1y, t1z)
     k0 = -(C - A) * n / A
     w0x, w0y = k0 * dax, k0 * day
-    normal = m * (g - eps * (w0x * ay - w0y * ax + wx * day - wy * dax)) / (
-        1.0 + m * eps * (w1x * ay - w1y * ax))
+    normal = (
+        m
+        * (g - eps * (w0x * ay - w0y * ax + wx * day - wy * dax))
+        / (1.0 + m * eps * (w1x * ay - w1y * ax))
+    )
     out[0], out[1], out[2] = y[3], y[4], y[5]
     out[3], out[4], out[5] = normal * fx / m, normal * fy / m, normal / m - g
     out[6], out[7], out[8] = dax, day, daz
@@ -288,8 +310,16 @@ def _rhs_compliant(y, P, out, gx, gw, normals):
     out[5] = (ball[2] + stem[2]) / m - g
     out[6], out[7], out[8] = dax, day, daz
     k0 = -(C - A) * n
-    tx, ty, tz = _inv_inertia(A, C, ax, ay, az, ball[3] + stem[3] + k0 * dax,
-                              ball[4] + stem[4] + k0 * day, ball[5] + stem[5] + k0 * daz)
+    tx, ty, tz = _inv_inertia(
+        A,
+        C,
+        ax,
+        ay,
+        az,
+        ball[3] + stem[3] + k0 * dax,
+        ball[4] + stem[4] + k0 * day,
+        ball[5] + stem[5] + k0 * daz,
+    )
     out[9], out[10], out[11] = tx, ty, tz
     out[12] = ball[6] * (R - eps * az)
     out[13] = ball[7] + stem[7]
@@ -328,8 +358,7 @@ E_STAR = 5e9  # effective modulus of the compliant contacts, Pa
 DAMPING = 200.0
 
 
-def make_params(top, law, *, mu, rho=5e-4, delta=1e-6, stem=True, E_star=E_STAR,
-                damping=DAMPING):
+def make_params(top, law, *, mu, rho=5e-4, delta=1e-6, stem=True, E_star=E_STAR, damping=DAMPING):
     """Parameter vector of the vector fields.
 
     **Arguments:** top: dict with m, R, eps, A, C, g and (for the stem) r2, a2; law: one of
@@ -342,17 +371,38 @@ def make_params(top, law, *, mu, rho=5e-4, delta=1e-6, stem=True, E_star=E_STAR,
         raise ValueError(f"law must be one of {tuple(LAWS)}, got {law!r}")
     m, R, eps, A, C = (float(top[k]) for k in ("m", "R", "eps", "A", "C"))
     g = float(top.get("g", G))
-    if not (m > 0 and R > 0 and 0 <= eps < R and A > 0 and C > 0 and mu >= 0 and rho > 0
-            and delta > 0):
+    if not (
+        m > 0 and R > 0 and 0 <= eps < R and A > 0 and C > 0 and mu >= 0 and rho > 0 and delta > 0
+    ):
         raise ValueError(f"invalid parameters: {top}, mu={mu}, rho={rho}, delta={delta}")
     r2 = float(top.get("r2", 0.0)) if stem else 0.0
     a2 = float(top.get("a2", 0.0)) if stem else 0.0
     if stem and not (r2 > 0 and a2 > eps and a2 + r2 > R and abs(r2 - R) < a2 - eps):
-        raise ValueError(f"stem needs r2 > 0, a2 > eps, a tip outside the ball that can touch: "
-                         f"r2={r2}, a2={a2}")
+        raise ValueError(
+            f"stem needs r2 > 0, a2 > eps, a tip outside the ball that can touch: r2={r2}, a2={a2}"
+        )
     k_ball, k_stem = 4.0 / 3.0 * E_star * math.sqrt(R), 4.0 / 3.0 * E_star * math.sqrt(max(r2, 0))
-    return np.array([m, R, eps, A, C, g, mu, LAWS[law], rho, delta, float(stem), r2, a2,
-                     k_ball, k_stem, damping], float)
+    return np.array(
+        [
+            m,
+            R,
+            eps,
+            A,
+            C,
+            g,
+            mu,
+            LAWS[law],
+            rho,
+            delta,
+            float(stem),
+            r2,
+            a2,
+            k_ball,
+            k_stem,
+            damping,
+        ],
+        float,
+    )
 
 
 def stem_touch_angle(top):
@@ -406,12 +456,23 @@ def fields(y, P, compliant):
             _rhs_compliant(row, P, out, _GX, _GW, normals[i])
         else:
             normals[i, 0] = _rhs_rigid(row, P, out, _GX, _GW)
-    energy = (0.5 * m * np.sum(v * v, axis=1) + 0.5 * np.sum(w * L, axis=1) + m * g * y[:, 2]
-              + elastic)
-    return {"theta": np.arctan2(np.hypot(a[:, 0], a[:, 1]), a[:, 2]), "axis": a, "omega": w,
-            "spin": n, "jellett": L[:, 2] * R - eps * C * n, "energy": energy,
-            "depth_ball": depth_ball, "depth_stem": depth_stem, "normal_ball": normals[:, 0],
-            "normal_stem": normals[:, 1], "jellett_source": y[:, 12], "friction_work": y[:, 13]}
+    energy = (
+        0.5 * m * np.sum(v * v, axis=1) + 0.5 * np.sum(w * L, axis=1) + m * g * y[:, 2] + elastic
+    )
+    return {
+        "theta": np.arctan2(np.hypot(a[:, 0], a[:, 1]), a[:, 2]),
+        "axis": a,
+        "omega": w,
+        "spin": n,
+        "jellett": L[:, 2] * R - eps * C * n,
+        "energy": energy,
+        "depth_ball": depth_ball,
+        "depth_stem": depth_stem,
+        "normal_ball": normals[:, 0],
+        "normal_stem": normals[:, 1],
+        "jellett_source": y[:, 12],
+        "friction_work": y[:, 13],
+    }
 
 
 # --------------------------------------------------------------------------------------------
@@ -424,18 +485,33 @@ def _event(fn, direction=0.0, terminal=False):
     return fn
 
 
-def _phase(P, rigid, y0, t0, t1, t_eval, method, rtol, atol, switch_gap, max_step=np.inf,
-           stop_at_half=False):
+def _phase(
+    P,
+    rigid,
+    y0,
+    t0,
+    t1,
+    t_eval,
+    method,
+    rtol,
+    atol,
+    switch_gap,
+    max_step=np.inf,
+    stop_at_half=False,
+):
     """One solve_ivp run of the rigid or the compliant field; returns (sol, event names)."""
     scratch, normals = np.empty(14), np.empty(2)
-    scale = np.array([P[1]] * 3 + [0.1] * 3 + [1.0] * 3 + [max(np.abs(y0[9:12]).max(), 1.0)] * 3
-                     + [1.0, 1.0])
+    scale = np.array(
+        [P[1]] * 3 + [0.1] * 3 + [1.0] * 3 + [max(np.abs(y0[9:12]).max(), 1.0)] * 3 + [1.0, 1.0]
+    )
     if rigid:
+
         def f(t, y):
             out = np.empty(14)
             _rhs_rigid(y, P, out, _GX, _GW)
             return out
     else:
+
         def f(t, y):
             out = np.empty(14)
             _rhs_compliant(y, P, out, _GX, _GW, normals)
@@ -452,25 +528,39 @@ def _phase(P, rigid, y0, t0, t1, t_eval, method, rtol, atol, switch_gap, max_ste
         events.append(_event(lambda t, y: _rhs_rigid(y, P, scratch, _GX, _GW), -1.0, True))
         names.append("rigid_liftoff")
         if P[10] and switch_gap is not None:
-            events.append(_event(lambda t, y: y[2] + P[12] * y[8] - P[11] - switch_gap,
-                                 -1.0, True))
+            events.append(_event(lambda t, y: y[2] + P[12] * y[8] - P[11] - switch_gap, -1.0, True))
             names.append("switch")
     else:
+
         def ball(t, y):
             return P[1] - y[2] - P[2] * y[8]
 
         def tip(t, y):
             return P[11] - y[2] - P[12] * y[8]
 
-        for fn, (up, down) in ((ball, ("ball_touchdown", "ball_liftoff")),
-                               (tip, ("stem_touch", "stem_liftoff")))[: 1 + int(P[10])]:
-            events += [_event(lambda t, y, fn=fn: fn(t, y), 1.0),  # one object per direction
-                       _event(lambda t, y, fn=fn: fn(t, y), -1.0)]
+        for fn, (up, down) in (
+            (ball, ("ball_touchdown", "ball_liftoff")),
+            (tip, ("stem_touch", "stem_liftoff")),
+        )[: 1 + int(P[10])]:
+            events += [
+                _event(lambda t, y, fn=fn: fn(t, y), 1.0),  # one object per direction
+                _event(lambda t, y, fn=fn: fn(t, y), -1.0),
+            ]
             names += [up, down]
     keep = t_eval[(t_eval > t0) & (t_eval <= t1)]
     kw = {"jac": jac} if method in ("Radau", "BDF", "LSODA") else {}
-    sol = solve_ivp(f, (t0, t1), y0, method=method, t_eval=keep, events=events, rtol=rtol,
-                    atol=atol * scale, max_step=max_step, **kw)
+    sol = solve_ivp(
+        f,
+        (t0, t1),
+        y0,
+        method=method,
+        t_eval=keep,
+        events=events,
+        rtol=rtol,
+        atol=atol * scale,
+        max_step=max_step,
+        **kw,
+    )
     if sol.status < 0:
         raise RuntimeError(f"solve_ivp ({method}) failed at t = {sol.t[-1]:.6g}: {sol.message}")
     return sol, names
@@ -478,14 +568,36 @@ def _phase(P, rigid, y0, t0, t1, t_eval, method, rtol, atol, switch_gap, max_ste
 
 def _event_list(names, sol):
     """[(t, name, theta)] of a solve_ivp solution's events."""
-    return [(float(tk), name, float(math.acos(np.clip(yk[8] / np.linalg.norm(yk[6:9]), -1, 1))))
-            for name, te, ye in zip(names, sol.t_events, sol.y_events) for tk, yk in zip(te, ye)]
+    return [
+        (float(tk), name, float(math.acos(np.clip(yk[8] / np.linalg.norm(yk[6:9]), -1, 1))))
+        for name, te, ye in zip(names, sol.t_events, sol.y_events)
+        for tk, yk in zip(te, ye)
+    ]
 
 
-def solve(top, law, theta0, spin, t_end, *, mu, rho=5e-4, delta=1e-6, stem=True,
-          contact="rigid-then-compliant", E_star=E_STAR, damping=DAMPING, switch_gap=1e-4,
-          dt_sample=1e-3, rtol=1e-9, atol=1e-12, method_rigid=None, method_compliant="LSODA",
-          max_step=np.inf, stop_at_half=False):
+def solve(
+    top,
+    law,
+    theta0,
+    spin,
+    t_end,
+    *,
+    mu,
+    rho=5e-4,
+    delta=1e-6,
+    stem=True,
+    contact="rigid-then-compliant",
+    E_star=E_STAR,
+    damping=DAMPING,
+    switch_gap=1e-4,
+    dt_sample=1e-3,
+    rtol=1e-9,
+    atol=1e-12,
+    method_rigid=None,
+    method_compliant="LSODA",
+    max_step=np.inf,
+    stop_at_half=False,
+):
     """Integrate a launch (`initial_state`) to t_end with events.
 
     **Arguments:** top, law, mu, rho, delta, stem, E_star, damping as `make_params`; theta0 in rad,
@@ -502,10 +614,12 @@ def solve(top, law, theta0, spin, t_end, *, mu, rho=5e-4, delta=1e-6, stem=True,
     stem touch), nfev, wall (seconds).
     """
     if contact not in ("rigid", "compliant", "rigid-then-compliant"):
-        raise ValueError(f"contact must be 'rigid', 'compliant' or 'rigid-then-compliant', "
-                         f"got {contact!r}")
-    P = make_params(top, law, mu=mu, rho=rho, delta=delta, stem=stem, E_star=E_star,
-                    damping=damping)
+        raise ValueError(
+            f"contact must be 'rigid', 'compliant' or 'rigid-then-compliant', got {contact!r}"
+        )
+    P = make_params(
+        top, law, mu=mu, rho=rho, delta=delta, stem=stem, E_star=E_star, damping=damping
+    )
     if contact == "rigid":
         P[10] = 0.0
     method_rigid = method_rigid or ("LSODA" if law == "coulomb" else "DOP853")
@@ -517,9 +631,19 @@ def solve(top, law, theta0, spin, t_end, *, mu, rho=5e-4, delta=1e-6, stem=True,
         y = _to_compliant(y, P)
         ys[0], flags[0] = y[None], np.ones(1, bool)
     else:
-        sol, names = _phase(P, True, y, 0.0, t_end, t_eval, method_rigid, rtol, atol,
-                            switch_gap if contact == "rigid-then-compliant" else None,
-                            stop_at_half=stop_at_half)
+        sol, names = _phase(
+            P,
+            True,
+            y,
+            0.0,
+            t_end,
+            t_eval,
+            method_rigid,
+            rtol,
+            atol,
+            switch_gap if contact == "rigid-then-compliant" else None,
+            stop_at_half=stop_at_half,
+        )
         nfev += sol.nfev
         ts.append(sol.t), ys.append(sol.y.T), flags.append(np.zeros(sol.t.size, bool))
         events += _event_list(names, sol)
@@ -529,16 +653,35 @@ def solve(top, law, theta0, spin, t_end, *, mu, rho=5e-4, delta=1e-6, stem=True,
             # the stem is near, or the ball would lift off: continue with compliant contacts
             t, y = float(sol.t_events[hit[0]][0]), _to_compliant(sol.y_events[hit[0]][0], P)
     if t < t_end:
-        sol, names = _phase(P, False, y, t, t_end, t_eval, method_compliant, rtol, atol, None,
-                            max_step, stop_at_half)
+        sol, names = _phase(
+            P,
+            False,
+            y,
+            t,
+            t_end,
+            t_eval,
+            method_compliant,
+            rtol,
+            atol,
+            None,
+            max_step,
+            stop_at_half,
+        )
         nfev += sol.nfev
         ts.append(sol.t), ys.append(sol.y.T), flags.append(np.ones(sol.t.size, bool))
         events += _event_list(names, sol)
     wall = time.perf_counter() - start
     events.sort()
     t_all, y_all, comp = np.concatenate(ts), np.concatenate(ys), np.concatenate(flags)
-    out = {"t": t_all, "y": y_all, "compliant": comp, "events": events, "nfev": nfev,
-           "wall": wall, "params": P}
+    out = {
+        "t": t_all,
+        "y": y_all,
+        "compliant": comp,
+        "events": events,
+        "nfev": nfev,
+        "wall": wall,
+        "params": P,
+    }
     out.update(fields(y_all, P, comp))
     first = {}
     for te, name, th in events:

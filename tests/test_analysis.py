@@ -64,7 +64,10 @@ def np_f(p, J, x):
 
 
 def np_d(p, theta):
-    return p["R"] ** 2 * p["A"] * np.sin(theta) ** 2 + p["C"] * (p["R"] * np.cos(theta) - p["eps"]) ** 2
+    return (
+        p["R"] ** 2 * p["A"] * np.sin(theta) ** 2
+        + p["C"] * (p["R"] * np.cos(theta) - p["eps"]) ** 2
+    )
 
 
 def branch_domain(top):
@@ -154,7 +157,11 @@ def test_d2W_sympy_matches_closed_form():
     closed = m * g * eps * sp.cos(th) - J**2 * R**2 * C / D**2 * (
         -(A / C - 1) * sp.sin(th) ** 2
         + B / C * sp.cos(th)
-        - 4 * B**2 / C**2 * sp.sin(th) ** 2 / ((A / C) * sp.sin(th) ** 2 + (sp.cos(th) - eps / R) ** 2)
+        - 4
+        * B**2
+        / C**2
+        * sp.sin(th) ** 2
+        / ((A / C) * sp.sin(th) ** 2 + (sp.cos(th) - eps / R) ** 2)
     )
     # Exact identity: write in s = sin, c = cos and reduce modulo s^2 + c^2 - 1.
     s, c = sp.symbols("s c")
@@ -171,8 +178,13 @@ def test_d2W_sympy_matches_closed_form():
         j0 = p["C"] * p["R"] * np.sqrt(p["m"] * p["g"] * p["eps"] / p["C"])
         for J_ in (0.5 * j0, 3.0 * j0):
             ref = fn(_THETA_GRID, J_, p["m"], p["g"], p["eps"], p["A"], p["C"], p["R"])
-            got = np.asarray(ti.effective_potential_d2_closed_form(top, jnp.asarray(_THETA_GRID), J_))
-            scale = p["m"] * p["g"] * p["eps"] + J_**2 * p["R"] ** 2 * p["C"] / np_d(p, _THETA_GRID) ** 2
+            got = np.asarray(
+                ti.effective_potential_d2_closed_form(top, jnp.asarray(_THETA_GRID), J_)
+            )
+            scale = (
+                p["m"] * p["g"] * p["eps"]
+                + J_**2 * p["R"] ** 2 * p["C"] / np_d(p, _THETA_GRID) ** 2
+            )
             worst = max(worst, float(np.max(np.abs(ref - got) / scale)))
     assert worst < 1e-12, worst
 
@@ -208,9 +220,12 @@ def test_thresholds_are_sign_changes_of_pole_d2W(group):
         if not np.isfinite(value):
             assert len(changes) == 0
             # Group I: north always stable; Group III: south always unstable.
-            assert (group.startswith("I") and not group.startswith("II") and pole == "north" and np.all(w > 0)) or (
-                group == "III" and pole == "south" and np.all(w < 0)
-            )
+            assert (
+                group.startswith("I")
+                and not group.startswith("II")
+                and pole == "north"
+                and np.all(w > 0)
+            ) or (group == "III" and pole == "south" and np.all(w < 0))
             continue
         assert len(changes) == 1
         k = changes[0]
@@ -236,8 +251,10 @@ def test_pole_threshold_from_vector_fields(group):
         for model in ("so3", "full"):
             got = float(ti.pole_threshold(top, pole=pole, model=model))
             if np.isfinite(value):
-                print(f"[{group}] {pole} threshold from the {model} field: rel diff "
-                      f"{abs(got - value) / value:.2e}")
+                print(
+                    f"[{group}] {pole} threshold from the {model} field: rel diff "
+                    f"{abs(got - value) / value:.2e}"
+                )
                 assert abs(got - value) <= 1e-8 * value, (pole, model, got, value)
             else:
                 assert np.isnan(got), (pole, model, got)
@@ -455,8 +472,10 @@ def test_stability_routes_agree(group):
         # The printed polynomial is wrong, but its stability verdict is the same (Hurwitz).
         assert (np.max(np.real(r["literal"][k])) < 0) == stable_g
         assert stable_g == paper_stable(group, theta, float(th.theta_b))
-    print(f"[{group}] reduced Jacobian vs corrected cubic: {worst_poly:.2e}; vs SO(3) co-rotating: "
-          f"{worst_so3:.2e}; vs printed cubic (closest): {best_literal:.2e}")
+    print(
+        f"[{group}] reduced Jacobian vs corrected cubic: {worst_poly:.2e}; vs SO(3) co-rotating: "
+        f"{worst_so3:.2e}; vs printed cubic (closest): {best_literal:.2e}"
+    )
     assert worst_poly < 1e-8, worst_poly
     assert worst_so3 < 1e-8, worst_so3
     assert best_literal > 1e-2, best_literal

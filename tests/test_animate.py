@@ -33,18 +33,41 @@ def _fake_solution(ts, axis, body, omega, position=None, model="full", height=No
     n = ts.shape[0]
     zeros = jnp.zeros(n)
     position = jnp.zeros((n, 2)) if position is None else jnp.asarray(position, dtype=float)
-    states = tj.State(position=position, velocity=jnp.zeros((n, 2)), axis=jnp.asarray(axis),
-                      omega=jnp.asarray(omega), body=jnp.asarray(body),
-                      height=None if height is None else jnp.asarray(height, dtype=float),
-                      height_rate=None if height is None else zeros)
+    states = tj.State(
+        position=position,
+        velocity=jnp.zeros((n, 2)),
+        axis=jnp.asarray(axis),
+        omega=jnp.asarray(omega),
+        body=jnp.asarray(body),
+        height=None if height is None else jnp.asarray(height, dtype=float),
+        height_rate=None if height is None else zeros,
+    )
     theta = jnp.arccos(jnp.clip(states.axis[:, 2], -1, 1))
     scalar = jnp.asarray(jnp.nan)
     return tj.Solution(
-        ts=ts, theta=theta, phi=zeros, psi=zeros, theta_dot=zeros, phi_dot=zeros, psi_dot=zeros,
-        spin=zeros, position=position, velocity=jnp.zeros((n, 2)), jellet=zeros, energy=zeros,
-        normal_force=zeros, slip_speed=zeros, states=states, result=tj.RESULTS.successful,
-        t_invert=scalar, t_contact_loss=scalar, t_chart_switch=scalar, t_final=ts[-1],
-        num_steps=jnp.asarray(0), num_rejected_steps=jnp.asarray(0), model=model,
+        ts=ts,
+        theta=theta,
+        phi=zeros,
+        psi=zeros,
+        theta_dot=zeros,
+        phi_dot=zeros,
+        psi_dot=zeros,
+        spin=zeros,
+        position=position,
+        velocity=jnp.zeros((n, 2)),
+        jellet=zeros,
+        energy=zeros,
+        normal_force=zeros,
+        slip_speed=zeros,
+        states=states,
+        result=tj.RESULTS.successful,
+        t_invert=scalar,
+        t_contact_loss=scalar,
+        t_chart_switch=scalar,
+        t_final=ts[-1],
+        num_steps=jnp.asarray(0),
+        num_rejected_steps=jnp.asarray(0),
+        model=model,
     )
 
 
@@ -64,7 +87,10 @@ def test_geometry_stem_sphere_contact(top, theta):
     y = tj.state_from_euler(theta, 0.3, 0.2, 0.0, 0.0, 0.0)
     n = 3
     sol = _fake_solution(
-        np.arange(n) * 0.1, np.tile(y.axis, (n, 1)), np.tile(y.body, (n, 1)), np.zeros((n, 3)),
+        np.arange(n) * 0.1,
+        np.tile(y.axis, (n, 1)),
+        np.tile(y.body, (n, 1)),
+        np.zeros((n, 3)),
         position=np.tile([0.01, -0.02], (n, 1)),
     )
     g = frame_geometry(sol, top, [0.05])
@@ -102,8 +128,13 @@ def test_modelled_stem_is_drawn_and_moves_with_the_axis(tmp_path, monkeypatch):
     ys = [tj.state_from_euler(th, 0.4 * k, 0.0, 0.0, 0.0, 0.0) for k, th in enumerate(thetas)]
     axis = np.stack([np.asarray(y.axis) for y in ys])
     height = 0.015 - 0.003 * np.cos(thetas) + [0.0, 1e-3, 2e-3]
-    sol = _fake_solution(np.arange(3) * 0.1, axis, np.stack([np.asarray(y.body) for y in ys]),
-                         np.zeros((3, 3)), height=height)
+    sol = _fake_solution(
+        np.arange(3) * 0.1,
+        axis,
+        np.stack([np.asarray(y.body) for y in ys]),
+        np.zeros((3, 3)),
+        height=height,
+    )
     g = frame_geometry(sol, top, [0.0, 0.1, 0.2])
     np.testing.assert_allclose(g.centre_of_mass[:, 2], height, atol=1e-15)
     np.testing.assert_allclose(g.stem_tip, g.centre_of_mass + 0.016 * axis, atol=1e-15)
@@ -181,8 +212,17 @@ def test_gif_has_the_frames_asked(top, sol, tmp_path):
     assert path == str(tmp_path / "top.gif")
     assert _frames(path) == (4, (200, 200))
     # Slow motion at fps 20 over 0.1 s of simulation at speed 0.25: 0.1 / (0.25 / 20) + 1 frames.
-    path = tj.animate(sol, top, str(tmp_path / "slow.gif"), fps=20, speed=0.25, t_start=0.1,
-                      t_end=0.2, dpi=30, follow=True)
+    path = tj.animate(
+        sol,
+        top,
+        str(tmp_path / "slow.gif"),
+        fps=20,
+        speed=0.25,
+        t_start=0.1,
+        t_end=0.2,
+        dpi=30,
+        follow=True,
+    )
     assert _frames(path)[0] == 9
 
 

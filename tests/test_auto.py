@@ -75,7 +75,9 @@ def test_choose_model():
     y_stiff = tj.initial_state(stiff, 0.1, 100.0)
     cost, level = min((c, lv) for lv, (e, c) in MEASURED["IIb"]["stiff"].items() if np.isfinite(e))
     err = MEASURED["IIb"]["stiff"][level][0]
-    assert choose_model(stiff, y_stiff, tolerance=2 * err) == (level if cost < COST_MARGIN else "full")
+    assert choose_model(stiff, y_stiff, tolerance=2 * err) == (
+        level if cost < COST_MARGIN else "full"
+    )
     # a level whose measured cost is not below the margin is never chosen
     for level, (err, cost) in MEASURED["IIb"]["inverts"].items():
         if cost >= COST_MARGIN:
@@ -87,7 +89,9 @@ def test_choose_model():
     moving = tj.initial_state(group_iii, 0.1, 100.0, vx=0.1)
     assert choose_model(group_iii, moving, tolerance=10.0) == "full"
     stiff_iii = tj.TippeTop.from_ratios(1.5, 0.2, mu=300.0)
-    assert choose_model(stiff_iii, tj.initial_state(stiff_iii, 0.1, 100.0), tolerance=10.0) == "full"
+    assert (
+        choose_model(stiff_iii, tj.initial_state(stiff_iii, 0.1, 100.0), tolerance=10.0) == "full"
+    )
     # every group is measured: a loose tolerance gets a cheaper level where one is measured
     # cheaper (group III, a fast launch: "intermediate")
     y_iii = tj.initial_state(group_iii, 0.1, 100.0)
@@ -104,9 +108,15 @@ def test_auto_keeps_its_promise_on_a_new_launch():
     top = tj.default_top()
     y0 = tj.initial_state(top, 0.15, 120.0)
     assert launch_regime(top, y0) == "inverts"
-    tolerance = 1.25 * max(err for err, _ in MEASURED["IIb"]["inverts"].values() if np.isfinite(err))
+    tolerance = 1.25 * max(
+        err for err, _ in MEASURED["IIb"]["inverts"].values() if np.isfinite(err)
+    )
     expected = choose_model(top, y0, tolerance=tolerance)
-    cheaper = [lv for lv, (e, c) in MEASURED["IIb"]["inverts"].items() if e <= tolerance and c < COST_MARGIN]
+    cheaper = [
+        lv
+        for lv, (e, c) in MEASURED["IIb"]["inverts"].items()
+        if e <= tolerance and c < COST_MARGIN
+    ]
     assert (expected != "full") == bool(cheaper)
     # 201 save points, as in test_reference.py: the compiled runs are shared (rtol, t1 traced)
     ts = jnp.linspace(0.0, 8.0, 201)
@@ -114,11 +124,15 @@ def test_auto_keeps_its_promise_on_a_new_launch():
     assert auto.model.startswith(expected)
     full = tj.simulate(top, y0, 8.0, model="full", saveat=ts)
     # whichever the table picks (and the cheap levels it could pick), the promise holds
-    for level in dict.fromkeys(("so3", "routhian", expected) if expected != "full" else ("so3", "routhian")):
+    for level in dict.fromkeys(
+        ("so3", "routhian", expected) if expected != "full" else ("so3", "routhian")
+    ):
         sol = tj.simulate(top, y0, 8.0, model=level, saveat=ts)
         err = float(np.max(np.abs(np.asarray(sol.theta) - np.asarray(full.theta))))
-        print(f"{level} vs full on a new inverting launch: max |dtheta| = {err:.3g} rad "
-              f"(tolerance {tolerance:.3g})")
+        print(
+            f"{level} vs full on a new inverting launch: max |dtheta| = {err:.3g} rad "
+            f"(tolerance {tolerance:.3g})"
+        )
         assert err < tolerance
     # and the full model is what a tight tolerance gets
     tight = tj.simulate(top, y0, 8.0, model="auto", tolerance=1e-3, saveat=ts)
@@ -135,7 +149,8 @@ def test_auto_picks_the_gyroscopic_level_for_a_fast_launch_on_its_manifold():
     top = tj.default_top()
     J = tj.jellet(top, tj.initial_state(top, 0.1, 150.0))
     y0 = GyroscopicLevel().to_state(
-        top, GyroscopicLevelState.from_theta(0.1, phi=0.0, psi=0.0, nutation=-30.0, jellet=J))
+        top, GyroscopicLevelState.from_theta(0.1, phi=0.0, psi=0.0, nutation=-30.0, jellet=J)
+    )
     assert launch_regime(top, y0) == "inverts"
     error, cost = MEASURED["IIb"]["inverts"]["gyroscopic"]
     assert np.isfinite(error) and cost < COST_MARGIN
@@ -146,8 +161,10 @@ def test_auto_picks_the_gyroscopic_level_for_a_fast_launch_on_its_manifold():
     assert auto.model in ("gyroscopic", "gyroscopic->full")
     full = tj.simulate(top, y0, 8.0, model="full", saveat=ts)
     err = float(np.max(np.abs(np.asarray(auto.theta) - np.asarray(full.theta))))
-    print(f"gyroscopic (auto) vs full, on-manifold launch n0 = 150: max |dtheta| = {err:.3g} rad "
-          f"(tolerance {loose:.3g})")
+    print(
+        f"gyroscopic (auto) vs full, on-manifold launch n0 = 150: max |dtheta| = {err:.3g} rad "
+        f"(tolerance {loose:.3g})"
+    )
     assert err < loose
     tight = tj.simulate(top, y0, 8.0, model="auto", tolerance=1e-3, saveat=ts)
     assert tight.model == "full"
@@ -158,8 +175,14 @@ def test_auto_picks_the_gyroscopic_level_for_a_fast_launch_on_its_manifold():
 
 # (A/C, eps/R) of the benchmark's top of each group (`benchmarks/levels.py --groups`), and the
 # ranges of its launches: spin 0.7-10 x n1 (n2 in group I), mu 0.05-2 s/m, theta0 0.05-0.5, 8 s
-BENCHMARK_TOPS = {"Ia": (0.96, 0.02), "Ib": (0.7, 0.2), "IIa": (0.8, 0.3), "IIb": (0.9, 0.3),
-                  "IIc": (0.99, 0.02), "III": (1.5, 0.2)}
+BENCHMARK_TOPS = {
+    "Ia": (0.96, 0.02),
+    "Ib": (0.7, 0.2),
+    "IIa": (0.8, 0.3),
+    "IIb": (0.9, 0.3),
+    "IIc": (0.99, 0.02),
+    "III": (1.5, 0.2),
+}
 RANDOM_LAUNCHES = 5
 
 
@@ -171,7 +194,11 @@ def _random_launch(group, rng):
     reference = float(th.n1) if np.isfinite(float(th.n1)) else float(th.n2)
     spin = float(np.exp(rng.uniform(np.log(0.7), np.log(10.0)))) * reference
     theta0 = float(rng.uniform(0.05, 0.5))
-    return top, tj.initial_state(top, theta0, spin), f"theta0={theta0:.3f}, spin={spin:.1f}, mu={mu:.3f}"
+    return (
+        top,
+        tj.initial_state(top, theta0, spin),
+        f"theta0={theta0:.3f}, spin={spin:.1f}, mu={mu:.3f}",
+    )
 
 
 @pytest.mark.parametrize("group", ["Ia", "IIa", "IIc", "III"])
@@ -197,15 +224,18 @@ def test_auto_keeps_its_promise_on_random_launches(group):
             continue
         full = np.asarray(tj.simulate(top, y0, 8.0, saveat=ts, throw=False).theta)
         for level, tolerance in tightest.items():
-            sol = tj.simulate(top, y0, 8.0, model="auto", tolerance=tolerance, saveat=ts,
-                              throw=False)
+            sol = tj.simulate(
+                top, y0, 8.0, model="auto", tolerance=tolerance, saveat=ts, throw=False
+            )
             assert sol.model.startswith(level)
             theta = np.asarray(sol.theta)
             both = np.isfinite(theta) & np.isfinite(full)
             assert both.sum() > 10
             err = float(np.max(np.abs(theta - full)[both]))
-            print(f"{group} {launch_regime(top, y0)} ({launch}): {sol.model} at tolerance "
-                  f"{tolerance:.3g}: max |dtheta| = {err:.3g}")
+            print(
+                f"{group} {launch_regime(top, y0)} ({launch}): {sol.model} at tolerance "
+                f"{tolerance:.3g}: max |dtheta| = {err:.3g}"
+            )
             assert err <= tolerance
             checked += 1
     assert checked, f"auto picked the full model for every launch of group {group}"

@@ -82,8 +82,9 @@ def test_bucketed_batch_equals_unbucketed():
         # equal to about rtol: a member's rounding can depend on the size of its batch
         diff = np.max(np.abs(np.asarray(bucketed.theta) - np.asarray(plain.theta)))
         assert diff < 1e-6, diff
-        np.testing.assert_allclose(np.asarray(bucketed.spin[..., 0]),
-                                   np.asarray(plain.spin[..., 0]), rtol=1e-12)
+        np.testing.assert_allclose(
+            np.asarray(bucketed.spin[..., 0]), np.asarray(plain.spin[..., 0]), rtol=1e-12
+        )
 
 
 def test_blocks_of_members_equal_single_runs(monkeypatch):
@@ -119,8 +120,9 @@ def test_sweep_of_tops_and_launch_rates_equals_single_runs():
     tops = top.replace(mu=[0.1, 0.6], A_over_C=[0.9, 1.2])
     spins = [30.0, 90.0]
     theta_dot = [0.0, 1.5]  # broadcasts along the spin axis (the last one)
-    batch = tj.simulate_batch(tops, 0.3, spins, 1.0, theta_dot=theta_dot, phi_dot=2.0,
-                              grid=("top", "spin"), saveat=TS)
+    batch = tj.simulate_batch(
+        tops, 0.3, spins, 1.0, theta_dot=theta_dot, phi_dot=2.0, grid=("top", "spin"), saveat=TS
+    )
     assert batch.theta.shape == (2, 2, TS.size)
     assert np.all(batch.message() == "successful")
     for i, (mu, ac) in enumerate([(0.1, 0.9), (0.6, 1.2)]):
@@ -129,10 +131,13 @@ def test_sweep_of_tops_and_launch_rates_equals_single_runs():
             y0 = tj.initial_state(one, 0.3, n, theta_dot=theta_dot[j], phi_dot=2.0)
             single = tj.simulate(one, y0, 1.0, saveat=TS)
             assert np.max(np.abs(np.asarray(batch.theta[i, j]) - np.asarray(single.theta))) < 1e-9
-            assert np.max(np.abs(np.asarray(batch.phi_dot[i, j]) - np.asarray(single.phi_dot))) < 1e-7
+            assert (
+                np.max(np.abs(np.asarray(batch.phi_dot[i, j]) - np.asarray(single.phi_dot))) < 1e-7
+            )
             assert int(batch.outcome[i, j]) == int(single.outcome)
-    np.testing.assert_allclose(np.asarray(batch.theta_dot[:, :, 0]), [theta_dot, theta_dot],
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(batch.theta_dot[:, :, 0]), [theta_dot, theta_dot], atol=1e-12
+    )
 
 
 def test_batch_shapes_broadcast_and_bad_sweeps_are_refused():
@@ -183,9 +188,12 @@ def test_a_summary_batch_has_the_batch_shape_and_its_inputs(summary_batch):
     assert np.all(sol.inputs["mu"] == 0.3) and sol.inputs["A_over_C"].shape == (2, 3)
     # each member is the single run of its inputs (independent of the batch's bookkeeping)
     top = tj.default_top()
-    one = tj.simulate(top, tj.initial_state(top, float(sol.inputs["theta0"][1, 2]),
-                                            float(sol.inputs["spin0"][1, 2])), 1.0,
-                      summary=True)
+    one = tj.simulate(
+        top,
+        tj.initial_state(top, float(sol.inputs["theta0"][1, 2]), float(sol.inputs["spin0"][1, 2])),
+        1.0,
+        summary=True,
+    )
     assert float(sol.theta[1, 2]) == pytest.approx(float(one.theta[-1]), abs=1e-7)
     with pytest.raises(ValueError, match="no grid"):
         one.coords()
@@ -222,8 +230,7 @@ def test_a_saved_batch_exports_its_series_over_time(tmp_path):
     pytest.importorskip("xarray")
     ts = np.linspace(0.0, 0.5, 6)
     mus = np.array([0.1, 1.0])
-    sol = tj.simulate_batch(tj.default_top().replace(mu=mus), 0.1, 60.0, 0.5, grid=(),
-                            saveat=ts)
+    sol = tj.simulate_batch(tj.default_top().replace(mu=mus), 0.1, 60.0, 0.5, grid=(), saveat=ts)
     ds = sol.to_xarray()
     assert ds.theta.dims == ("member_0", "time")
     np.testing.assert_allclose(ds.time.values, ts)

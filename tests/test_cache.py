@@ -64,7 +64,9 @@ def test_the_solve_is_stored_and_a_second_process_loads_it(tmp_path):
     # a second process neither traces nor compiles it: it loads it
     second, log2 = _run(SIMULATE, TIPPEJAX_COMPILATION_CACHE=cache)
     traced = [line for line in log2.splitlines() if "Finished tracing" in line]
-    assert not any(" run " in line or "_run" in line or "outcome" in line for line in traced), traced
+    assert not any(" run " in line or "_run" in line or "outcome" in line for line in traced), (
+        traced
+    )
     assert "persistent compilation cache hit" in log2.lower()
     assert first == second  # the loaded program computes the same numbers
     # ... as a process that traces the functions anew, with no cache at all
@@ -148,8 +150,9 @@ def test_cached_call_compiles_with_the_callers_options(tmp_path, monkeypatch):
     fast = cache.cached_call(cube, x, shift=1.0, compiler_options=CPU_COMPILER_OPTIONS)
     assert jnp.allclose(fast, plain) and len(os.listdir(tmp_path)) == 2  # two entries
     monkeypatch.setattr(cache, "_LOADED", {})  # a new process: loaded from disk
-    assert jnp.allclose(cache.cached_call(cube, x, shift=1.0,
-                                          compiler_options=CPU_COMPILER_OPTIONS), plain)
+    assert jnp.allclose(
+        cache.cached_call(cube, x, shift=1.0, compiler_options=CPU_COMPILER_OPTIONS), plain
+    )
     bad = {"not_an_xla_option": 1}
     with pytest.raises(Exception, match="not_an_xla_option"):
         cache.cached_call(cube, x, shift=2.0, compiler_options=bad)  # stored path
@@ -176,6 +179,7 @@ def test_calling_context_tells_top_level_calls_from_staged_ones():
         def f(x):
             seen[name] = calling_context()
             return x
+
         return f
 
     record("top")(1.0)
@@ -187,9 +191,17 @@ def test_calling_context_tells_top_level_calls_from_staged_ones():
     jax.jit(jax.vmap(record("jit of vmap")))(jnp.ones(2))
     jax.vmap(jax.jit(record("vmap of jit")))(jnp.ones(2))
     jax.lax.scan(lambda c, x: (record("scan")(c), x), 0.0, jnp.ones(2))
-    assert seen == {"top": "eager", "vmap": "vmap", "vmap of vmap": "vmap", "grad": "eager",
-                    "jvp": "eager", "jit": "staged", "jit of vmap": "staged",
-                    "vmap of jit": "staged", "scan": "staged"}
+    assert seen == {
+        "top": "eager",
+        "vmap": "vmap",
+        "vmap of vmap": "vmap",
+        "grad": "eager",
+        "jvp": "eager",
+        "jit": "staged",
+        "jit of vmap": "staged",
+        "vmap of jit": "staged",
+        "scan": "staged",
+    }
 
 
 def test_options_reach_an_eager_vmap_and_stay_out_of_a_callers_jit(tmp_path, monkeypatch):
@@ -214,8 +226,9 @@ def test_options_reach_an_eager_vmap_and_stay_out_of_a_callers_jit(tmp_path, mon
     x = jnp.array([1.0, -2.0, 3.0])
     with pytest.raises(Exception, match="not_an_xla_option"):
         jax.vmap(lambda v: cache.cached_call(cube, v, shift=1.0, compiler_options=bad))(x)
-    batched = jax.jit(jax.vmap(
-        lambda v: cache.cached_call(cube, v, shift=1.0, compiler_options=bad)))(x)
+    batched = jax.jit(
+        jax.vmap(lambda v: cache.cached_call(cube, v, shift=1.0, compiler_options=bad))
+    )(x)
     assert jnp.allclose(batched, x**3 + 1.0)
     closed_over = jax.jit(lambda: cache.cached_call(cube, x, shift=2.0, compiler_options=bad))()
     assert jnp.allclose(closed_over, x**3 + 2.0)
@@ -248,8 +261,9 @@ def test_compile_ahead_compiles_on_the_side_and_the_call_uses_it(tmp_path, monke
     ahead = entry[0]
     assert isinstance(ahead, cache._Ahead)
     compiled = ahead.future.result()
-    monkeypatch.setattr(ahead, "future", type("F", (), {"result": lambda self: (
-        runs.append(1) or compiled)})())
+    monkeypatch.setattr(
+        ahead, "future", type("F", (), {"result": lambda self: runs.append(1) or compiled})()
+    )
     out = cache.cached_call(poly, x, power=3)
     assert runs == [1]  # the side thread's program ran
     assert jnp.array_equal(out, jnp.cumsum(x**3))
@@ -282,8 +296,7 @@ def test_programs_over_several_cpu_devices_bypass_the_cache(tmp_path):
     processes (`guard_multi_device_programs`): such programs are neither stored nor read,
     while the program of one device is stored as before."""
     cache = str(tmp_path / "cache")
-    env = dict(TIPPEJAX_COMPILATION_CACHE=cache, TIPPEJAX_HOST_DEVICES="2",
-               JAX_PLATFORMS="cpu")
+    env = dict(TIPPEJAX_COMPILATION_CACHE=cache, TIPPEJAX_HOST_DEVICES="2", JAX_PLATFORMS="cpu")
     guard, _ = _run(SHARDED + "import jax; jax.config.update('jax_log_compiles', False)", **env)
     assert guard == "True"
     names = os.listdir(cache)

@@ -21,7 +21,9 @@ def test_classify_default(tmp_path, capsys):
 
 
 def test_classify_ratios(tmp_path, capsys):
-    assert main(["classify", "--A-over-C", "1.6", "--eps-over-R", "0.2", "--out", str(tmp_path)]) == 0
+    assert (
+        main(["classify", "--A-over-C", "1.6", "--eps-over-R", "0.2", "--out", str(tmp_path)]) == 0
+    )
     out = capsys.readouterr().out
     assert "Group III" in out
     # n2 is undefined in Group III and shown as "-".
@@ -105,11 +107,23 @@ def test_fit_recovers_mu_and_writes_outputs(fit_csv, tmp_path, capsys):
 
     out = tmp_path / "out"
     # Guesses 10% off: mu 0.33 (true 0.3), eps 0.00675 m (true 0.0075).
-    args = ["fit", str(fit_csv), "--free", FIT_FREE, "--mu", "0.33", "--eps", "0.00675",
-            "--out", str(out)]
+    args = [
+        "fit",
+        str(fit_csv),
+        "--free",
+        FIT_FREE,
+        "--mu",
+        "0.33",
+        "--eps",
+        "0.00675",
+        "--out",
+        str(out),
+    ]
     assert main(args) == 0
     text = capsys.readouterr().out
-    rows = {s.split()[0]: s.split() for s in text.splitlines() if s.split()[:1] in (["mu"], ["eps"])}
+    rows = {
+        s.split()[0]: s.split() for s in text.splitlines() if s.split()[:1] in (["mu"], ["eps"])
+    }
     assert set(rows) == {"mu", "eps"}
     mu = float(rows["mu"][1])
     assert abs(mu - 0.3) < 0.02 * 0.3
@@ -190,9 +204,16 @@ def test_fit_figure_draws_recording_zero_and_the_describes_line():
     obs = fitted + 0.01 * np.cos(7 * ts)
     obs[0, 5] = np.nan
     result = SimpleNamespace(
-        ts=ts, theta_obs=obs, theta_fit=fitted, residuals=fitted - obs, free=("mu", "eps"),
-        values=np.array([[0.3, 0.0075], [0.4, 0.007]]), std_errors=np.full((2, 2), 1e-3),
-        rms=np.array([0.007, 0.007]), describes_until=np.array([2.5, 4.0]), model="full",
+        ts=ts,
+        theta_obs=obs,
+        theta_fit=fitted,
+        residuals=fitted - obs,
+        free=("mu", "eps"),
+        values=np.array([[0.3, 0.0075], [0.4, 0.007]]),
+        std_errors=np.full((2, 2), 1e-3),
+        rms=np.array([0.007, 0.007]),
+        describes_until=np.array([2.5, 4.0]),
+        model="full",
     )
     fig = fit_figure(result)
     top, bottom = fig.axes
@@ -206,10 +227,18 @@ def test_fit_figure_draws_recording_zero_and_the_describes_line():
     assert "(s)" in bottom.get_xlabel() and "recording 0 of 2" in fig._suptitle.get_text()
     plt.close(fig)
     # The whole record described: no dashed line.
-    single = SimpleNamespace(**{**vars(result), "theta_obs": obs[1], "theta_fit": fitted[1],
-                                "residuals": (fitted - obs)[1], "values": result.values[1],
-                                "std_errors": result.std_errors[1], "rms": np.float64(0.007),
-                                "describes_until": np.float64(4.0)})
+    single = SimpleNamespace(
+        **{
+            **vars(result),
+            "theta_obs": obs[1],
+            "theta_fit": fitted[1],
+            "residuals": (fitted - obs)[1],
+            "values": result.values[1],
+            "std_errors": result.std_errors[1],
+            "rms": np.float64(0.007),
+            "describes_until": np.float64(4.0),
+        }
+    )
     fig = fit_figure(single, title="one")
     assert not [line for line in fig.axes[0].lines if line.get_linestyle() == "--"]
     assert fig._suptitle.get_text() == "one"

@@ -52,15 +52,16 @@ def blocks(text: str) -> list[Block]:
             continue
         before = next((s.strip() for s in reversed(lines[:i]) if s.strip()), "")
         end = next(j for j in range(i + 1, len(lines)) if lines[j].strip().startswith("```"))
-        code = textwrap.dedent("\n".join(lines[i + 1:end]))  # a block in a list is indented
+        code = textwrap.dedent("\n".join(lines[i + 1 : end]))  # a block in a list is indented
         after = end + 1
         while after < len(lines) and not lines[after].strip():
             after += 1
         expected = None
         if after < len(lines) and lines[after].strip() == "```text":
-            close = next(j for j in range(after + 1, len(lines))
-                         if lines[j].strip().startswith("```"))
-            expected = textwrap.dedent("\n".join(lines[after + 1:close]))
+            close = next(
+                j for j in range(after + 1, len(lines)) if lines[j].strip().startswith("```")
+            )
+            expected = textwrap.dedent("\n".join(lines[after + 1 : close]))
         else:
             shown = [m[1] for m in map(PRINTS.search, code.splitlines()) if m]
             expected = "\n".join(shown) if shown else None
@@ -84,7 +85,8 @@ def same_line(actual: str, expected: str) -> bool:
             if a.lstrip("+-") != e.lstrip("+-") or (e[0] == "-") != (a[0] == "-"):
                 return False
         elif _unit(a) != _unit(e) or not math.isclose(
-                float(a), float(e), rel_tol=1e-12, abs_tol=1.001 * _unit(e)):
+            float(a), float(e), rel_tol=1e-12, abs_tol=1.001 * _unit(e)
+        ):
             return False
     return True
 
@@ -112,7 +114,8 @@ def run_page(path: pathlib.Path, report=None) -> int:
             report(where, out.getvalue())
         elif block.expected is not None:
             assert same_output(out.getvalue(), block.expected), (
-                f"{where} printed\n{out.getvalue()}\nbut the page shows\n{block.expected}")
+                f"{where} printed\n{out.getvalue()}\nbut the page shows\n{block.expected}"
+            )
     return ran
 
 
@@ -139,29 +142,53 @@ def test_readme_links_resolve():
 
 
 def test_the_extractor_reads_outputs_and_skips():
-    page = "\n".join([
-        "```python", "print(1.25)  # prints: 1.25", "```", "",
-        "<!-- no-test -->", "```python", "raise SystemExit", "```",
-        "```python", "print('a', 2)", "```", "", "```text", "a 2", "```",
-        "```python", "x = 1", "```"])
+    page = "\n".join(
+        [
+            "```python",
+            "print(1.25)  # prints: 1.25",
+            "```",
+            "",
+            "<!-- no-test -->",
+            "```python",
+            "raise SystemExit",
+            "```",
+            "```python",
+            "print('a', 2)",
+            "```",
+            "",
+            "```text",
+            "a 2",
+            "```",
+            "```python",
+            "x = 1",
+            "```",
+        ]
+    )
     found = blocks(page)
     assert [(b.skip, b.expected) for b in found] == [
-        (False, "1.25"), (True, None), (False, "a 2"), (False, None)]
+        (False, "1.25"),
+        (True, None),
+        (False, "a 2"),
+        (False, None),
+    ]
 
 
-@pytest.mark.parametrize(("actual", "expected", "same"), [
-    ("t = 5.701", "t = 5.70", False),      # more digits than shown are still held to them
-    ("t = 5.70", "t = 5.70", True),
-    ("t = 5.71", "t = 5.70", True),        # one unit in the last digit shown
-    ("t = 5.72", "t = 5.70", False),
-    ("t = 5.70 s", "t = 5.70", False),     # words must match
-    ("1.0e-06", "1.1e-06", True),
-    ("1.0e-06", "1.2e-06", False),
-    ("nan", "nan", True),
-    ("nan", "5.70", False),
-    ("IIb", "IIa", False),
-    ("a\nb", "a", False),
-])
+@pytest.mark.parametrize(
+    ("actual", "expected", "same"),
+    [
+        ("t = 5.701", "t = 5.70", False),  # more digits than shown are still held to them
+        ("t = 5.70", "t = 5.70", True),
+        ("t = 5.71", "t = 5.70", True),  # one unit in the last digit shown
+        ("t = 5.72", "t = 5.70", False),
+        ("t = 5.70 s", "t = 5.70", False),  # words must match
+        ("1.0e-06", "1.1e-06", True),
+        ("1.0e-06", "1.2e-06", False),
+        ("nan", "nan", True),
+        ("nan", "5.70", False),
+        ("IIb", "IIa", False),
+        ("a\nb", "a", False),
+    ],
+)
 def test_outputs_are_compared_to_the_digits_shown(actual, expected, same):
     assert same_output(actual, expected) == same
 
@@ -169,5 +196,7 @@ def test_outputs_are_compared_to_the_digits_shown(actual, expected, same):
 if __name__ == "__main__":  # print what each block of a page prints
     os.environ.setdefault("MPLBACKEND", "Agg")
     for name in sys.argv[1:]:
-        run_page(pathlib.Path(name).resolve(),
-                 report=lambda where, text: sys.__stdout__.write(f"--- {where}\n{text}"))
+        run_page(
+            pathlib.Path(name).resolve(),
+            report=lambda where, text: sys.__stdout__.write(f"--- {where}\n{text}"),
+        )

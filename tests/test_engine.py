@@ -38,9 +38,11 @@ def test_inversion_time_does_not_depend_on_the_save_grid(top, inverting):
     summary = tj.simulate(top, y0, 20.0, summary=True, body=True)
     lean = tj.simulate(top, y0, 20.0, summary=True)
     t_fine = float(fine.t_invert)
-    print(f"t_invert: fine grid {t_fine:.10f}, 7-point grid {float(coarse.t_invert):.10f}, "
-          f"summary {float(summary.t_invert):.10f}, summary without body "
-          f"{float(lean.t_invert):.10f}")
+    print(
+        f"t_invert: fine grid {t_fine:.10f}, 7-point grid {float(coarse.t_invert):.10f}, "
+        f"summary {float(summary.t_invert):.10f}, summary without body "
+        f"{float(lean.t_invert):.10f}"
+    )
     assert 5.6 < t_fine < 5.8
     # the same solve (the save grid does not change the steps): equal to root-finder precision
     assert abs(float(coarse.t_invert) - t_fine) < 1e-9
@@ -64,8 +66,9 @@ def test_inversion_time_agrees_across_solvers_and_tolerances(top, inverting):
     errors = {}
     for solver in (diffrax.Tsit5(), diffrax.Dopri8()):
         for rtol in (1e-6, 1e-8):
-            sol = tj.simulate(top, y0, 20.0, summary=True, solver=solver, rtol=rtol,
-                              atol=rtol * 1e-2)
+            sol = tj.simulate(
+                top, y0, 20.0, summary=True, solver=solver, rtol=rtol, atol=rtol * 1e-2
+            )
             errors[(type(solver).__name__, rtol)] = abs(float(sol.t_invert) - t_ref)
     print("t_invert error vs rtol-1e-12 run:", {k: f"{v:.1e}" for k, v in errors.items()})
     for (name, rtol), err in errors.items():
@@ -101,8 +104,12 @@ def test_a_run_without_the_body_vector(top, inverting, model):
     assert np.all(np.isfinite(np.asarray(full.psi)))
     assert np.all(np.isnan(np.asarray(tj.simulate(top, y0, 8.0, model=model, summary=True).psi)))
     for name in ("theta", "phi", "theta_dot", "phi_dot", "psi_dot", "spin", "normal_force"):
-        err_lean = np.max(np.abs(np.asarray(getattr(lean, name)) - np.asarray(getattr(tight, name))))
-        err_full = np.max(np.abs(np.asarray(getattr(full, name)) - np.asarray(getattr(tight, name))))
+        err_lean = np.max(
+            np.abs(np.asarray(getattr(lean, name)) - np.asarray(getattr(tight, name)))
+        )
+        err_full = np.max(
+            np.abs(np.asarray(getattr(full, name)) - np.asarray(getattr(tight, name)))
+        )
         scale = 1.0 + np.max(np.abs(np.asarray(getattr(tight, name))))
         print(f"{model} {name}: error without body {err_lean:.1e}, with {err_full:.1e}")
         assert err_lean < 3 * max(err_full, 1e-9 * scale), name
@@ -116,15 +123,19 @@ def test_dopri8_at_loose_tolerance_finds_the_brief_contact_loss(top):
     takes steps of ~1/3 of a nutation period, long enough to hold the whole dip; the watch on
     the dense output finds it."""
     y0 = tj.initial_state(top, 0.1, 200.0)
-    ref = tj.simulate(top, y0, 7.0, summary=True, throw=False, solver=diffrax.Tsit5(),
-                      rtol=1e-10, atol=1e-12)
-    loose = tj.simulate(top, y0, 7.0, summary=True, throw=False, solver=diffrax.Dopri8(),
-                        rtol=1e-6, atol=1e-8)
+    ref = tj.simulate(
+        top, y0, 7.0, summary=True, throw=False, solver=diffrax.Tsit5(), rtol=1e-10, atol=1e-12
+    )
+    loose = tj.simulate(
+        top, y0, 7.0, summary=True, throw=False, solver=diffrax.Dopri8(), rtol=1e-6, atol=1e-8
+    )
     for sol in (ref, loose):
         assert bool(sol.result == tj.RESULTS.contact_lost)
     t_ref, t_loose = float(ref.t_contact_loss), float(loose.t_contact_loss)
-    print(f"contact loss: Tsit5 rtol 1e-10 {t_ref:.6f} s, Dopri8 rtol 1e-6 {t_loose:.6f} s "
-          f"({int(loose.num_steps)} steps)")
+    print(
+        f"contact loss: Tsit5 rtol 1e-10 {t_ref:.6f} s, Dopri8 rtol 1e-6 {t_loose:.6f} s "
+        f"({int(loose.num_steps)} steps)"
+    )
     assert abs(t_ref - 5.1865) < 5e-4
     assert abs(t_loose - t_ref) < 1e-4
     # the run stops there, and R_n is (to root-finding precision) zero at the end
@@ -139,10 +150,13 @@ def test_long_tight_run_of_a_fast_top_finishes():
     past the loss (`on_contact_loss="continue"`) so that all 40 s are integrated."""
     top = tj.default_top()
     y0 = tj.initial_state(top, 0.1, 300.0)
-    sol = tj.simulate(top, y0, 40.0, summary=True, rtol=1e-10, atol=1e-12, throw=False,
-                      on_contact_loss="continue")
-    print(f"40 s at rtol 1e-10, spin 300: {int(sol.num_steps)} steps, result {sol.result}, "
-          f"t_contact_loss {float(sol.t_contact_loss):.4f} s")
+    sol = tj.simulate(
+        top, y0, 40.0, summary=True, rtol=1e-10, atol=1e-12, throw=False, on_contact_loss="continue"
+    )
+    print(
+        f"40 s at rtol 1e-10, spin 300: {int(sol.num_steps)} steps, result {sol.result}, "
+        f"t_contact_loss {float(sol.t_contact_loss):.4f} s"
+    )
     assert bool(sol.result == tj.RESULTS.contact_lost)  # flagged, not max_steps
     assert float(sol.t_final) == pytest.approx(40.0)
     J0 = float(tj.jellet(top, y0))
@@ -179,7 +193,9 @@ def test_saveat_beyond_t1_under_jit_is_an_error(top):
         jax.block_until_ready(run(jnp.array([0.0, 0.5, 2.0])))
 
 
-@pytest.mark.parametrize("rtol, atol", [(-1e-8, 1e-10), (0.0, 1e-10), (1e-8, -1.0), (np.nan, 1e-10)])
+@pytest.mark.parametrize(
+    "rtol, atol", [(-1e-8, 1e-10), (0.0, 1e-10), (1e-8, -1.0), (np.nan, 1e-10)]
+)
 def test_bad_tolerances(top, rtol, atol):
     y0 = tj.initial_state(top, 0.1, 100.0)
     with pytest.raises(ValueError, match="rtol|atol"):
@@ -248,8 +264,15 @@ def _random_states(key, n=8):
     states = []
     for i in range(n):
         s = state_from_euler(theta[i], angles[i, 1], angles[i, 2], 0.0, 0.0, 1.0)
-        states.append(s.__class__(position=jnp.zeros(2), velocity=velocity[i],
-                                  axis=s.axis, omega=omega[i], body=s.body))
+        states.append(
+            s.__class__(
+                position=jnp.zeros(2),
+                velocity=velocity[i],
+                axis=s.axis,
+                omega=omega[i],
+                body=s.body,
+            )
+        )
     return states
 
 
@@ -282,8 +305,13 @@ def test_spin_frame_carries_the_body_vector_exactly(top, name):
 
 
 @pytest.mark.parametrize(
-    "solver", [diffrax.Dopri8(), diffrax.Dopri5(), diffrax.Tsit5(),
-               diffrax.Kvaerno5(root_finder=diffrax.VeryChord(rtol=1e-10, atol=1e-12))],
+    "solver",
+    [
+        diffrax.Dopri8(),
+        diffrax.Dopri5(),
+        diffrax.Tsit5(),
+        diffrax.Kvaerno5(root_finder=diffrax.VeryChord(rtol=1e-10, atol=1e-12)),
+    ],
     ids=lambda s: type(s).__name__,
 )
 def test_the_watch_reads_the_dense_output_in_normalised_time(top, solver):
@@ -306,8 +334,9 @@ def test_the_watch_reads_the_dense_output_in_normalised_time(top, solver):
     interp = solver.interpolation_cls(t0=t0, t1=t1, **dense)
     middle = t0 + 0.5 * (t1 - t0)
     ref, ref_dot = jax.jvp(interp.evaluate, (middle,), (jnp.ones_like(middle),))
-    for a, b in zip(jax.tree_util.tree_leaves((y_mid, y_dot)),
-                    jax.tree_util.tree_leaves((ref, ref_dot))):
+    for a, b in zip(
+        jax.tree_util.tree_leaves((y_mid, y_dot)), jax.tree_util.tree_leaves((ref, ref_dot))
+    ):
         assert np.allclose(np.asarray(a), np.asarray(b), rtol=1e-9, atol=1e-9 * np.max(np.abs(b)))
     # and it is the motion: the derivative is the vector field there, to the interpolant's order
     field = term.vf(middle, y_mid, top)
@@ -319,8 +348,12 @@ def test_ravel_state_round_trip_and_leaves():
     from tippejax._engine.segment import ravel_state
     from tippejax._models.so3 import RigidState
 
-    y = RigidState(axis=jnp.arange(3.0), omega=jnp.arange(3.0, 6.0),
-                   frame=jnp.arange(6.0, 9.0), angle=jnp.asarray(9.0))
+    y = RigidState(
+        axis=jnp.arange(3.0),
+        omega=jnp.arange(3.0, 6.0),
+        frame=jnp.arange(6.0, 9.0),
+        angle=jnp.asarray(9.0),
+    )
     flat, unravel = ravel_state(y)
     # whole leaves, in order, at most PACK_WIDTH (6) to a vector: axis + omega, frame + angle
     assert [x.shape for x in flat] == [(6,), (4,)]
@@ -334,8 +367,12 @@ def test_ravel_state_round_trip_and_leaves():
     names = ("position", "velocity", "axis", "omega", "frame", "angle")
     sizes = (2, 2, 3, 3, 3, 1)
     starts = np.cumsum((0,) + sizes)
-    z = FullLevelState(**{k: jnp.arange(float(a), float(a + n)).reshape((n,) if n > 1 else ())
-                          for k, a, n in zip(names, starts, sizes)})
+    z = FullLevelState(
+        **{
+            k: jnp.arange(float(a), float(a + n)).reshape((n,) if n > 1 else ())
+            for k, a, n in zip(names, starts, sizes)
+        }
+    )
     flat, unravel = ravel_state(z)
     assert [x.shape for x in flat] == [(4,), (6,), (4,)]  # position + velocity | axis + omega | ...
     assert np.array_equal(np.concatenate(flat), np.arange(14.0))
@@ -361,9 +398,14 @@ def test_one_top_is_packed_in_one_vector_and_a_batch_in_narrow_ones(top):
     )
     from tippejax._models.full import FullLevelState
 
-    z = FullLevelState(position=jnp.zeros(2), velocity=jnp.ones(2), axis=jnp.arange(3.0),
-                       omega=jnp.arange(3.0, 6.0), frame=jnp.arange(6.0, 9.0),
-                       angle=jnp.asarray(9.0))
+    z = FullLevelState(
+        position=jnp.zeros(2),
+        velocity=jnp.ones(2),
+        axis=jnp.arange(3.0),
+        omega=jnp.arange(3.0, 6.0),
+        frame=jnp.arange(6.0, 9.0),
+        angle=jnp.asarray(9.0),
+    )
     flat, unravel = ravel_state(z, ONE_TOP_PACK_WIDTH)
     assert [x.shape for x in flat] == [(14,)]
     assert np.array_equal(unravel(flat).omega, z.omega)
@@ -382,13 +424,19 @@ def test_one_top_is_packed_in_one_vector_and_a_batch_in_narrow_ones(top):
 
     y0 = tj.initial_state(top, 0.1, 150.0)
     one = tj.simulate(top, y0, 6.0, summary=True, model="full")
-    batch = jax.vmap(lambda s: tj.simulate(top, tj.initial_state(top, 0.1, s), 6.0,
-                                           summary=True, model="full", throw=False))(
-        jnp.array([150.0]))
+    batch = jax.vmap(
+        lambda s: tj.simulate(
+            top, tj.initial_state(top, 0.1, s), 6.0, summary=True, model="full", throw=False
+        )
+    )(jnp.array([150.0]))
     assert np.isfinite(float(one.t_invert))
     np.testing.assert_allclose(float(batch.t_invert[0]), float(one.t_invert), rtol=1e-9)
-    np.testing.assert_allclose(np.asarray(batch.states.omega[0, -1]),
-                               np.asarray(one.states.omega[-1]), rtol=1e-7, atol=1e-7)
+    np.testing.assert_allclose(
+        np.asarray(batch.states.omega[0, -1]),
+        np.asarray(one.states.omega[-1]),
+        rtol=1e-7,
+        atol=1e-7,
+    )
 
 
 def test_batches_compiled_with_the_cpu_options_match_a_users_vmap(top):
@@ -398,14 +446,19 @@ def test_batches_compiled_with_the_cpu_options_match_a_users_vmap(top):
     end at the same state and inversion time."""
     spins = jnp.array([140.0, 160.0])
     own = tj.simulate_batch(top, 0.1, spins, 6.0, grid=(), summary=True, model="full")
-    user = jax.jit(jax.vmap(lambda s: tj.simulate(top, tj.initial_state(top, 0.1, s), 6.0,
-                                                  summary=True, model="full", throw=False)))(
-        spins)
+    user = jax.jit(
+        jax.vmap(
+            lambda s: tj.simulate(
+                top, tj.initial_state(top, 0.1, s), 6.0, summary=True, model="full", throw=False
+            )
+        )
+    )(spins)
     assert np.all(np.isfinite(np.asarray(own.t_invert)))
     np.testing.assert_allclose(np.asarray(own.t_invert), np.asarray(user.t_invert), rtol=1e-8)
     # (a summary batch has no save axis; the user's vmap of single summaries keeps theirs)
-    np.testing.assert_allclose(np.asarray(own.states.omega),
-                               np.asarray(user.states.omega[:, -1]), rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(
+        np.asarray(own.states.omega), np.asarray(user.states.omega[:, -1]), rtol=1e-6, atol=1e-6
+    )
 
 
 def test_body_vector_of_a_fast_top_against_a_plain_solve(top, inverting):
@@ -418,8 +471,15 @@ def test_body_vector_of_a_fast_top_against_a_plain_solve(top, inverting):
     ts = np.linspace(0.0, 8.0, 9)
     sol = tj.simulate(top, y0, 8.0, model="so3", saveat=ts, rtol=1e-11, atol=1e-13)
     ref = diffrax.diffeqsolve(
-        diffrax.ODETerm(so3_vector_field), diffrax.Dopri8(), 0.0, 8.0, None, y0, top,
-        saveat=diffrax.SaveAt(ts=jnp.asarray(ts)), max_steps=100_000,
+        diffrax.ODETerm(so3_vector_field),
+        diffrax.Dopri8(),
+        0.0,
+        8.0,
+        None,
+        y0,
+        top,
+        saveat=diffrax.SaveAt(ts=jnp.asarray(ts)),
+        max_steps=100_000,
         stepsize_controller=diffrax.PIDController(rtol=1e-12, atol=1e-14),
     ).ys
     assert np.max(np.abs(np.asarray(sol.states.body) - np.asarray(ref.body))) < 1e-7
@@ -438,13 +498,20 @@ def test_fast_top_steps_match_a_solve_without_body_vector(top):
 
     def rigid(t, y, args):
         a, w = y[:3], y[3:]
-        s = so3_vector_field(t, tj.State(position=jnp.zeros(2), velocity=jnp.zeros(2), axis=a,
-                                          omega=w, body=a), args)
+        s = so3_vector_field(
+            t, tj.State(position=jnp.zeros(2), velocity=jnp.zeros(2), axis=a, omega=w, body=a), args
+        )
         return jnp.concatenate([s.axis, s.omega])
 
     plain = diffrax.diffeqsolve(
-        diffrax.ODETerm(rigid), diffrax.Dopri8(), 0.0, 20.0, None,
-        jnp.concatenate([y0.axis, y0.omega]), top, max_steps=100_000,
+        diffrax.ODETerm(rigid),
+        diffrax.Dopri8(),
+        0.0,
+        20.0,
+        None,
+        jnp.concatenate([y0.axis, y0.omega]),
+        top,
+        max_steps=100_000,
         stepsize_controller=diffrax.PIDController(rtol=1e-8, atol=1e-10, **STEP_CONTROL),
     )
     ratio = int(sol.num_steps) / int(plain.stats["num_steps"])
@@ -463,7 +530,9 @@ def test_step_control_rejects_few_steps(top, model):
     sol = tj.simulate(top, tj.initial_state(top, 0.1, 150.0), 20.0, model=model, summary=True)
     assert sol.result == tj.RESULTS.successful
     assert int(sol.num_rejected_steps) < 0.01 * int(sol.num_steps), (
-        int(sol.num_rejected_steps), int(sol.num_steps))
+        int(sol.num_rejected_steps),
+        int(sol.num_steps),
+    )
 
 
 COUNT_SCRIPT = r"""
@@ -480,11 +549,15 @@ def _devices_run(script=COUNT_SCRIPT, **env_changes):
     import subprocess
     import sys
 
-    env = {k: v for k, v in os.environ.items()
-           if k not in ("XLA_FLAGS", "TIPPEJAX_HOST_DEVICES", "TIPPEJAX_CPU_SCHEDULER")}
+    env = {
+        k: v
+        for k, v in os.environ.items()
+        if k not in ("XLA_FLAGS", "TIPPEJAX_HOST_DEVICES", "TIPPEJAX_CPU_SCHEDULER")
+    }
     env.update(env_changes)
-    out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True,
-                         text=True, check=True).stdout
+    out = subprocess.run(
+        [sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True
+    ).stdout
     return json.loads(out.strip().splitlines()[-1])
 
 
@@ -522,12 +595,18 @@ def test_sequential_cpu_scheduler_by_default_and_its_opt_outs():
     from tippejax import _devices
 
     def flags(**env_changes):  # XLA_FLAGS after importing tippejax in a new process
-        env = {k: v for k, v in os.environ.items()
-               if k not in ("XLA_FLAGS", "TIPPEJAX_CPU_SCHEDULER")}
+        env = {
+            k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "TIPPEJAX_CPU_SCHEDULER")
+        }
         env.update(env_changes)
         script = "import os, tippejax; print(os.environ.get('XLA_FLAGS', ''))"
-        out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True,
-                             text=True, check=True).stdout.strip().splitlines()
+        out = (
+            subprocess.run(
+                [sys.executable, "-c", script], env=env, capture_output=True, text=True, check=True
+            )
+            .stdout.strip()
+            .splitlines()
+        )
         return out[-1] if out else ""
 
     flag = _devices.SCHEDULER_FLAG
@@ -577,10 +656,13 @@ def test_bernstein_polygon_is_the_quintic(pieces):
         b = weights @ data
         values = on_grid @ data  # the quintic at s = k / fine, k = 0..fine
         for k in range(pieces):
-            part = b[5 * k:5 * k + 6]
+            part = b[5 * k : 5 * k + 6]
             bern = basis @ part
-            assert np.allclose(bern, values[k * fine // pieces:(k + 1) * fine // pieces + 1],
-                               atol=1e-12 * np.max(np.abs(data)) * 100)
+            assert np.allclose(
+                bern,
+                values[k * fine // pieces : (k + 1) * fine // pieces + 1],
+                atol=1e-12 * np.max(np.abs(data)) * 100,
+            )
         positive = values > 0
         crossings = np.sum(positive[1:] != positive[:-1])
         variations = np.sum((b[1:] > 0) != (b[:-1] > 0))
@@ -595,13 +677,23 @@ def test_a_dip_between_sample_points_is_seen():
     8 points per step at which the watch used to check each condition: at rtol 1e-6 and 1e-8
     it reported the next loss, 37 ms later, as the first. The Bernstein check bounds the
     quintic's crossings from above and finds it at every tolerance."""
-    top = tj.TippeTop.from_ratios(0.9172633358743316, 0.1827716467919303, m=0.02, R=0.025,
-                                  mu=0.5799224581958591)
+    top = tj.TippeTop.from_ratios(
+        0.9172633358743316, 0.1827716467919303, m=0.02, R=0.025, mu=0.5799224581958591
+    )
     y0 = tj.initial_state(top, 0.6216352983872274, 190.60865108208873)
 
     def first_loss(rtol):
-        sol = tj.simulate(top, y0, 4.0, model="full", summary=True, rtol=rtol, atol=rtol * 1e-2,
-                          throw=False, on_contact_loss="continue")
+        sol = tj.simulate(
+            top,
+            y0,
+            4.0,
+            model="full",
+            summary=True,
+            rtol=rtol,
+            atol=rtol * 1e-2,
+            throw=False,
+            on_contact_loss="continue",
+        )
         return float(sol.t_contact_loss)
 
     reference = first_loss(1e-12)

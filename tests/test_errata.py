@@ -61,9 +61,12 @@ def _printed_polynomial():
     D = R**2 * A * sp.sin(th) ** 2 + C * (R * sp.cos(th) - eps) ** 2
     T_thth = k * sp.Rational(1, 2) * (eps**2 * m * sp.sin(th) ** 2 + A)
     T_pbpb = k * sp.Rational(1, 2) * A * C * sp.sin(th) ** 2 / D
-    T1_coeff = J / (R**2 + eps**2) * (
-        R * eps * A * sp.sin(th) ** 2 + C * (R + eps * sp.cos(th)) * (R * sp.cos(th) - eps)
-    ) / D
+    T1_coeff = (
+        J
+        / (R**2 + eps**2)
+        * (R * eps * A * sp.sin(th) ** 2 + C * (R + eps * sp.cos(th)) * (R * sp.cos(th) - eps))
+        / D
+    )
     W = J**2 / (2 * D) - m * g * eps * sp.cos(th)
     W2 = sp.diff(W, th, 2)
     dT1 = sp.diff(T1_coeff, th)
@@ -178,10 +181,14 @@ def test_2_g_is_not_monotone_in_general():
 
 
 def test_2_partial2_f_on_branch_is_g_J2_over_K_and_decreasing():
-    d2f = jax.vmap(jax.grad(lambda top, J, x: ti.intermediate_condition(top, J, x), argnums=2),
-                   in_axes=(None, 0, 0))
+    d2f = jax.vmap(
+        jax.grad(lambda top, J, x: ti.intermediate_condition(top, J, x), argnums=2),
+        in_axes=(None, 0, 0),
+    )
     tops = [tj.TippeTop.from_ratios(a, e) for a, e in GROUP_RATIOS.values()]
-    tops += [tj.TippeTop.from_ratios(a, e) for a, e in ((0.55, 0.5), (1.2, 0.4), (0.7, 0.2), (1.0, 0.6))]
+    tops += [
+        tj.TippeTop.from_ratios(a, e) for a, e in ((0.55, 0.5), (1.2, 0.4), (0.7, 0.2), (1.0, 0.6))
+    ]
     worst = 0.0
     for top in tops:
         p = _params(top)
@@ -269,15 +276,22 @@ def test_4_pole_eigenvalues_need_a_regular_chart():
     p = _params(top)
     n0 = 60.0
     J = p["C"] * (p["R"] - p["eps"]) * n0
-    true = np.sort_complex(np.asarray(ti.vector_field_eigenvalues(top, 0.0, J, model="so3", pole=True)))
-    printed_true = np.sort_complex(np.array([-4.77 - 4.64j, -4.77 + 4.64j, 0.76 - 71.3j, 0.76 + 71.3j]))
+    true = np.sort_complex(
+        np.asarray(ti.vector_field_eigenvalues(top, 0.0, J, model="so3", pole=True))
+    )
+    printed_true = np.sort_complex(
+        np.array([-4.77 - 4.64j, -4.77 + 4.64j, 0.76 - 71.3j, 0.76 + 71.3j])
+    )
     assert true.shape == (4,)
     # To the printed precision (2 decimals, 3 significant digits for 71.3).
     np.testing.assert_allclose(true.real, printed_true.real, atol=0.005)
     np.testing.assert_allclose(true.imag, printed_true.imag, atol=0.05)
     np.testing.assert_allclose(np.abs(true.imag[:2]), 4.64, atol=0.005)
     # The paper's (corrected) polynomial as theta0 -> 0 has a finite limit ...
-    limits = [np.sort_complex(np.asarray(ti.polynomial_eigenvalues(top, t, J))) for t in (1e-4, 1e-5, 1e-6)]
+    limits = [
+        np.sort_complex(np.asarray(ti.polynomial_eigenvalues(top, t, J)))
+        for t in (1e-4, 1e-5, 1e-6)
+    ]
     np.testing.assert_allclose(limits[1], limits[2], rtol=1e-8)
     limit = limits[2]
     printed_limit = np.sort_complex(np.array([-4.28 - 98.3j, -4.28 + 98.3j, 0.54]))
@@ -325,7 +339,9 @@ def test_5_normal_force_denominator_vanishes():
         values = []
         for factor in (0.99, 0.999, 1.001, 1.01):
             spin, phid = rng.uniform(-100, 100, 2)
-            y = tj.initial_state(top, theta=theta, spin=spin, theta_dot=factor * thd_star, phi_dot=phid)
+            y = tj.initial_state(
+                top, theta=theta, spin=spin, theta_dot=factor * thd_star, phi_dot=phid
+            )
             den = float(tj.normal_force_denominator(top, y, model="so3"))
             ref = closed_form(theta, factor * thd_star)
             assert abs(den - ref) <= 1e-10 / p["m"], (theta, factor, den, ref)
@@ -334,7 +350,13 @@ def test_5_normal_force_denominator_vanishes():
         assert values[0] > 0 and values[1] > 0 and values[2] < 0 and values[3] < 0
         # Across the zero, R'_n = numerator / denominator jumps by orders of magnitude.
         rn = [
-            float(tj.normal_force(top, tj.initial_state(top, theta=theta, spin=0.0, theta_dot=f * thd_star), model="so3"))
+            float(
+                tj.normal_force(
+                    top,
+                    tj.initial_state(top, theta=theta, spin=0.0, theta_dot=f * thd_star),
+                    model="so3",
+                )
+            )
             for f in (0.9999, 1.0001)
         ]
         assert abs(rn[0]) > 100 * p["m"] * p["g"] and abs(rn[1]) > 100 * p["m"] * p["g"]

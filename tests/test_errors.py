@@ -65,8 +65,11 @@ def test_the_derivative_of_a_failed_member_is_nan_when_errors_are_values():
     """With EQX_ON_ERROR=nan the check cannot raise: the derivative is nan, not a number."""
     x = jnp.array([0.5, 2.0])
     for on_error in ("default", "nan"):
-        grads = jax.jit(jax.vmap(jax.grad(
-            lambda x: error_if(jnp.sin(x), x > 1.0, "too large", on_error=on_error))))
+        grads = jax.jit(
+            jax.vmap(
+                jax.grad(lambda x: error_if(jnp.sin(x), x > 1.0, "too large", on_error=on_error))
+            )
+        )
         if on_error == "default":
             with pytest.raises(RAISES):
                 grads(x)
@@ -102,8 +105,11 @@ def _singular(mu):
     return top, tj.initial_state(top, 1.0, 50.0, theta_dot=1.05 * bound), dict(t1=0.5)
 
 
-FAILURES = {"contact_lost": (_contact_loss, 0.3), "max_steps": (_max_steps, 0.3),
-            "singular": (_singular, 2.0)}
+FAILURES = {
+    "contact_lost": (_contact_loss, 0.3),
+    "max_steps": (_max_steps, 0.3),
+    "singular": (_singular, 2.0),
+}
 
 
 def _quantities(scene):
@@ -117,6 +123,7 @@ def _quantities(scene):
             sol = tj.simulate(top, y0, summary=True, **kw)
             value = getattr(sol, name)
             return value if jnp.ndim(value) == 0 else value[-1]
+
         return fn
 
     out = {"inversion_time": inversion}
@@ -130,8 +137,9 @@ def _quantities(scene):
 # (every field of a Solution goes through the one check); `-m slow` runs the whole matrix.
 FAST = {("contact_lost", "inversion_time", t) for t in ("jit-grad", "jit-jacfwd", "vmap-grad")}
 FAST |= {(f, "inversion_time", "jit-grad") for f in ("max_steps", "singular")}
-FAST |= {("contact_lost", f"simulate.{q}", "jit-grad") for q in ("t_invert", "theta",
-                                                                  "normal_force")}
+FAST |= {
+    ("contact_lost", f"simulate.{q}", "jit-grad") for q in ("t_invert", "theta", "normal_force")
+}
 
 
 def _cases():
@@ -160,5 +168,6 @@ def test_failed_runs_raise_under_every_transformation(failure, quantity, transfo
     with pytest.raises(RAISES):
         out = jax.block_until_ready(run(arg))
         # (reached only if nothing raised: say what came back instead)
-        pytest.fail(f"{quantity} under {transform} returned {out} for a run that failed "
-                    f"({failure})")
+        pytest.fail(
+            f"{quantity} under {transform} returned {out} for a run that failed ({failure})"
+        )

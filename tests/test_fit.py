@@ -32,8 +32,9 @@ TOP_III = tj.TippeTop.from_ratios(1.4, 0.3, m=0.015, R=0.02, mu=0.8)
 
 
 def _record(top, ts, theta0, spin, seed, *, theta_dot=0.0, noise=NOISE):
-    out = ref.solve(ref.params_of(top), theta0, spin, ts, theta_dot=theta_dot, rtol=1e-12,
-                    atol=1e-12)
+    out = ref.solve(
+        ref.params_of(top), theta0, spin, ts, theta_dot=theta_dot, rtol=1e-12, atol=1e-12
+    )
     clean = np.asarray(out["theta"])
     assert np.all(np.asarray(out["normal_force"]) > 0), "the record must keep contact"
     return clean + noise * np.random.default_rng(seed).standard_normal(ts.shape), clean
@@ -54,7 +55,11 @@ def _check_success(res, truth):
 
 
 def test_groups_of_the_test_tops():
-    assert (tj.classify(TOP_IIA), tj.classify(TOP_IIB), tj.classify(TOP_III)) == ("IIa", "IIb", "III")
+    assert (tj.classify(TOP_IIA), tj.classify(TOP_IIB), tj.classify(TOP_III)) == (
+        "IIa",
+        "IIb",
+        "III",
+    )
 
 
 @pytest.fixture(scope="module")
@@ -90,6 +95,7 @@ def test_start_at_the_truth_stays_and_nothing_is_trimmed(fast_record):
     # Reported on the whole record: the rms is the noise, and the runs test sees white noise.
     assert 0.85 * NOISE < float(res.rms) < 1.15 * NOISE
     assert abs(float(res.runs_z)) < diagnostics.runs_limit()
+
     # The fitted curve (taken from the primal of the Jacobian's forward-mode solve) is the
     # fitted top's own motion at the fit's `rtol` (1e-10, the tolerance the statistics are
     # computed at): as close to a tight solve of the fitted top as a plain `simulate` at 1e-10
@@ -99,15 +105,27 @@ def test_start_at_the_truth_stays_and_nothing_is_trimmed(fast_record):
     # and the two 1e-10 solves differ by 1.3e-9 while each is 4.0e-9 from the tight one).
     # (The fit integrates no body vector: it reads theta and phi only.)
     def theta(rtol, atol=1e-12):
-        return np.asarray(tj.simulate(res.top, res.y0, TS_FAST[-1], saveat=TS_FAST, model="full",
-                                      rtol=rtol, atol=atol, body=False).theta)
+        return np.asarray(
+            tj.simulate(
+                res.top,
+                res.y0,
+                TS_FAST[-1],
+                saveat=TS_FAST,
+                model="full",
+                rtol=rtol,
+                atol=atol,
+                body=False,
+            ).theta
+        )
 
     tight = theta(1e-13, 1e-15)
     fitted = np.max(np.abs(np.asarray(res.theta_fit) - tight))
     plain = np.max(np.abs(theta(1e-10) - tight))
     loose = np.max(np.abs(theta(fit_setup.STAGE_RTOL) - tight))
-    print(f"theta's error: fitted curve {fitted:.2e}, simulate at 1e-10 {plain:.2e}, at "
-          f"STAGE_RTOL {loose:.2e}")
+    print(
+        f"theta's error: fitted curve {fitted:.2e}, simulate at 1e-10 {plain:.2e}, at "
+        f"STAGE_RTOL {loose:.2e}"
+    )
     assert fitted < 2 * plain + 1e-11
     assert loose > 100 * fitted
 
@@ -192,8 +210,9 @@ def _slow_riser(monkeypatch):
     mu and eps, 30% in spin; the strategies "phase" and "valley", one start each (the global
     search's best)."""
     fit_module = importlib.import_module("tippejax._fit.fit")
-    top = tj.TippeTop(m=0.021848, R=0.018104, eps=0.0010121, A=2.7364e-6, C=2.8478e-6,
-                      g=9.81, mu=0.59364)
+    top = tj.TippeTop(
+        m=0.021848, R=0.018104, eps=0.0010121, A=2.7364e-6, C=2.8478e-6, g=9.81, mu=0.59364
+    )
     assert tj.classify(top) == "IIc"
     spin, theta0 = 97.748, 0.49536
     ts = np.arange(0.0, 12.0, 1 / 40)
@@ -306,8 +325,12 @@ def test_a_batch_fits_each_record_as_it_would_be_fitted_alone(monkeypatch):
     monkeypatch.setattr(fit_setup.Setup, "place", spy)
     spin = 4.0 * float(tj.thresholds(TOP_III).n1)
     other = TOP_III.replace(mu=TOP_III.mu * 1.3, eps=TOP_III.eps * 0.8)
-    obs = np.stack([_record(TOP_III, TS_SLOW, 0.1, spin, seed=3)[0],
-                    _record(other, TS_SLOW, 0.1, spin, seed=5)[0]])
+    obs = np.stack(
+        [
+            _record(TOP_III, TS_SLOW, 0.1, spin, seed=3)[0],
+            _record(other, TS_SLOW, 0.1, spin, seed=5)[0],
+        ]
+    )
     guess, y0 = _guess(TOP_III, spin, (1.0, 1.0, 1.0), 0.1)
     batch = tj.fit(guess, y0, TS_SLOW, obs, free=FREE)
     truths = [np.array([float(t.mu), float(t.eps), spin]) for t in (TOP_III, other)]
@@ -316,10 +339,10 @@ def test_a_batch_fits_each_record_as_it_would_be_fitted_alone(monkeypatch):
         _check_success(alone, truths[k])
         assert int(np.asarray(batch.num_steps)[k]) == int(alone.num_steps)
         assert int(np.asarray(batch.starts)[k]) == int(alone.starts)
-        np.testing.assert_allclose(np.asarray(batch.values)[k], np.asarray(alone.values),
-                                   rtol=1e-6)
-        np.testing.assert_allclose(np.asarray(batch.std_errors)[k],
-                                   np.asarray(alone.std_errors), rtol=1e-4)
+        np.testing.assert_allclose(np.asarray(batch.values)[k], np.asarray(alone.values), rtol=1e-6)
+        np.testing.assert_allclose(
+            np.asarray(batch.std_errors)[k], np.asarray(alone.std_errors), rtol=1e-4
+        )
     assert np.all(np.asarray(batch.converged))
     if len(jax.devices()) >= 2:
         assert any(s is not None and len(s.device_set) == 2 for s in shardings)
@@ -374,15 +397,20 @@ def test_gradient_of_every_free_parameter_matches_finite_differences(short_probl
     data, cfg = short_problem
     p = len(cfg.free)
     value_and_jac = jax.jit(lambda u: problem.value_and_jacobian(u, data, cfg))
-    u_to_p = jax.jit(lambda u: jnp.stack([params.physical(u, data.base, cfg.free)[n] for n in cfg.free]))
+    u_to_p = jax.jit(
+        lambda u: jnp.stack([params.physical(u, data.base, cfg.free)[n] for n in cfg.free])
+    )
 
     # The reference is central differences of the same loss solved 100x tighter: the residuals
     # of an adaptive solve jump by about its tolerance where a perturbation changes the sequence
     # of accepted steps, and a difference quotient that straddles such a jump at the fit's rtol
     # (1e-10) is off by 1e-4 relative for some base points and steps; 100x tighter, the jumps
     # are 100x smaller. Autodiff of the fit's own solve must agree with it.
-    tight = eqx.tree_at(lambda d: (d.rtol, d.atol), data,
-                        (jnp.asarray(1e-12, data.rtol.dtype), jnp.asarray(1e-14, data.atol.dtype)))
+    tight = eqx.tree_at(
+        lambda d: (d.rtol, d.atol),
+        data,
+        (jnp.asarray(1e-12, data.rtol.dtype), jnp.asarray(1e-14, data.atol.dtype)),
+    )
 
     def loss_of_values(values):
         r = problem.residuals_of_values(dict(zip(cfg.free, values)), tight, cfg)[0]
@@ -434,7 +462,10 @@ def test_pinned_coordinate_has_no_derivative_and_stays_put(short_problem):
     evaluate = jax.jit(lambda v: problem.value_and_jacobian(v, held, cfg))
     u_end, *_ = least_squares(
         lambda v: tuple(np.asarray(x)[None] for x in evaluate(jnp.asarray(v[0]))),
-        np.asarray(u)[None], tol=float(held.tol), steps=3, max_steps=3,
+        np.asarray(u)[None],
+        tol=float(held.tol),
+        steps=3,
+        max_steps=3,
     )
     u_end = u_end[0]
     assert float(u_end[s]) == float(u[s])
@@ -482,6 +513,7 @@ def test_covariance_matches_finite_difference_jacobian(short_problem):
     free = ("mu", "eps", "spin")
     sub = eqx.tree_at(lambda c: c.free, cfg, free)
     data = eqx.tree_at(lambda d: d.pinned, data, jnp.zeros(3))
+
     def finished(u):
         value, jac, sol = problem.value_jacobian_solution(u, data, sub)
         return fit_setup.finish(u, tj.FIT_RESULTS.successful, data, value, jac, sol, sub)
@@ -490,8 +522,11 @@ def test_covariance_matches_finite_difference_jacobian(short_problem):
 
     # Central differences of the residuals solved 100x tighter (see the gradient test above:
     # a difference quotient at the fit's own rtol can straddle a jump of the adaptive solve).
-    tight = eqx.tree_at(lambda d: (d.rtol, d.atol), data,
-                        (jnp.asarray(1e-12, data.rtol.dtype), jnp.asarray(1e-14, data.atol.dtype)))
+    tight = eqx.tree_at(
+        lambda d: (d.rtol, d.atol),
+        data,
+        (jnp.asarray(1e-12, data.rtol.dtype), jnp.asarray(1e-14, data.atol.dtype)),
+    )
 
     def res_p(values):
         return problem.residuals_of_values(dict(zip(free, values)), tight, sub)[0]
@@ -504,7 +539,9 @@ def test_covariance_matches_finite_difference_jacobian(short_problem):
         up, down = values.copy(), values.copy()
         up[i] += h
         down[i] -= h
-        cols.append((np.asarray(res_p(jnp.asarray(up))) - np.asarray(res_p(jnp.asarray(down)))) / (2 * h))
+        cols.append(
+            (np.asarray(res_p(jnp.asarray(up))) - np.asarray(res_p(jnp.asarray(down)))) / (2 * h)
+        )
     jac = np.stack(cols, 1)
     r = np.asarray(res_p(jnp.asarray(values)))
     n_used = int(np.sum(np.asarray(data.weights) > 0))
@@ -521,8 +558,9 @@ def test_pole_launch_round_trips_through_the_launch_quantities():
         y0 = tj.initial_state(top, 0.0, 60.0, theta_dot=theta_dot, phi=phi)
         launch = {k: jnp.asarray(v) for k, v in params.launch_of(y0).items()}
         assert float(launch["theta_dot"]) == pytest.approx(theta_dot, rel=1e-12)
-        base = params.Base(top={f: getattr(top, f) for f in params.TOP_FIELDS}, launch=launch,
-                           state=y0)
+        base = params.Base(
+            top={f: getattr(top, f) for f in params.TOP_FIELDS}, launch=launch, state=y0
+        )
         _, rebuilt = params.assemble({"theta_dot": launch["theta_dot"]}, base)
         for a, b in zip(jax.tree_util.tree_leaves(rebuilt), jax.tree_util.tree_leaves(y0)):
             np.testing.assert_allclose(np.asarray(a), np.asarray(b), atol=1e-12)
@@ -598,15 +636,31 @@ GOOD_OBS = np.full(TS.shape, 0.1)
         (dict(strategy="magic"), ValueError, "Unknown strategy"),
         (dict(top_guess="default"), TypeError, "TippeTop"),
         (dict(y0_guess=(0.1, 100.0)), TypeError, "State"),
-        (dict(top_guess=eqx.tree_at(lambda t: t.eps, GOOD_TOP, jnp.asarray(0.03))), ValueError, "eps"),
+        (
+            dict(top_guess=eqx.tree_at(lambda t: t.eps, GOOD_TOP, jnp.asarray(0.03))),
+            ValueError,
+            "eps",
+        ),
         (dict(top_guess=eqx.tree_at(lambda t: t.A, GOOD_TOP, GOOD_TOP.C * 0.4)), ValueError, "A/C"),
-        (dict(y0_guess=tj.initial_state(GOOD_TOP, 0.0, 100.0, theta_dot=1.0),
-              free=("mu", "theta0")), ValueError, "free 'theta_dot' instead"),
-        (dict(y0_guess=tj.initial_state(GOOD_TOP, 0.0, 100.0), free=("mu", "theta_dot")),
-         ValueError, "non-zero tilt rate"),
+        (
+            dict(
+                y0_guess=tj.initial_state(GOOD_TOP, 0.0, 100.0, theta_dot=1.0),
+                free=("mu", "theta0"),
+            ),
+            ValueError,
+            "free 'theta_dot' instead",
+        ),
+        (
+            dict(y0_guess=tj.initial_state(GOOD_TOP, 0.0, 100.0), free=("mu", "theta_dot")),
+            ValueError,
+            "non-zero tilt rate",
+        ),
         (dict(y0_guess=tj.initial_state(GOOD_TOP, 0.1, 0.0)), ValueError, "zero spin"),
-        (dict(theta_obs=np.where(np.arange(TS.size) < 799, np.nan, GOOD_OBS), free=FREE), ValueError,
-         "usable samples"),
+        (
+            dict(theta_obs=np.where(np.arange(TS.size) < 799, np.nan, GOOD_OBS), free=FREE),
+            ValueError,
+            "usable samples",
+        ),
         (dict(t0=0.5), ValueError, "t0"),
         (dict(weights=-np.ones(TS.size)), ValueError, "weights"),
         (dict(trim="yes"), ValueError, "trim"),
@@ -627,8 +681,9 @@ def test_level_crossing_times_of_the_data_equal_the_models():
     curve = 0.1 + 0.5 * np.sin(grid) ** 2 + 0.05 * np.sin(7.0 * grid)
     levels = np.array([0.1, 0.1001, 0.2, 0.35, 0.5, 0.61, 2.0])
     got = smoothing.first_crossings_numpy(curve, grid, levels)
-    want = np.asarray(problem.first_crossings(jnp.asarray(curve), jnp.asarray(grid),
-                                              jnp.asarray(levels)))
+    want = np.asarray(
+        problem.first_crossings(jnp.asarray(curve), jnp.asarray(grid), jnp.asarray(levels))
+    )
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-12)
     # a crossing between grid points is interpolated; one never reached lies past the end
     k = int(np.argmax(curve >= 0.35))
@@ -664,7 +719,9 @@ def test_smoother_removes_the_nutation_and_its_shapes_ignore_the_guess(rate):
     mask[::7] = 0.0
     y = trend + nutation
     bins, kernel = band
-    got = problem.smoothed(jnp.asarray(y), jnp.asarray(mask), jnp.asarray(bins), jnp.asarray(kernel))
+    got = problem.smoothed(
+        jnp.asarray(y), jnp.asarray(mask), jnp.asarray(bins), jnp.asarray(kernel)
+    )
     np.testing.assert_allclose(np.asarray(got), smoothing.smooth_numpy(y, mask, band), rtol=1e-12)
     # Shapes from the record alone: a guess spun 4x slower or faster builds the same arrays.
     for other in (period / 4, period * 4):
@@ -698,13 +755,20 @@ def test_host_least_squares_takes_optimistixs_steps(solver):
         reference_solver = optx.GaussNewton(rtol=tol, atol=tol)
     value_jac = jax.jit(jax.vmap(lambda u: (residuals(u), jax.jacfwd(residuals)(u))))
     end, history, count, codes = least_squares(
-        lambda u: value_jac(jnp.asarray(u)), starts, tol=tol, steps=200, max_steps=200,
+        lambda u: value_jac(jnp.asarray(u)),
+        starts,
+        tol=tol,
+        steps=200,
+        max_steps=200,
         damped=solver == "levenberg_marquardt",
     )
     rejected = 0
     for b, start in enumerate(starts):
         ref_sol = optx.least_squares(
-            lambda u, _: residuals(u), reference_solver, jnp.asarray(start), max_steps=200,
+            lambda u, _: residuals(u),
+            reference_solver,
+            jnp.asarray(start),
+            max_steps=200,
             throw=False,
         )
         assert ref_sol.result == optx.RESULTS.successful
@@ -718,8 +782,12 @@ def test_host_least_squares_takes_optimistixs_steps(solver):
         assert rejected > 0  # the trust region's rejections were exercised
     # A budget of steps stops a recording early and says so.
     _, _, count, codes = least_squares(
-        lambda u: value_jac(jnp.asarray(u)), starts, tol=tol, steps=np.array([3, 200, 200]),
-        max_steps=200, damped=solver == "levenberg_marquardt",
+        lambda u: value_jac(jnp.asarray(u)),
+        starts,
+        tol=tol,
+        steps=np.array([3, 200, 200]),
+        max_steps=200,
+        damped=solver == "levenberg_marquardt",
     )
     assert count[0] == 3 and codes[0] == FIT_RESULTS.max_steps_reached._value
 

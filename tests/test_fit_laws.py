@@ -28,8 +28,20 @@ FREE = ("spin",)
 
 def _record(law, mu, seed):
     n = int(LENGTH * RATE)
-    out = rr.solve(rr.STANDARD, law, THETA0, SPIN, (n + 0.5) / RATE, mu=mu, rho=PATCH,
-                   delta=SLIP, stem=False, contact="rigid", dt_sample=1.0 / RATE, rtol=1e-10)
+    out = rr.solve(
+        rr.STANDARD,
+        law,
+        THETA0,
+        SPIN,
+        (n + 0.5) / RATE,
+        mu=mu,
+        rho=PATCH,
+        delta=SLIP,
+        stem=False,
+        contact="rigid",
+        dt_sample=1.0 / RATE,
+        rtol=1e-10,
+    )
     t, theta = np.asarray(out["t"]), np.asarray(out["theta"])
     keep = (t > 0.5 / RATE) & (t < (n + 0.25) / RATE)
     ts, clean = t[keep], theta[keep]
@@ -107,26 +119,32 @@ def test_contensou_record_rules_out_the_viscous_law(contensou_record):
 
 def test_chi2_tail_against_scipy():
     for x, nu in [(0.5, 1), (3.0, 2), (150.0, 197), (260.0, 197), (900.0, 197), (1e-3, 50)]:
-        assert diagnostics.chi2_sf(x, nu) == pytest.approx(stats.chi2.sf(x, nu), rel=1e-9,
-                                                           abs=1e-300)
+        assert diagnostics.chi2_sf(x, nu) == pytest.approx(
+            stats.chi2.sf(x, nu), rel=1e-9, abs=1e-300
+        )
 
 
 @pytest.mark.parametrize(
     "call, match",
     [
         (lambda ts, y: tj.compare_laws(TOP, y, ts, ts, [tj.Viscous(0.3)]), "at least two laws"),
-        (lambda ts, y: tj.compare_laws(TOP, y, ts, ts, [tj.Viscous(0.3), 0.3]),
-         "friction laws"),
-        (lambda ts, y: tj.compare_laws(TOP, y, ts, ts, _guesses(), criterion="hqc"),
-         "criterion"),
+        (lambda ts, y: tj.compare_laws(TOP, y, ts, ts, [tj.Viscous(0.3), 0.3]), "friction laws"),
+        (lambda ts, y: tj.compare_laws(TOP, y, ts, ts, _guesses(), criterion="hqc"), "criterion"),
         (lambda ts, y: tj.compare_laws(TOP, y, ts, ts, _guesses(), level=1.5), "level"),
         (lambda ts, y: tj.compare_laws(TOP, y, ts, ts, _guesses(), sigma=-1.0), "sigma"),
         (lambda ts, y: tj.compare_laws(TOP, y, ts, ts, _guesses(), trim=True), "trim"),
-        (lambda ts, y: tj.compare_laws(TOP, y, ts, np.stack([ts, ts]), _guesses()),
-         "one record"),
+        (lambda ts, y: tj.compare_laws(TOP, y, ts, np.stack([ts, ts]), _guesses()), "one record"),
         (lambda ts, y: tj.fit(TOP, y, ts, ts, free=("patch_radius",)), "no field 'patch_radius'"),
-        (lambda ts, y: tj.fit(TOP.replace(friction=tj.CoulombContensou(0.3, PATCH, SLIP)), y,
-                              ts, ts, free=("slip_scale",)), "does not determine"),
+        (
+            lambda ts, y: tj.fit(
+                TOP.replace(friction=tj.CoulombContensou(0.3, PATCH, SLIP)),
+                y,
+                ts,
+                ts,
+                free=("slip_scale",),
+            ),
+            "does not determine",
+        ),
         (lambda ts, y: tj.fit(TOP, y, ts + 10.0, ts, free=("mu",)), "t0="),
         (lambda ts, y: tj.fit(TOP, y, ts, ts, free=("mu",), t0=0.5), "t0"),
     ],

@@ -34,9 +34,7 @@ def test_float32_process_runs_and_agrees_with_float64():
     import tippejax as tj
 
     top = tj.default_top()
-    ref = tj.simulate(
-        top, tj.initial_state(top, 0.1, 100.0), 1.0, saveat=np.linspace(0.0, 1.0, 51)
-    )
+    ref = tj.simulate(top, tj.initial_state(top, 0.1, 100.0), 1.0, saveat=np.linspace(0.0, 1.0, 51))
     err = np.max(np.abs(np.asarray(r["theta"]) - np.asarray(ref.theta)))
     print(f"float32 process vs float64: max |dtheta| = {err:.2e} rad over 1 s")
     assert err < 1e-3

@@ -54,8 +54,10 @@ def disc_quadrature(u):
         return -weight * (wx if part == 0 else x * wy - y * wx) / speed
 
     opts = dict(epsabs=1e-12, epsrel=1e-12, limit=200)
-    return [integrate.nquad(integrand, [[0, 2 * np.pi], [0, 1]], args=(part,),
-                            opts=[opts, opts])[0] for part in (0, 1)]
+    return [
+        integrate.nquad(integrand, [[0, 2 * np.pi], [0, 1]], args=(part,), opts=[opts, opts])[0]
+        for part in (0, 1)
+    ]
 
 
 QUADRATURE_U = (0.0, 0.4, 0.95, 1.0, 1.3, 2.0, 3.0, 12.0)
@@ -180,8 +182,9 @@ def test_laws_in_float32():
 def test_zero_slip_coefficient_is_the_slope_at_zero_slip():
     for name, law in laws(1e-3).items():
         slope = jax.jacfwd(lambda v: law.force_and_torque(v, jnp.asarray(0.0))[0])(jnp.zeros(2))
-        np.testing.assert_allclose(float(law.zero_slip_coefficient()), -float(slope[0, 0]),
-                                   rtol=1e-9, err_msg=name)
+        np.testing.assert_allclose(
+            float(law.zero_slip_coefficient()), -float(slope[0, 0]), rtol=1e-9, err_msg=name
+        )
 
 
 # ---------------- the laws' fields, and the top's friction ----------------
@@ -191,10 +194,19 @@ def test_zero_slip_coefficient_is_the_slope_at_zero_slip():
     "build, message",
     [
         (lambda: tj.Viscous(-0.1), "Viscous.mu (viscous friction coefficient, s/m) must be >= 0"),
-        (lambda: tj.Coulomb(-0.1, 1e-3), "Coulomb.mu (Coulomb friction coefficient, dimensionless)"),
-        (lambda: tj.Coulomb(0.3, 0.0), "Coulomb.slip_scale (regularisation speed, m/s) must be > 0"),
+        (
+            lambda: tj.Coulomb(-0.1, 1e-3),
+            "Coulomb.mu (Coulomb friction coefficient, dimensionless)",
+        ),
+        (
+            lambda: tj.Coulomb(0.3, 0.0),
+            "Coulomb.slip_scale (regularisation speed, m/s) must be > 0",
+        ),
         (lambda: tj.Coulomb(0.3, float("nan")), "Coulomb.slip_scale must be finite"),
-        (lambda: tj.CoulombContensou(0.3, 0.0, 1e-5), "patch_radius (radius of the contact disc, m)"),
+        (
+            lambda: tj.CoulombContensou(0.3, 0.0, 1e-5),
+            "patch_radius (radius of the contact disc, m)",
+        ),
         (lambda: tj.CoulombContensou(0.3, 5e-4, -1e-5), "CoulombContensou.slip_scale"),
         (lambda: tj.CoulombContensou(0.3, 5e-4, 1e-5, pressure="uniform"), "'hertz', 'ellipse'"),
         (lambda: lg_top(tj.CoulombContensou(0.3, 5e-3, 1e-5)), "well below the ball's radius R"),
@@ -263,10 +275,12 @@ def test_stiffness_for_the_solver_choice():
     from tippejax._friction.coulomb_contensou import REFERENCE_DRILLING_RATE
 
     for law in (laws()["hertz"], laws()["ellipse"]):
-        slope = jax.jacfwd(lambda v, law=law: law.force_and_torque(
-            v, jnp.asarray(REFERENCE_DRILLING_RATE))[0])(jnp.zeros(2))
-        np.testing.assert_allclose(float(law.stiffness_coefficient()), -float(slope[0, 0]),
-                                   rtol=1e-9)
+        slope = jax.jacfwd(
+            lambda v, law=law: law.force_and_torque(v, jnp.asarray(REFERENCE_DRILLING_RATE))[0]
+        )(jnp.zeros(2))
+        np.testing.assert_allclose(
+            float(law.stiffness_coefficient()), -float(slope[0, 0]), rtol=1e-9
+        )
         assert float(law.stiffness_coefficient()) < 1e-3 * float(law.zero_slip_coefficient())
     assert isinstance(tj.default_solver(lg_top(laws(1e-5)["hertz"])), diffrax.Dopri8)
     assert isinstance(tj.default_solver(lg_top(tj.Coulomb(MU, 1e-5))), diffrax.Kvaerno5)
@@ -275,8 +289,9 @@ def test_stiffness_for_the_solver_choice():
 def test_friction_rate_asks_the_law():
     top = lg_top(tj.Coulomb(0.3, 1e-3))
     viscous = tj.TippeTop(**LG, mu=0.3 / 1e-3)
-    np.testing.assert_allclose(float(tj.friction_rate(top)), float(tj.friction_rate(viscous)),
-                               rtol=1e-15)
+    np.testing.assert_allclose(
+        float(tj.friction_rate(top)), float(tj.friction_rate(viscous)), rtol=1e-15
+    )
 
 
 # ---------------- the contact force: R_n from the constraint, every law ----------------
@@ -286,8 +301,11 @@ def _random_states(seed, n=12):
     rng = np.random.default_rng(seed)
     theta = rng.uniform(0.1, np.pi - 0.1, n)
     phi, psi = rng.uniform(-3.0, 3.0, (2, n))
-    thd, phid, psid = rng.normal(scale=3.0, size=n), rng.normal(scale=10.0, size=n), \
-        rng.normal(scale=150.0, size=n)
+    thd, phid, psid = (
+        rng.normal(scale=3.0, size=n),
+        rng.normal(scale=10.0, size=n),
+        rng.normal(scale=150.0, size=n),
+    )
     velocity = rng.normal(scale=0.05, size=(n, 2))
     return tj.state_from_euler(theta, phi, psi, thd, phid, psid, velocity=velocity)
 
@@ -330,12 +348,17 @@ def test_normal_force_solves_newton_euler_with_the_constraint(name):
         rn, omega_dot = _newton_euler(top, axis, omega, velocity)
         out = vector(top, axis, omega, velocity)
         np.testing.assert_allclose(float(out[0]), rn, rtol=1e-10)
-        np.testing.assert_allclose(np.asarray(out[1]), omega_dot, rtol=1e-9,
-                                   atol=1e-9 * np.max(np.abs(omega_dot)))
+        np.testing.assert_allclose(
+            np.asarray(out[1]), omega_dot, rtol=1e-9, atol=1e-9 * np.max(np.abs(omega_dot))
+        )
         by_components = components(top, axis, omega, velocity)
         for x, y in zip(out, by_components):
-            np.testing.assert_allclose(np.asarray(y), np.asarray(x), rtol=1e-12,
-                                       atol=1e-12 * (1 + np.max(np.abs(np.asarray(x)))))
+            np.testing.assert_allclose(
+                np.asarray(y),
+                np.asarray(x),
+                rtol=1e-12,
+                atol=1e-12 * (1 + np.max(np.abs(np.asarray(x)))),
+            )
 
 
 # ---------------- which levels take a law ----------------
@@ -374,8 +397,17 @@ def runs():
         for model in ("full", "so3"):
             with warnings.catch_warnings():  # (pure Coulomb's caveat: tested below)
                 warnings.simplefilter("ignore", UserWarning)
-                sol = tj.simulate(top, y0, t1=T1, model=model, saveat=SAVES, rtol=1e-9,
-                                  atol=1e-12, solver=diffrax.Tsit5(), max_steps=100_000)
+                sol = tj.simulate(
+                    top,
+                    y0,
+                    t1=T1,
+                    model=model,
+                    saveat=SAVES,
+                    rtol=1e-9,
+                    atol=1e-12,
+                    solver=diffrax.Tsit5(),
+                    max_steps=100_000,
+                )
             out[name, model] = (top, sol)
     return out
 
@@ -428,15 +460,28 @@ def test_jellet_rate_is_the_derivative_along_the_field():
             if model == "so3":
                 state = eqx.tree_at(lambda s: s.velocity, state, jnp.zeros(2))
             along, formula = rates(state)
-            np.testing.assert_allclose(float(formula), float(along), rtol=1e-9,
-                                       atol=1e-12 * abs(float(tj.jellet(top, state))))
+            np.testing.assert_allclose(
+                float(formula),
+                float(along),
+                rtol=1e-9,
+                atol=1e-12 * abs(float(tj.jellet(top, state))),
+            )
 
 
 def _inversion_time(law, t1, solver=None, rtol=1e-8):
     top = lg_top(law)
     y0 = tj.initial_state(top, theta=0.1, spin=180.0)
-    sol = tj.simulate(top, y0, t1=t1, model="full", summary=True, rtol=rtol, atol=rtol * 1e-3,
-                      solver=solver, max_steps=400_000)
+    sol = tj.simulate(
+        top,
+        y0,
+        t1=t1,
+        model="full",
+        summary=True,
+        rtol=rtol,
+        atol=rtol * 1e-3,
+        solver=solver,
+        max_steps=400_000,
+    )
     return float(sol.t_invert)
 
 
@@ -445,8 +490,10 @@ def test_contensou_inversion_time_converges_in_slip_scale():
     about 1 s, the same time for every small slip_scale (and no caveat is raised)."""
     with warnings.catch_warnings():
         warnings.simplefilter("error", UserWarning)
-        times = [_inversion_time(tj.CoulombContensou(MU, RHO, delta), 1.3)
-                 for delta in (1e-4, 1e-5, 1e-6)]  # (the default solver, explicit: Dopri8)
+        times = [
+            _inversion_time(tj.CoulombContensou(MU, RHO, delta), 1.3)
+            for delta in (1e-4, 1e-5, 1e-6)
+        ]  # (the default solver, explicit: Dopri8)
     assert 0.8 < times[0] < 1.2
     assert abs(times[1] - times[0]) < 1e-6 and abs(times[2] - times[1]) < 1e-6
 
@@ -458,10 +505,12 @@ def test_coulomb_inversion_time_does_not_converge_in_slip_scale():
     does not show it). simulate (and inversion_time, which runs it) says so, and runs."""
     times = []
     for delta in (1e-2, 3e-3, 1e-3):
-        with pytest.warns(UserWarning, match=rf"depends on slip_scale \(here {delta:.3g} m/s\)"
-                          r".*1/slip_scale"):
-            times.append(_inversion_time(tj.Coulomb(MU, delta), 6.0, diffrax.Tsit5(),
-                                         rtol=1e-6))
+        with pytest.warns(
+            UserWarning,
+            match=rf"depends on slip_scale \(here {delta:.3g} m/s\)"
+            r".*1/slip_scale",
+        ):
+            times.append(_inversion_time(tj.Coulomb(MU, delta), 6.0, diffrax.Tsit5(), rtol=1e-6))
     assert 0.8 < times[0] < 1.4
     assert times[0] < times[1] < times[2]
     assert times[2] - times[0] > 1.0  # far beyond any solver error
@@ -472,8 +521,9 @@ def test_coulomb_inversion_time_does_not_converge_in_slip_scale():
 
 @pytest.mark.slow
 def test_coulomb_inversion_time_grows_like_one_over_slip_scale():
-    times = [_inversion_time(tj.Coulomb(MU, delta), 40.0, rtol=1e-6)
-             for delta in (1e-3, 3e-4, 1e-4)]  # (default solvers: Tsit5, then Kvaerno5)
+    times = [
+        _inversion_time(tj.Coulomb(MU, delta), 40.0, rtol=1e-6) for delta in (1e-3, 3e-4, 1e-4)
+    ]  # (default solvers: Tsit5, then Kvaerno5)
     assert times[0] < times[1] < times[2]
     # each tenfold smaller slip_scale: several times longer (about 1/delta)
     assert times[2] / times[0] > 4.0
@@ -482,10 +532,12 @@ def test_coulomb_inversion_time_grows_like_one_over_slip_scale():
 def test_float32_run_agrees_with_float64(runs):
     top, ref = runs["hertz", "full"]
     top32 = top.astype(jnp.float32)
-    y0 = jax.tree_util.tree_map(lambda x: x.astype(jnp.float32),
-                                tj.initial_state(top, theta=0.1, spin=180.0))
-    sol = tj.simulate(top32, y0, t1=T1, model="full", saveat=SAVES, solver=diffrax.Tsit5(),
-                      max_steps=100_000)
+    y0 = jax.tree_util.tree_map(
+        lambda x: x.astype(jnp.float32), tj.initial_state(top, theta=0.1, spin=180.0)
+    )
+    sol = tj.simulate(
+        top32, y0, t1=T1, model="full", saveat=SAVES, solver=diffrax.Tsit5(), max_steps=100_000
+    )
     assert sol.theta.dtype == jnp.float32
     assert np.max(np.abs(np.asarray(sol.theta) - np.asarray(ref.theta))) < 1e-3
     assert np.max(np.diff(np.asarray(sol.energy, dtype=float))) <= 1e-6 * float(ref.energy[0])
@@ -497,8 +549,20 @@ def test_vmap_over_a_batch_of_one_law(runs):
     top, ref = runs["hertz", "so3"]
     tops = top.replace(mu=[0.3, 0.1])
     y0 = tj.initial_state(top, theta=0.1, spin=180.0)
-    theta = jax.vmap(lambda t: tj.simulate(t, y0, t1=T1, model="so3", saveat=SAVES, rtol=1e-9,
-                                           atol=1e-12, solver=diffrax.Tsit5(),
-                                           max_steps=100_000).theta)(tops)
+    theta = jax.vmap(
+        lambda t: (
+            tj.simulate(
+                t,
+                y0,
+                t1=T1,
+                model="so3",
+                saveat=SAVES,
+                rtol=1e-9,
+                atol=1e-12,
+                solver=diffrax.Tsit5(),
+                max_steps=100_000,
+            ).theta
+        )
+    )(tops)
     np.testing.assert_allclose(np.asarray(theta[0]), np.asarray(ref.theta), rtol=0, atol=1e-9)
     assert np.max(np.abs(np.asarray(theta[1] - theta[0]))) > 1e-4  # mu matters

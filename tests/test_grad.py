@@ -53,8 +53,10 @@ def test_grad_d2w_wrt_eps(d2w_of_eps, theta, j_ratio):
     fd_closed = _central_difference(
         lambda e: float(ti.effective_potential_d2_closed_form(_build(eps=e), theta, J)), eps0
     )
-    print(f"d W''/d eps at theta={theta}, J/J1={j_ratio}: grad vs FD rel diff "
-          f"{abs(got - fd) / abs(fd):.2e} (autodiff W''), {abs(got - fd_closed) / abs(fd_closed):.2e} (closed form)")
+    print(
+        f"d W''/d eps at theta={theta}, J/J1={j_ratio}: grad vs FD rel diff "
+        f"{abs(got - fd) / abs(fd):.2e} (autodiff W''), {abs(got - fd_closed) / abs(fd_closed):.2e} (closed form)"
+    )
     np.testing.assert_allclose(got, fd, rtol=1e-6)
     np.testing.assert_allclose(got, fd_closed, rtol=1e-6)
     assert abs(got) > 0
@@ -273,8 +275,10 @@ def test_grad_simulate_reverse_matches_forward(reverse, reverse_through_solve, f
     _check_complete(forward)
     assert _report("jax.jacrev vs jax.jacfwd", reverse, forward) < MODES_RTOL
     # the default's reverse mode against reverse mode through the solve's steps
-    assert _report("jax.jacrev: default vs RecursiveCheckpointAdjoint", reverse,
-                   reverse_through_solve) < MODES_RTOL
+    assert (
+        _report("jax.jacrev: default vs RecursiveCheckpointAdjoint", reverse, reverse_through_solve)
+        < MODES_RTOL
+    )
 
 
 def test_default_adjoint_takes_forward_mode_too(problem, forward):
@@ -404,9 +408,11 @@ def test_grad_and_jacfwd_trace_the_solve_once(monkeypatch):
 
     calls = []
     run_chain = simulate_module.run_chain
-    monkeypatch.setattr(simulate_module, "run_chain",
-                        lambda *a, **k: calls.append(type(k["adjoint"]).__name__)
-                        or run_chain(*a, **k))
+    monkeypatch.setattr(
+        simulate_module,
+        "run_chain",
+        lambda *a, **k: calls.append(type(k["adjoint"]).__name__) or run_chain(*a, **k),
+    )
 
     def t_invert(top):
         y0 = tj.initial_state(top, 0.1, 150.0)

@@ -64,9 +64,7 @@ def _reactie(p, theta, phi, thd, phid, psid, xd, yd):
             -h1 * phid * np.sin(theta) * C * n / A,
         ]
     )
-    denominator = 1 / m + h1 / A * (
-        -h * mu * (np.sin(phi) * xd - np.cos(phi) * yd - thd * h) + h1
-    )
+    denominator = 1 / m + h1 / A * (-h * mu * (np.sin(phi) * xd - np.cos(phi) * yd - thd * h) + h1)
     return terms.sum(0) / denominator, np.abs(terms).sum(0) / np.abs(denominator)
 
 
@@ -107,7 +105,15 @@ def lagrange_system():
         eps_ = p["eps"]
         zd_ = eps_ * np.sin(theta) * thd_  # on the constraint z = R - eps cos(theta)
         mm, rr, ff, vq = fn(
-            phi, theta, psi, xd_, yd_, zd_, phid_, thd_, psid_,
+            phi,
+            theta,
+            psi,
+            xd_,
+            yd_,
+            zd_,
+            phid_,
+            thd_,
+            psid_,
             *(p[k] for k in ("m", "R", "eps", "A", "C", "g", "mu")),
         )
         mm = np.asarray(mm, dtype=float)
@@ -196,7 +202,9 @@ def test_normal_force_denominator_matches_reactie(top):
     y = _state(theta, phi, psi, thd, phid, psid, xd, yd)
     h, h1 = R - eps * np.cos(theta), eps * np.sin(theta)
     expected = 1 / m + h1 / A * (-h * mu * (np.sin(phi) * xd - np.cos(phi) * yd - thd * h) + h1)
-    np.testing.assert_allclose(np.asarray(tj.normal_force_denominator(top, y)), expected, rtol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(tj.normal_force_denominator(top, y)), expected, rtol=1e-12
+    )
 
 
 @pytest.mark.parametrize("top", TOPS, ids=TOP_IDS)
@@ -207,7 +215,9 @@ def test_normal_force_from_lagrangian(lagrange_system, top):
     got_full = np.asarray(tj.normal_force(top, y))
     got_so3 = np.asarray(tj.normal_force(top, y, model="so3"))
     for i in range(6):
-        rn, _, v_q = lagrange_system(p, theta[i], phi[i], psi[i], thd[i], phid[i], psid[i], xd[i], yd[i])
+        rn, _, v_q = lagrange_system(
+            p, theta[i], phi[i], psi[i], thd[i], phid[i], psid[i], xd[i], yd[i]
+        )
         assert abs(v_q[2]) < 1e-12 * np.abs(v_q).max()  # sanity of the derivation
         np.testing.assert_allclose(got_full[i], rn, rtol=1e-10)
         rn0, _, _ = lagrange_system(p, theta[i], phi[i], psi[i], thd[i], phid[i], psid[i], 0.0, 0.0)
@@ -237,13 +247,19 @@ def test_vector_fields_match_lagrangian(lagrange_system, euler_accelerations, to
     vel_dot0, (thdd0, phidd0, psidd0) = euler_accelerations(ti.so3_vector_field, top, y0)
     np.testing.assert_array_equal(np.asarray(vel_dot0), 0.0)
     for i in range(6):
-        _, qdd, _ = lagrange_system(p, theta[i], phi[i], psi[i], thd[i], phid[i], psid[i], xd[i], yd[i])
+        _, qdd, _ = lagrange_system(
+            p, theta[i], phi[i], psi[i], thd[i], phid[i], psid[i], xd[i], yd[i]
+        )
         got = np.array([*np.asarray(vel_dot[i]), phidd[i], thdd[i], psidd[i]])
         want = qdd[[0, 1, 3, 4, 5]]
         scale = np.abs(want[2:]).max()
-        np.testing.assert_allclose(got[:2], want[:2], rtol=1e-10, atol=1e-12 * np.abs(want[:2]).max())
+        np.testing.assert_allclose(
+            got[:2], want[:2], rtol=1e-10, atol=1e-12 * np.abs(want[:2]).max()
+        )
         np.testing.assert_allclose(got[2:], want[2:], rtol=0, atol=1e-10 * scale)
-        _, qdd0, _ = lagrange_system(p, theta[i], phi[i], psi[i], thd[i], phid[i], psid[i], 0.0, 0.0)
+        _, qdd0, _ = lagrange_system(
+            p, theta[i], phi[i], psi[i], thd[i], phid[i], psid[i], 0.0, 0.0
+        )
         got0 = np.array([phidd0[i], thdd0[i], psidd0[i]])
         np.testing.assert_allclose(got0, qdd0[3:], rtol=0, atol=1e-10 * np.abs(qdd0[3:]).max())
 
@@ -286,7 +302,9 @@ def test_slip_velocity_vanishes_at_relative_equilibrium(top, theta0):
     np.testing.assert_allclose(float(tj.jellet(top, y)), J, rtol=1e-13)
     # Any spin about the axis on top of it makes the contact point slip.
     y_slip = tj.State(position=zero, velocity=zero, axis=axis, omega=omega + 1.0 * axis, body=body)
-    assert np.abs(np.asarray(tj.slip_velocity(top, y_slip))).max() > 0.1 * float(top.R) * np.sin(theta0)
+    assert np.abs(np.asarray(tj.slip_velocity(top, y_slip))).max() > 0.1 * float(top.R) * np.sin(
+        theta0
+    )
 
 
 # ---------------- every friction law ----------------
@@ -315,8 +333,9 @@ def test_energy_rate_is_the_power_of_the_friction_law(top, model):
     def rates(state):
         y = level.from_state(top, state)
         dy = level.vector_field(0.0, y, top)
-        energy_rate = jax.jvp(lambda s: tj.energy(top, level.to_state(top, s), model=model),
-                              (y,), (dy,))[1]
+        energy_rate = jax.jvp(
+            lambda s: tj.energy(top, level.to_state(top, s), model=model), (y,), (dy,)
+        )[1]
         jellet_rate = jax.jvp(lambda s: tj.jellet(top, level.to_state(top, s)), (y,), (dy,))[1]
         return energy_rate, jellet_rate
 
@@ -328,12 +347,14 @@ def test_energy_rate_is_the_power_of_the_friction_law(top, model):
         w_n = state.omega[2]
         f, m = top.friction.force_and_torque(v_q, w_n)
         power = rn * float(jnp.dot(f, v_q) + m * w_n)
-        np.testing.assert_allclose(float(energy_rate), power, rtol=1e-9,
-                                   atol=1e-12 * float(tj.energy(top, state)))
+        np.testing.assert_allclose(
+            float(energy_rate), power, rtol=1e-9, atol=1e-12 * float(tj.energy(top, state))
+        )
         if rn >= 0:
             assert power <= 0.0
         expected = float(tj.jellet_rate(top, state, model=model))
-        np.testing.assert_allclose(float(jellet_rate), expected, rtol=1e-9,
-                                   atol=1e-12 * abs(float(tj.jellet(top, state))))
+        np.testing.assert_allclose(
+            float(jellet_rate), expected, rtol=1e-9, atol=1e-12 * abs(float(tj.jellet(top, state)))
+        )
         if not top.friction.has_drilling_torque:
             assert expected == 0.0

@@ -70,8 +70,14 @@ def _perturbations(top):
         x = getattr(top, f)
         h = REL_STEP * abs(float(x))
         xp, xm = x + h, x - h
-        out.append((f, float(xp - xm), (eqx.tree_at(lambda t: getattr(t, f), top, xp), y0),
-                    (eqx.tree_at(lambda t: getattr(t, f), top, xm), y0)))
+        out.append(
+            (
+                f,
+                float(xp - xm),
+                (eqx.tree_at(lambda t: getattr(t, f), top, xp), y0),
+                (eqx.tree_at(lambda t: getattr(t, f), top, xm), y0),
+            )
+        )
     for name, theta0, spin in (("theta0", 1, 0), ("spin", 0, 1)):
         h = REL_STEP * (THETA0 if theta0 else SPIN)
         plus = tj.initial_state(top, THETA0 + h * theta0, SPIN + h * spin)
@@ -148,9 +154,18 @@ def _crossing_on_save_grid(top, spin, n=13001):
 
     def cubic(t):
         s = (t - ts[k]) / h
-        h00, h10, h01, h11 = 2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s, -2 * s**3 + 3 * s**2, s**3 - s**2
-        return (h00 * theta[k] + h10 * h * theta_dot[k] + h01 * theta[k + 1]
-                + h11 * h * theta_dot[k + 1]) - np.pi / 2
+        h00, h10, h01, h11 = (
+            2 * s**3 - 3 * s**2 + 1,
+            s**3 - 2 * s**2 + s,
+            -2 * s**3 + 3 * s**2,
+            s**3 - s**2,
+        )
+        return (
+            h00 * theta[k]
+            + h10 * h * theta_dot[k]
+            + h01 * theta[k + 1]
+            + h11 * h * theta_dot[k + 1]
+        ) - np.pi / 2
 
     lo, hi = ts[k], ts[k + 1]
     for _ in range(60):
@@ -182,8 +197,16 @@ def test_value_against_euler_reference(runs):
     crossing.terminal = True
     crossing.direction = 1
     z0 = ref.initial_vector(THETA0, SPIN)
-    sol = solve_ivp(ref.rhs, (0.0, T1), z0, method="DOP853", args=(params, "full"),
-                    rtol=1e-12, atol=1e-12, events=crossing)
+    sol = solve_ivp(
+        ref.rhs,
+        (0.0, T1),
+        z0,
+        method="DOP853",
+        args=(params, "full"),
+        rtol=1e-12,
+        atol=1e-12,
+        events=crossing,
+    )
     assert sol.status == 1, sol.message
     want = float(sol.t_events[0][0])
     print(f"t* = {runs['t']:.12f} (inversion_time), {want:.12f} (scipy, Euler angles)")
@@ -315,8 +338,9 @@ def test_gyroscopic_gradient_is_the_secular_slope():
 
     def t_star(mu, A):
         t = eqx.tree_at(lambda x: (x.mu, x.A), top, (mu, A))
-        return tj.inversion_time(t, tj.initial_state(t, THETA0, SPIN), t1=T1,
-                                 model="gyroscopic", throw=False)
+        return tj.inversion_time(
+            t, tj.initial_state(t, THETA0, SPIN), t1=T1, model="gyroscopic", throw=False
+        )
 
     value = jax.jit(t_star)
     grad = jax.jit(jax.grad(t_star, argnums=(0, 1)))
@@ -324,8 +348,10 @@ def test_gyroscopic_gradient_is_the_secular_slope():
     g_mu, g_A = (float(x) for x in grad(mu, A))
     s_mu = float(value(1.01 * mu, A) - value(0.99 * mu, A)) / (0.02 * float(mu))
     s_A = float(value(mu, 1.01 * A) - value(mu, 0.99 * A)) / (0.02 * float(A))
-    print(f"gyroscopic t* = {float(value(mu, A)):.4f} s: dt*/dmu {g_mu:.4f} (secular {s_mu:.4f}),"
-          f" dt*/dA {g_A:.5g} (secular {s_A:.5g})")
+    print(
+        f"gyroscopic t* = {float(value(mu, A)):.4f} s: dt*/dmu {g_mu:.4f} (secular {s_mu:.4f}),"
+        f" dt*/dA {g_A:.5g} (secular {s_A:.5g})"
+    )
     assert np.isfinite(float(value(mu, A)))
     assert abs(g_mu - s_mu) < 0.01 * abs(s_mu)
     assert abs(g_A - s_A) < 0.01 * abs(s_A)

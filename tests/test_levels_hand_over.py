@@ -54,11 +54,24 @@ def top():
 def chain(top):
     """The counting chain from a launch at spin n0: its `ChainOutput` and the number of the
     full model's field evaluations it made."""
-    program = jax.jit(lambda y0: run_chain(
-        CountingGyroscopic(), top, y0, 0.0, T1, TS, stop_on_contact=False,
-        solver=(diffrax.Dopri5(), diffrax.Dopri8()), rtol=RTOL, atol=1e-10,
-        max_steps=100_000, adjoint=diffrax.RecursiveCheckpointAdjoint(),
-        progress_meter=diffrax.NoProgressMeter(), pieces=1))
+    program = jax.jit(
+        lambda y0: run_chain(
+            CountingGyroscopic(),
+            top,
+            y0,
+            0.0,
+            T1,
+            TS,
+            stop_on_contact=False,
+            solver=(diffrax.Dopri5(), diffrax.Dopri8()),
+            rtol=RTOL,
+            atol=1e-10,
+            max_steps=100_000,
+            adjoint=diffrax.RecursiveCheckpointAdjoint(),
+            progress_meter=diffrax.NoProgressMeter(),
+            pieces=1,
+        )
+    )
 
     def run(n0):
         FIELD_CALLS.clear()
@@ -124,9 +137,11 @@ def test_t_hand_over_on_the_solution(top):
     """`sol.t_hand_over` is the gyroscopic run's `t_chart_switch` (nan where it does not hand
     over), and nan for a level that has no hand-over to the full model, also under `vmap`."""
     spins = jnp.array([100.0, 150.0])
-    sols = jax.vmap(lambda n0: tj.simulate(
-        top, tj.initial_state(top, 0.1, n0), T1, model="gyroscopic", summary=True,
-        throw=False))(spins)
+    sols = jax.vmap(
+        lambda n0: tj.simulate(
+            top, tj.initial_state(top, 0.1, n0), T1, model="gyroscopic", summary=True, throw=False
+        )
+    )(spins)
     t_hand = np.asarray(sols.t_hand_over)
     assert t_hand.shape == (2,)
     assert np.isnan(t_hand[0]) and 0.0 < t_hand[1] < T1

@@ -90,8 +90,13 @@ def test_contact_loss_matches_a_single_simulation(standard_map):
     i, j = lost[0]
     top = om.top
     sol = tj.simulate(
-        top, tj.initial_state(top, THETA0[i], SPIN[j]), T1, summary=True, throw=False,
-        rtol=om.rtol, atol=om.atol,
+        top,
+        tj.initial_state(top, THETA0[i], SPIN[j]),
+        T1,
+        summary=True,
+        throw=False,
+        rtol=om.rtol,
+        atol=om.atol,
     )
     assert sol.result == tj.RESULTS.contact_lost
     np.testing.assert_allclose(float(om.t_contact_loss[i, j]), float(sol.t_contact_loss), rtol=1e-6)
@@ -148,8 +153,15 @@ def test_map_in_blocks_is_each_launchs_single_run(monkeypatch):
     for i in range(a.size):
         for j in range(e.size):
             top = tj.TippeTop.from_ratios(a[i], e[j], m=base.m, R=base.R, mu=base.mu, C=base.C)
-            sol = tj.simulate(top, tj.initial_state(top, 0.1, 120.0), 2.0, summary=True,
-                              throw=False, rtol=om.rtol, atol=om.atol)
+            sol = tj.simulate(
+                top,
+                tj.initial_state(top, 0.1, 120.0),
+                2.0,
+                summary=True,
+                throw=False,
+                rtol=om.rtol,
+                atol=om.atol,
+            )
             assert abs(float(om.theta_final[i, j]) - float(sol.theta[-1])) < 1e-8
             assert float(om.t_final[i, j]) == pytest.approx(float(sol.t_final), abs=1e-12)
 
@@ -191,9 +203,23 @@ def test_two_processes_with_jax_distributed_give_the_single_process_map(tmp_path
         port = s.getsockname()[1]
     procs = [
         subprocess.Popen(
-            [sys.executable, script, "--coordinator", f"localhost:{port}", "--num-processes",
-             "2", "--process-id", str(pid), "--out", str(tmp_path / f"map{pid}.npz"), *common],
-            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+            [
+                sys.executable,
+                script,
+                "--coordinator",
+                f"localhost:{port}",
+                "--num-processes",
+                "2",
+                "--process-id",
+                str(pid),
+                "--out",
+                str(tmp_path / f"map{pid}.npz"),
+                *common,
+            ],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
         )
         for pid in (0, 1)
     ]
@@ -203,10 +229,18 @@ def test_two_processes_with_jax_distributed_give_the_single_process_map(tmp_path
     got = np.load(tmp_path / "map0.npz")
     assert int(got["process_count"]) == 2 and int(got["device_count"]) == 4
     # chunk 4 over 4 devices: two chunks, one padded; every process ran its own shards.
-    om = tj.outcome_map(tj.default_top(), got["theta0"], got["spin"], t1=4.0, model="full",
-                        devices=jax.devices()[:1])
+    om = tj.outcome_map(
+        tj.default_top(),
+        got["theta0"],
+        got["spin"],
+        t1=4.0,
+        model="full",
+        devices=jax.devices()[:1],
+    )
     np.testing.assert_array_equal(got["outcome"], np.asarray(om.outcome))
-    np.testing.assert_allclose(got["theta_final"], np.asarray(om.theta_final), rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(
+        got["theta_final"], np.asarray(om.theta_final), rtol=1e-9, atol=1e-12
+    )
     np.testing.assert_array_equal(got["num_steps"], np.asarray(om.num_steps))
 
 
@@ -214,8 +248,23 @@ def test_map_command_writes_both_maps(tmp_path, capsys):
     from tippejax._cli import main
 
     # Grid shapes as in the tests above (2 x 3 launches, 2 x 2 tops): no new compilation.
-    code = main(["map", "--n-theta", "2", "--n-spin", "3", "--t1", "2", "--n-tops", "2",
-                 "--group", "IIa", "--out", str(tmp_path)])
+    code = main(
+        [
+            "map",
+            "--n-theta",
+            "2",
+            "--n-spin",
+            "3",
+            "--t1",
+            "2",
+            "--n-tops",
+            "2",
+            "--group",
+            "IIa",
+            "--out",
+            str(tmp_path),
+        ]
+    )
     out = capsys.readouterr().out
     assert code == 0, out
     assert "Group IIa" in out and "launches/s" in out
@@ -245,10 +294,13 @@ def test_map_messages_are_read_elementwise(standard_map):
     assert np.all(msgs[lost] == tj.RESULTS[tj.RESULTS.contact_lost])
 
 
-@pytest.mark.parametrize("tops", [
-    tj.default_top().replace(mu=[0.1, 0.3]),
-    tj.TippeTop.from_ratios([0.9, 1.1], 0.3),
-])
+@pytest.mark.parametrize(
+    "tops",
+    [
+        tj.default_top().replace(mu=[0.1, 0.3]),
+        tj.TippeTop.from_ratios([0.9, 1.1], 0.3),
+    ],
+)
 def test_map_of_a_batch_of_tops_is_refused_clearly(tops):
     with pytest.raises(ValueError, match="maps one top, but this TippeTop is a batch"):
         tj.outcome_map(tops, THETA0, SPIN, t1=T1)
@@ -273,12 +325,17 @@ def test_auto_map_gives_the_full_models_outcomes(standard_map, auto_map):
     np.testing.assert_array_equal(np.asarray(auto.outcome), np.asarray(full.outcome))
     lost = np.asarray(full.outcome) == tj.OUTCOMES.index("contact_lost")
     assert lost.any()
-    np.testing.assert_allclose(np.asarray(auto.t_contact_loss)[lost],
-                               np.asarray(full.t_contact_loss)[lost], rtol=1e-4)
+    np.testing.assert_allclose(
+        np.asarray(auto.t_contact_loss)[lost], np.asarray(full.t_contact_loss)[lost], rtol=1e-4
+    )
     routes = np.asarray(auto.models)[np.asarray(auto.model_index)]
     top = full.top
-    refused = ~np.array([[bool(LEVELS["gyroscopic"].in_chart(top, tj.initial_state(top, th, sp)))
-                          for sp in SPIN] for th in THETA0])
+    refused = ~np.array(
+        [
+            [bool(LEVELS["gyroscopic"].in_chart(top, tj.initial_state(top, th, sp))) for sp in SPIN]
+            for th in THETA0
+        ]
+    )
     assert refused.any() and (~refused).any()
     # a refused launch starts in the full model; an accepted one in the slow flow
     assert all(r.startswith("full") for r in routes[refused])
@@ -299,9 +356,17 @@ def test_auto_map_stages_are_organised_as_claimed():
     th, sp = np.meshgrid(THETA0, SPIN, indexing="ij")
     y0 = tj.initial_state(top, th.ravel(), sp.ravel())
     refused = ~np.asarray(jax.vmap(lambda y: LEVELS["gyroscopic"].in_chart(top, y))(y0))
-    run = staged_outcomes(top, y0, 8.0, rtol=1e-6, atol=1e-9, solver=tj.default_solver(top),
-                          slow_solver=tj.default_solver(top, slow_flow=True), max_steps=200_000,
-                          devices=jax.devices())
+    run = staged_outcomes(
+        top,
+        y0,
+        8.0,
+        rtol=1e-6,
+        atol=1e-9,
+        solver=tj.default_solver(top),
+        slow_solver=tj.default_solver(top, slow_flow=True),
+        max_steps=200_000,
+        devices=jax.devices(),
+    )
     stages = run["stages"]
     level, members, _, _ = stages[0]
     assert level == "full" and set(members) == set(np.flatnonzero(refused))

@@ -47,10 +47,15 @@ def _evaluator(outcome, margin, calls):
         calls.append((i.copy(), j.copy()))
         nan = np.full(i.size, np.nan)
         return dict(
-            outcome=outcome[i, j].astype(np.int8), num_steps=np.ones(i.size, np.int32),
-            contact_margin=margin[i, j], decision_margin=np.full(i.size, np.pi),
-            theta_max=np.zeros(i.size), t_invert=nan, t_contact_loss=nan,
-            settled=np.ones(i.size, bool), result=np.zeros(i.size, np.int8),
+            outcome=outcome[i, j].astype(np.int8),
+            num_steps=np.ones(i.size, np.int32),
+            contact_margin=margin[i, j],
+            decision_margin=np.full(i.size, np.pi),
+            theta_max=np.zeros(i.size),
+            t_invert=nan,
+            t_contact_loss=nan,
+            settled=np.ones(i.size, bool),
+            result=np.zeros(i.size, np.int8),
         )
 
     return evaluate
@@ -106,11 +111,11 @@ def test_refinement_stops_where_the_boundary_fills_the_region():
     out = refine((n, n), levels, _evaluator(outcome, np.ones((n, n)), []), t1=1.0)
     assert out.stopped
     for i0, i1, j0, j1, dimension in out.stopped:
-        assert noisy[i0:i1 + 1, j0:j1 + 1].any()
+        assert noisy[i0 : i1 + 1, j0 : j1 + 1].any()
         assert dimension > refine_module.DIMENSION_STOP
     inside = np.zeros((n, n), bool)
     for i0, i1, j0, j1, _ in out.stopped:
-        inside[i0:i1 + 1, j0:j1 + 1] = True
+        inside[i0 : i1 + 1, j0 : j1 + 1] = True
     assert np.all(inside[~out.resolved])
     disc = np.hypot(X + 0.4, Y + 0.4) < 0.6
     np.testing.assert_array_equal(out.fields["outcome"][disc], outcome[disc])
@@ -152,9 +157,9 @@ def _near_a_boundary(outcome, cells=1):
     n1, n2 = outcome.shape
     for di in range(-cells, cells + 1):
         for dj in range(-cells, cells + 1):
-            a = outcome[max(di, 0):n1 + min(di, 0), max(dj, 0):n2 + min(dj, 0)]
-            b = outcome[max(-di, 0):n1 + min(-di, 0), max(-dj, 0):n2 + min(-dj, 0)]
-            near[max(-di, 0):n1 + min(-di, 0), max(-dj, 0):n2 + min(-dj, 0)] |= a != b
+            a = outcome[max(di, 0) : n1 + min(di, 0), max(dj, 0) : n2 + min(dj, 0)]
+            b = outcome[max(-di, 0) : n1 + min(-di, 0), max(-dj, 0) : n2 + min(-dj, 0)]
+            near[max(-di, 0) : n1 + min(-di, 0), max(-dj, 0) : n2 + min(-dj, 0)] |= a != b
     return near
 
 
@@ -164,8 +169,10 @@ def test_adaptive_map_agrees_with_the_dense_map(dense, adaptive):
     assert sum(points for points, _ in adaptive.levels) == simulated.sum()
     # a simulated launch is the dense map's own run
     for name in ("outcome", "theta_final", "t_final", "num_steps", "contact_margin"):
-        np.testing.assert_array_equal(np.asarray(getattr(adaptive, name))[simulated],
-                                      np.asarray(getattr(dense, name))[simulated])
+        np.testing.assert_array_equal(
+            np.asarray(getattr(adaptive, name))[simulated],
+            np.asarray(getattr(dense, name))[simulated],
+        )
     assert np.all(np.isnan(np.asarray(adaptive.theta_final)[~simulated]))
     true, got = np.asarray(dense.outcome), np.asarray(adaptive.outcome)
     differ = true != got
@@ -203,8 +210,15 @@ def test_indicators_are_the_extremes_of_each_run(dense):
     outcome = np.asarray(dense.outcome)
     for code in (UPRIGHT, INTERMEDIATE, CONTACT_LOST):
         i, j = (int(k[0]) for k in np.nonzero(outcome == code))
-        sol = tj.simulate(top, tj.initial_state(top, THETA0[i], SPIN[j]), T1, saveat=ts,
-                          throw=False, rtol=dense.rtol, atol=dense.atol)
+        sol = tj.simulate(
+            top,
+            tj.initial_state(top, THETA0[i], SPIN[j]),
+            T1,
+            saveat=ts,
+            throw=False,
+            rtol=dense.rtol,
+            atol=dense.atol,
+        )
         ran = ts <= float(sol.t_final)
         margin = np.asarray(sol.normal_force * normal_force_denominator(top, sol.states))
         margin = margin[ran] / float(top.g)
@@ -239,8 +253,14 @@ def test_float32_adaptive_map_differs_from_float64_only_next_to_a_boundary(adapt
     and its outcomes differ from the float64 map's only beside a boundary of that map."""
     env = dict(os.environ, TIPPEJAX_ENABLE_X64="0")
     args = [THETA0.tolist(), SPIN.tolist(), T1, CHUNK]
-    out = subprocess.run([sys.executable, "-c", FLOAT32, json.dumps(args)], env=env,
-                         capture_output=True, text=True, check=True, timeout=600).stdout
+    out = subprocess.run(
+        [sys.executable, "-c", FLOAT32, json.dumps(args)],
+        env=env,
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=600,
+    ).stdout
     r = json.loads(out.strip().splitlines()[-1])
     assert r["dtype"] == "float32"
     assert not np.all(r["simulated"]) and "J1" in r["theory"]
@@ -255,22 +275,38 @@ def test_any_axes_map_matches_single_simulations():
     top, against single runs of `tj.simulate`."""
     top = tj.default_top()
     theta_dot, mu = np.array([-2.0, 0.0, 3.0]), np.array([0.1, 0.6])
-    om = tj.outcome_map(top, mu=mu, theta_dot=theta_dot, theta0=0.3, spin=120.0, t1=2.0,
-                        chunk_size=CHUNK)
+    om = tj.outcome_map(
+        top, mu=mu, theta_dot=theta_dot, theta0=0.3, spin=120.0, t1=2.0, chunk_size=CHUNK
+    )
     assert om.axes == ("theta_dot", "mu") and om.outcome.shape == (3, 2)
     np.testing.assert_array_equal(np.asarray(om.axis_values[1]), mu)
     assert dict(om.fixed) == {"theta0": 0.3, "spin": 120.0}
     for i, td in enumerate(theta_dot):
         for j, m in enumerate(mu):
             one = top.replace(mu=m)
-            sol = tj.simulate(one, tj.initial_state(one, 0.3, 120.0, theta_dot=td), 2.0,
-                              summary=True, throw=False, rtol=om.rtol, atol=om.atol)
+            sol = tj.simulate(
+                one,
+                tj.initial_state(one, 0.3, 120.0, theta_dot=td),
+                2.0,
+                summary=True,
+                throw=False,
+                rtol=om.rtol,
+                atol=om.atol,
+            )
             assert int(om.outcome[i, j]) == int(sol.outcome)
             assert float(om.theta_final[i, j]) == pytest.approx(float(sol.theta[-1]), abs=1e-6)
             assert float(om.t_final[i, j]) == pytest.approx(float(sol.t_final), abs=1e-9)
     # the order of the axes can be given
-    swapped = tj.outcome_map(top, mu=mu, theta_dot=theta_dot, theta0=0.3, spin=120.0, t1=2.0,
-                             chunk_size=CHUNK, axes=("mu", "theta_dot"))
+    swapped = tj.outcome_map(
+        top,
+        mu=mu,
+        theta_dot=theta_dot,
+        theta0=0.3,
+        spin=120.0,
+        t1=2.0,
+        chunk_size=CHUNK,
+        axes=("mu", "theta_dot"),
+    )
     np.testing.assert_array_equal(np.asarray(swapped.outcome), np.asarray(om.outcome).T)
 
 
@@ -303,8 +339,9 @@ def test_bad_axes_are_refused(kwargs, match):
 
 def test_a_launch_quantity_on_a_map_of_tops_is_refused():
     with pytest.raises(ValueError, match="maps tops for one launch: theta0 must be a number"):
-        tj.outcome_map_tops(tj.default_top(), [0.9, 1.0], [0.2, 0.3], theta0=[0.1, 0.2],
-                            spin=50.0, t1=1.0)
+        tj.outcome_map_tops(
+            tj.default_top(), [0.9, 1.0], [0.2, 0.3], theta0=[0.1, 0.2], spin=50.0, t1=1.0
+        )
 
 
 def test_two_processes_spread_each_level_and_give_the_single_process_map(tmp_path):
@@ -312,17 +349,30 @@ def test_two_processes_spread_each_level_and_give_the_single_process_map(tmp_pat
     jax.distributed, as the dense map's test runs it: every level is sharded over the four
     devices, and the map is the one process's map."""
     script = os.path.join(ROOT, "examples", "distributed_map.py")
-    common = ["--n-theta", "9", "--n-spin", "9", "--t1", "3", "--chunk-size", "4",
-              "--refine", "2"]
+    common = ["--n-theta", "9", "--n-spin", "9", "--t1", "3", "--chunk-size", "4", "--refine", "2"]
     with socket.socket() as s:
         s.bind(("localhost", 0))
         port = s.getsockname()[1]
     env = host_devices_env(2, JAX_PLATFORMS="cpu")
     procs = [
         subprocess.Popen(
-            [sys.executable, script, "--coordinator", f"localhost:{port}", "--num-processes",
-             "2", "--process-id", str(pid), "--out", str(tmp_path / f"map{pid}.npz"), *common],
-            env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+            [
+                sys.executable,
+                script,
+                "--coordinator",
+                f"localhost:{port}",
+                "--num-processes",
+                "2",
+                "--process-id",
+                str(pid),
+                "--out",
+                str(tmp_path / f"map{pid}.npz"),
+                *common,
+            ],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
         )
         for pid in (0, 1)
     ]
@@ -332,20 +382,41 @@ def test_two_processes_spread_each_level_and_give_the_single_process_map(tmp_pat
     got = np.load(tmp_path / "map0.npz")
     assert int(got["process_count"]) == 2 and int(got["device_count"]) == 4
     assert len(got["levels"]) > 1 and not got["simulated"].all()
-    om = tj.outcome_map(tj.default_top(), got["theta0"], got["spin"], t1=3.0, refine=2,
-                        chunk_size=4, devices=jax.devices()[:1])
+    om = tj.outcome_map(
+        tj.default_top(),
+        got["theta0"],
+        got["spin"],
+        t1=3.0,
+        refine=2,
+        chunk_size=4,
+        devices=jax.devices()[:1],
+    )
     np.testing.assert_array_equal(got["outcome"], np.asarray(om.outcome))
     np.testing.assert_array_equal(got["simulated"], np.asarray(om.simulated))
     np.testing.assert_array_equal(got["levels"], np.array(om.levels))
-    np.testing.assert_allclose(got["theta_final"], np.asarray(om.theta_final), rtol=1e-9,
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        got["theta_final"], np.asarray(om.theta_final), rtol=1e-9, atol=1e-12
+    )
 
 
 def test_map_command_draws_an_adaptive_map_and_writes_it(tmp_path, capsys):
     from tippejax._cli import main
 
-    code = main(["map", "--resolution", "9", "--adaptive", "--refine", "2", "--t1", "2",
-                 "--no-tops", "--out", str(tmp_path)])
+    code = main(
+        [
+            "map",
+            "--resolution",
+            "9",
+            "--adaptive",
+            "--refine",
+            "2",
+            "--t1",
+            "2",
+            "--no-tops",
+            "--out",
+            str(tmp_path),
+        ]
+    )
     out = capsys.readouterr().out
     assert code == 0, out
     assert "adaptive, refine = 2" in out and "boundary upright | intermediate" in out

@@ -180,7 +180,9 @@ def test_routhian_accelerations_equal_so3(top):
     thd, phid, psid = tj.euler_rates(y)
     # Typical rates: |omega|^2 for angular accelerations.
     scale_th = np.asarray(_norm(y.omega) ** 2)
-    err_th = np.abs(np.asarray(dr.theta_dot - thdd)) / np.maximum(np.abs(np.asarray(thdd)), scale_th)
+    err_th = np.abs(np.asarray(dr.theta_dot - thdd)) / np.maximum(
+        np.abs(np.asarray(thdd)), scale_th
+    )
     err_pb = np.abs(np.asarray(dr.phibar_dot - pbdd)) / np.maximum(
         np.abs(np.asarray(pbdd)), scale_th * float(top.R)
     )
@@ -189,11 +191,15 @@ def test_routhian_accelerations_equal_so3(top):
     # First-order part: the state's own rates, and cdot = R phid - eps psid.
     np.testing.assert_allclose(np.asarray(dr.theta), np.asarray(thd), rtol=1e-13)
     np.testing.assert_allclose(
-        np.asarray(dr.phibar), np.asarray(top.eps * phid + top.R * psid), rtol=1e-10,
+        np.asarray(dr.phibar),
+        np.asarray(top.eps * phid + top.R * psid),
+        rtol=1e-10,
         atol=1e-12 * float(top.R) * scale_th.max() ** 0.5,
     )
     np.testing.assert_allclose(
-        np.asarray(dr.c), np.asarray(top.R * phid - top.eps * psid), rtol=1e-10,
+        np.asarray(dr.c),
+        np.asarray(top.R * phid - top.eps * psid),
+        rtol=1e-10,
         atol=1e-12 * float(top.R) * scale_th.max() ** 0.5,
     )
 
@@ -204,7 +210,9 @@ def test_routhian_normal_force(top):
     theta, _, _ = tj.euler_angles(y)
     thd, phid, _ = tj.euler_rates(y)
     rn, den = ti.routhian_normal_force(top, theta, thd, phid, ti.spin(y))
-    np.testing.assert_allclose(np.asarray(rn), np.asarray(tj.normal_force(top, y, model="so3")), rtol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(rn), np.asarray(tj.normal_force(top, y, model="so3")), rtol=1e-12
+    )
     np.testing.assert_allclose(
         np.asarray(den), np.asarray(tj.normal_force_denominator(top, y, model="so3")), rtol=1e-12
     )
@@ -330,11 +338,15 @@ def test_routhian_terms_from_sympy(routhian_sympy, top):
     w_scale = np.abs(J) ** 2 / (2 * float(top.C) * float(top.R) ** 2) + p[0] * p[5] * p[2]
     assert np.all(np.abs(np.asarray(terms.potential) - w) < 1e-13 * w_scale * 10)
     np.testing.assert_allclose(
-        np.asarray(tj.effective_potential(top, jnp.asarray(theta), jnp.asarray(J))), w,
-        rtol=0, atol=1e-12 * w_scale.max(),
+        np.asarray(tj.effective_potential(top, jnp.asarray(theta), jnp.asarray(J))),
+        w,
+        rtol=0,
+        atol=1e-12 * w_scale.max(),
     )
     assert np.all(lin_th == 0) and np.all(cross == 0)
-    c_dot = np.asarray(ti.routhian_rates(top, jnp.asarray(theta), jnp.asarray(pbd), jnp.asarray(J))[0])
+    c_dot = np.asarray(
+        ti.routhian_rates(top, jnp.asarray(theta), jnp.asarray(pbd), jnp.asarray(J))[0]
+    )
     np.testing.assert_allclose(c_dot, cdot, rtol=1e-12, atol=1e-13 * np.abs(cdot).max())
 
 
@@ -349,8 +361,9 @@ LAW_TOPS = [  # Leine & Glocker's top with each friction law besides the viscous
 ]
 
 
-@pytest.mark.parametrize("top", TOPS + LAW_TOPS,
-                         ids=TOP_IDS + ["LG-coulomb", "LG-hertz", "LG-ellipse"])
+@pytest.mark.parametrize(
+    "top", TOPS + LAW_TOPS, ids=TOP_IDS + ["LG-coulomb", "LG-hertz", "LG-ellipse"]
+)
 @pytest.mark.parametrize("name", ["full", "so3"])
 def test_levels_by_components_equal_the_vector_form(top, name):
     """`by_components=True` (the shared-step batch's form, the algebra written out by
@@ -368,12 +381,18 @@ def test_levels_by_components_equal_the_vector_form(top, name):
     @jax.jit
     def both(state):
         y = vector.from_state(top, state)
-        return ((vector.vector_field(0.0, y, top), vector.conditions(top, y)),
-                (components.vector_field(0.0, y, top), components.conditions(top, y)))
+        return (
+            (vector.vector_field(0.0, y, top), vector.conditions(top, y)),
+            (components.vector_field(0.0, y, top), components.conditions(top, y)),
+        )
 
     for i in range(N_STATES):
         one = jax.tree_util.tree_map(lambda x, i=i: x[i], states)
         a, b = both(one)
         for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)):
-            np.testing.assert_allclose(np.asarray(y), np.asarray(x), rtol=1e-12,
-                                       atol=1e-12 * (1 + np.max(np.abs(np.asarray(x)))))
+            np.testing.assert_allclose(
+                np.asarray(y),
+                np.asarray(x),
+                rtol=1e-12,
+                atol=1e-12 * (1 + np.max(np.abs(np.asarray(x)))),
+            )

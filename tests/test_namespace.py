@@ -9,9 +9,22 @@ import tippejax as tj
 from tippejax._invariants import normal_force_denominator
 from tippejax._models.routhian import CHART_SIN_MIN
 
-DESIGN_NAMES = ("TippeTop", "classify", "thresholds", "initial_state", "jellet", "energy",
-                "normal_force", "simulate", "effective_potential", "steady_states", "fit",
-                "outcome_map", "OUTCOMES", "inversion_time")
+DESIGN_NAMES = (
+    "TippeTop",
+    "classify",
+    "thresholds",
+    "initial_state",
+    "jellet",
+    "energy",
+    "normal_force",
+    "simulate",
+    "effective_potential",
+    "steady_states",
+    "fit",
+    "outcome_map",
+    "OUTCOMES",
+    "inversion_time",
+)
 
 
 def test_all_lists_the_public_names():
@@ -25,8 +38,10 @@ def test_all_lists_the_public_names():
     assert {n for n in namespace if not n.startswith("__")} == set(tj.__all__)
 
 
-@pytest.mark.parametrize("name, value", [("CHART_SIN_MIN", CHART_SIN_MIN),
-                                         ("normal_force_denominator", normal_force_denominator)])
+@pytest.mark.parametrize(
+    "name, value",
+    [("CHART_SIN_MIN", CHART_SIN_MIN), ("normal_force_denominator", normal_force_denominator)],
+)
 def test_deprecated_internals_still_import_with_a_warning(name, value):
     assert name not in tj.__all__ and name not in dir(tj)
     with pytest.warns(DeprecationWarning, match=name):

@@ -24,8 +24,13 @@ ALLOWED: dict[str, tuple[str, ...]] = {
 
 def _files():
     out = []
-    for folder, pattern in (("tippejax", "*.py"), ("tests", "*.py"), ("docs", "*.md"),
-                            ("examples", "*.py"), ("examples", "*.md")):
+    for folder, pattern in (
+        ("tippejax", "*.py"),
+        ("tests", "*.py"),
+        ("docs", "*.md"),
+        ("examples", "*.py"),
+        ("examples", "*.md"),
+    ):
         out += sorted((ROOT / folder).rglob(pattern))
     out += [ROOT / "README.md", ROOT / "CONTRIBUTING.md"]
     # the performance page includes RESULTS.md, the one home of the figures
@@ -44,4 +49,5 @@ def test_no_measurement_logs(path):
                 found.append(f"{rel}:{number}: {what}: {line.strip()}")
     assert not found, (
         "measured figures belong in benchmarks/RESULTS.md (the section its benchmark writes); "
-        "here give guidance and link to the performance page:\n" + "\n".join(found))
+        "here give guidance and link to the performance page:\n" + "\n".join(found)
+    )

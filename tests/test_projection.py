@@ -80,8 +80,15 @@ def _sympy_rates():
     n = (A * Om**2 * x - weight) / (C * Om)  # (G1)
     p = R * n - Om * lever  # the slip
     f_om = 2 * A * h * Om - J
-    rate = mu * m * g * R * p * f_om / (
-        A * Om * f_om + eps * (A * Om**2 + m * g * R) * (A * x + weight / Om**2))  # (G3)
+    rate = (
+        mu
+        * m
+        * g
+        * R
+        * p
+        * f_om
+        / (A * Om * f_om + eps * (A * Om**2 + m * g * R) * (A * x + weight / Om**2))
+    )  # (G3)
     # R'_n at rest (eq. reactie) as a function of (x, P) with phi_dot, n from eq. routh1
     big_s = eps**2 + R**2
     d = R**2 * A * s2 + C * lever**2
@@ -120,6 +127,7 @@ def test_the_roots_exchange_their_roles_at_the_pole_sympy():
     sym, x, Om, _, rate, nu2, sigma = _sympy_rates()
     op, om = sp.symbols("Omega_p Omega_m", real=True)
     for pole in (1, -1):
+
         def at(expr, root):
             return _at_pole(expr, pole, root, sym, Om, x, (op, om))
 
@@ -135,13 +143,20 @@ def test_the_roots_exchange_their_roles_at_the_pole_sympy():
                 this, other = slow_manifold(top, pole, J), slow_manifold(top, pole, J, branch=-1)
                 if float(this.discriminant) <= 0:
                     continue
-                np.testing.assert_allclose(float(nutation_damping(top, pole, J, branch=-1)),
-                                           side * float(this.rate), rtol=1e-10)
-                np.testing.assert_allclose(float(nutation_damping(top, pole, J)),
-                                           side * float(other.rate), rtol=1e-10)
+                np.testing.assert_allclose(
+                    float(nutation_damping(top, pole, J, branch=-1)),
+                    side * float(this.rate),
+                    rtol=1e-10,
+                )
+                np.testing.assert_allclose(
+                    float(nutation_damping(top, pole, J)), side * float(other.rate), rtol=1e-10
+                )
                 np.testing.assert_allclose(
                     sign * float(nutation_frequency(top, pole, J, branch=-1))
-                    + float(other.precession), float(this.precession), rtol=1e-10)
+                    + float(other.precession),
+                    float(this.precession),
+                    rtol=1e-10,
+                )
 
 
 def test_what_the_decaying_nutation_feeds_into_the_slow_mode_sympy():
@@ -181,8 +196,10 @@ def test_what_the_decaying_nutation_feeds_into_the_slow_mode_sympy():
     J = jellet_of(STANDARD, 300.0, 0.1)
     o_p = float(slow_manifold(STANDARD, 0.0, J).precession)
     gain = float(launch_transient(STANDARD, 0.1, J).gain)
-    print(f"n0 = 300, theta0 = 0.1: I = {gain:.4f}, -eps Omega^2 theta0^2/(4g) = "
-          f"{-float(STANDARD.eps) * o_p**2 * 0.01 / (4 * float(STANDARD.g)):.4f}")
+    print(
+        f"n0 = 300, theta0 = 0.1: I = {gain:.4f}, -eps Omega^2 theta0^2/(4g) = "
+        f"{-float(STANDARD.eps) * o_p**2 * 0.01 / (4 * float(STANDARD.g)):.4f}"
+    )
     assert -0.23 < gain < -0.19
 
 
@@ -199,13 +216,15 @@ def test_the_transformation_moves_at_the_slow_flow_rate():
             sigma0 = float(nutation_damping(top, pole, J, branch=-1))
             for tilt in (0.02, 0.1, 0.2):
                 theta = pole + side * tilt
-                d_gain = float(jax.grad(lambda t: launch_transient(top, t, J, north=north).gain)(
-                    tilt))
+                d_gain = float(
+                    jax.grad(lambda t: launch_transient(top, t, J, north=north).gain)(tilt)
+                )
                 tilt_dot = side * float(slow_manifold(top, theta, J, branch=-1).theta_dot)
                 sigma = float(nutation_damping(top, theta, J, branch=-1))
                 assert tilt_dot < 0  # the launch's nutation decays
-                np.testing.assert_allclose(d_gain * tilt_dot + sigma, sigma0, rtol=1e-7,
-                                           atol=1e-9 * abs(sigma0))
+                np.testing.assert_allclose(
+                    d_gain * tilt_dot + sigma, sigma0, rtol=1e-7, atol=1e-9 * abs(sigma0)
+                )
 
 
 # ------------------------------------------------------------------------------------------------
@@ -224,8 +243,14 @@ def _so3_field(top):
 def _other_root_state(top, theta, J):
     x = np.cos(theta)
     sm = slow_manifold(top, theta, J, branch=-1)
-    state = state_from_euler(theta, 0.0, 0.0, float(sm.theta_dot), float(sm.precession),
-                             float(sm.spin - sm.precession * x))
+    state = state_from_euler(
+        theta,
+        0.0,
+        0.0,
+        float(sm.theta_dot),
+        float(sm.precession),
+        float(sm.spin - sm.precession * x),
+    )
     return jnp.concatenate([state.axis, state.omega])
 
 
@@ -251,10 +276,12 @@ def test_the_other_roots_nutation_is_the_so3_linearisation():
             for theta in (0.05, 0.1, 0.2):
                 pair = fast(theta)
                 change = float(nutation_damping(top, theta, J, branch=-1)) - sigma0
-                np.testing.assert_allclose(pair.real - at_pole.real, change, rtol=rtol,
-                                           err_msg=f"{top}, {spin}, {theta}")
+                np.testing.assert_allclose(
+                    pair.real - at_pole.real, change, rtol=rtol, err_msg=f"{top}, {spin}, {theta}"
+                )
                 turn = np.sign(J) * float(nutation_frequency(top, theta, J, branch=-1)) + float(
-                    slow_manifold(top, theta, J, branch=-1).precession)
+                    slow_manifold(top, theta, J, branch=-1).precession
+                )
                 np.testing.assert_allclose(abs(pair.imag), abs(turn), rtol=0.01)
 
 
@@ -264,9 +291,16 @@ def test_the_other_roots_nutation_is_the_so3_linearisation():
 
 def _solve(field, y0, t0, t1, norm):
     sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(field), diffrax.Dopri8(), t0, t1, None, y0,
+        diffrax.ODETerm(field),
+        diffrax.Dopri8(),
+        t0,
+        t1,
+        None,
+        y0,
         stepsize_controller=diffrax.PIDController(rtol=1e-11, atol=1e-13, norm=norm),
-        saveat=diffrax.SaveAt(t1=True), max_steps=100_000)
+        saveat=diffrax.SaveAt(t1=True),
+        max_steps=100_000,
+    )
     return jax.tree_util.tree_map(lambda v: v[-1], sol.ys)
 
 
@@ -275,12 +309,18 @@ def _settled(top, state, settle):
     """The launch followed in the SO(3) model for `settle` s, projected linearly there and the
     slow flow run back to t = 0 (all at rtol 1e-11)."""
     so3, level = SO3Level(), GyroscopicLevel()
-    end = _solve(lambda t, y, a: so3.vector_field(t, y, top), so3.from_state(top, state), 0.0,
-                 settle, so3.error_norm)
+    end = _solve(
+        lambda t, y, a: so3.vector_field(t, y, top),
+        so3.from_state(top, state),
+        0.0,
+        settle,
+        so3.error_norm,
+    )
     settled = _linear_state(top, so3.to_state(top, end))
     settled = eqx.tree_at(lambda y: y.jellet, settled, tj.jellet(top, state))
-    back = _solve(lambda t, y, a: level.vector_field(t, y, top), settled, settle, 0.0,
-                  level.error_norm)
+    back = _solve(
+        lambda t, y, a: level.vector_field(t, y, top), settled, settle, 0.0, level.error_norm
+    )
     return jnp.stack([jnp.log(jnp.sin(back.theta)), back.phi, back.phi + back.psi])
 
 
@@ -300,14 +340,21 @@ def _wrap(angle):
 
 @pytest.mark.parametrize(
     "name, theta0, spin, kick, tolerance",
-    [("standard", 0.1, 225.0, {}, 0.006), ("standard", 0.1, 300.0, {}, 0.006),
-     ("standard", 0.2, 300.0, {}, 0.006), ("standard", 0.1, -200.0, {}, 0.006),
-     ("III", 0.1, 300.0, {}, 0.006), ("III", 0.2, 150.0, {}, 0.006),
-     ("IIa", 0.2, 300.0, {}, 0.006), ("standard", 0.1, 200.0, {"phi_dot": -20.0}, 0.01),
-     ("standard", 0.15, 250.0, {"theta_dot": -2.0, "phi_dot": 10.0}, 0.01)],
+    [
+        ("standard", 0.1, 225.0, {}, 0.006),
+        ("standard", 0.1, 300.0, {}, 0.006),
+        ("standard", 0.2, 300.0, {}, 0.006),
+        ("standard", 0.1, -200.0, {}, 0.006),
+        ("III", 0.1, 300.0, {}, 0.006),
+        ("III", 0.2, 150.0, {}, 0.006),
+        ("IIa", 0.2, 300.0, {}, 0.006),
+        ("standard", 0.1, 200.0, {"phi_dot": -20.0}, 0.01),
+        ("standard", 0.15, 250.0, {"theta_dot": -2.0, "phi_dot": 10.0}, 0.01),
+    ],
 )
-def test_averaged_projection_is_the_slow_state_the_transient_leaves(name, theta0, spin, kick,
-                                                                    tolerance):
+def test_averaged_projection_is_the_slow_state_the_transient_leaves(
+    name, theta0, spin, kick, tolerance
+):
     """omega = n a launches: the averaged projection's tilt against the slow state the SO(3)
     transient leaves, within 0.006 in ln(theta_s) (0.1% of t_invert) where the linear projection
     is off by 0.07 to 1.7, and at least 10 times closer; its phase and the body's angle about
@@ -322,9 +369,11 @@ def test_averaged_projection_is_the_slow_state_the_transient_leaves(name, theta0
         got = np.array([float(jnp.log(jnp.sin(y.theta))), float(y.phi), float(y.phi + y.psi)])
         results[label] = np.concatenate([got[:1] - ref[:1], _wrap(got[1:] - ref[1:])])
     (error, phase, body), (error_linear, phase_linear, body_linear) = results.values()
-    print(f"{name}, theta0 = {theta0}, n0 = {spin} {kick}: ln(theta_s) averaged {error:+.5f}, "
-          f"linear {error_linear:+.4f}; phi {phase:+.4f}, linear {phase_linear:+.4f}; phi + psi "
-          f"{body:+.4f}, linear {body_linear:+.4f}")
+    print(
+        f"{name}, theta0 = {theta0}, n0 = {spin} {kick}: ln(theta_s) averaged {error:+.5f}, "
+        f"linear {error_linear:+.4f}; phi {phase:+.4f}, linear {phase_linear:+.4f}; phi + psi "
+        f"{body:+.4f}, linear {body_linear:+.4f}"
+    )
     assert abs(error) < tolerance
     assert abs(error_linear) > 10 * abs(error) and abs(error_linear) > 0.05
     assert abs(phase) < 0.1 * abs(phase_linear)
@@ -333,11 +382,23 @@ def test_averaged_projection_is_the_slow_state_the_transient_leaves(name, theta0
 
 def _t_invert(top, y0, projection):
     f = lambda v: jnp.asarray(v, jnp.result_type(top.m))  # noqa: E731
-    out = _run(top, y0, None, f(0.0), f(20.0), f(1e-8), f(1e-10),
-               level=GyroscopicLevel(hand_over=False, projection=projection),
-               solver=diffrax.Dopri5(), guard_stiff=False, stop_on_contact=True,
-               max_steps=100_000, adjoint=diffrax.RecursiveCheckpointAdjoint(), progress=False,
-               pieces=1)
+    out = _run(
+        top,
+        y0,
+        None,
+        f(0.0),
+        f(20.0),
+        f(1e-8),
+        f(1e-10),
+        level=GyroscopicLevel(hand_over=False, projection=projection),
+        solver=diffrax.Dopri5(),
+        guard_stiff=False,
+        stop_on_contact=True,
+        max_steps=100_000,
+        adjoint=diffrax.RecursiveCheckpointAdjoint(),
+        progress=False,
+        pieces=1,
+    )
     return float(out["t_invert"])
 
 
@@ -349,15 +410,21 @@ def test_t_invert_meets_the_targets():
     for spin, target in ((150.0, 0.005), (225.0, 0.004), (300.0, 0.003)):
         y0 = tj.initial_state(STANDARD, 0.1, spin)
         # (at 225 and 300 rad/s the SO(3) model loses contact after inverting)
-        ref = float(tj.simulate(STANDARD, y0, 20.0, model="so3", summary=True, rtol=1e-10,
-                                atol=1e-12, throw=False).t_invert)
+        ref = float(
+            tj.simulate(
+                STANDARD, y0, 20.0, model="so3", summary=True, rtol=1e-10, atol=1e-12, throw=False
+            ).t_invert
+        )
         assert np.isfinite(ref)
         errors.append((_t_invert(STANDARD, y0, "averaged") - ref) / ref)
         linear.append((_t_invert(STANDARD, y0, "linear") - ref) / ref)
         assert abs(errors[-1]) < target
-    print("t_invert against SO(3) at 150, 225, 300 rad/s: averaged "
-          + ", ".join(f"{e:+.3%}" for e in errors) + "; linear "
-          + ", ".join(f"{e:+.3%}" for e in linear))
+    print(
+        "t_invert against SO(3) at 150, 225, 300 rad/s: averaged "
+        + ", ".join(f"{e:+.3%}" for e in errors)
+        + "; linear "
+        + ", ".join(f"{e:+.3%}" for e in linear)
+    )
     assert abs(errors[0]) > abs(errors[1]) > abs(errors[2])
     assert abs(linear[1]) > 0.01 and abs(linear[2]) > 0.03
 
@@ -368,8 +435,14 @@ def test_t_invert_meets_the_targets():
 
 def test_exact_on_the_slow_manifold_and_regular_at_the_poles():
     level = GyroscopicLevel()
-    for theta, spin in ((0.0, 100.0), (0.03, 100.0), (0.8, 150.0), (2.0, 80.0), (3.1, 120.0),
-                        (0.2, -200.0)):
+    for theta, spin in (
+        (0.0, 100.0),
+        (0.03, 100.0),
+        (0.8, 150.0),
+        (2.0, 80.0),
+        (3.1, 120.0),
+        (0.2, -200.0),
+    ):
         J = jellet_of(STANDARD, spin)
         y = level.to_state(STANDARD, GyroscopicLevelState.from_theta(theta, 0.4, 0.1, -30.0, J))
         p = average_launch(STANDARD, y)
@@ -398,8 +471,10 @@ def test_projection_option():
     with pytest.raises(ValueError, match="projection"):
         GyroscopicLevel(projection="fibres")
     y0 = tj.initial_state(STANDARD, 0.1, 150.0)
-    thetas = {p: float(GyroscopicLevel(projection=p).from_state(STANDARD, y0).theta)
-              for p in ("averaged", "fibre", "linear")}
+    thetas = {
+        p: float(GyroscopicLevel(projection=p).from_state(STANDARD, y0).theta)
+        for p in ("averaged", "fibre", "linear")
+    }
     assert thetas["averaged"] == float(average_launch(STANDARD, y0).theta)
     # the averaged and fibre projections agree (to their errors), the linear one does not as well
     assert abs(np.log(thetas["averaged"] / thetas["fibre"])) < 0.01
@@ -410,16 +485,22 @@ def test_projection_objects_and_their_names():
     """Each name is its projection object; the objects check their options; the averaged
     projection's quadrature has converged at its default number of nodes (a single node is
     visibly off, so the option reaches the integrals)."""
-    for name, projection in (("averaged", AveragedProjection()), ("fibre", FibreProjection()),
-                             ("linear", LinearProjection())):
+    for name, projection in (
+        ("averaged", AveragedProjection()),
+        ("fibre", FibreProjection()),
+        ("linear", LinearProjection()),
+    ):
         assert GyroscopicLevel(projection=name) == GyroscopicLevel(projection=projection)
         assert GyroscopicLevel(projection=name).projection.name == name
     with pytest.raises(ValueError, match="nodes"):
         AveragedProjection(nodes=0)
     with pytest.raises(ValueError, match="amplitude"):
         FibreProjection(amplitude=0.0)
-    nodes = {"one": AveragedProjection(nodes=1), "default": AveragedProjection(),
-             "many": AveragedProjection(nodes=32)}
+    nodes = {
+        "one": AveragedProjection(nodes=1),
+        "default": AveragedProjection(),
+        "many": AveragedProjection(nodes=32),
+    }
     for theta0, spin in ((0.1, 300.0), (0.2, 150.0)):
         y0 = tj.initial_state(STANDARD, theta0, spin)
         u = {k: float(p.project(STANDARD, y0).log_tan_half_theta) for k, p in nodes.items()}
@@ -444,8 +525,10 @@ def test_gradient_and_vmap():
         np.testing.assert_allclose(float(g), fd, rtol=1e-5)
     thetas, spins = jnp.array([0.0, 0.05, 0.1, 0.2]), jnp.array([100.0, 150.0, 300.0, -200.0])
     batch = jax.vmap(lambda t, n: average_launch(STANDARD, tj.initial_state(STANDARD, t, n)))(
-        thetas, spins)
+        thetas, spins
+    )
     for k in range(4):
         one = average_launch(STANDARD, tj.initial_state(STANDARD, thetas[k], spins[k]))
-        np.testing.assert_allclose(float(batch.log_tan_half_theta[k]),
-                                   float(one.log_tan_half_theta), rtol=1e-12)
+        np.testing.assert_allclose(
+            float(batch.log_tan_half_theta[k]), float(one.log_tan_half_theta), rtol=1e-12
+        )

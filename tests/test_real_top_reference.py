@@ -40,10 +40,12 @@ def test_hertz_limits_and_inner_branch():
         for u in (1e-3, 0.1, 0.5, 0.9, 0.99):
             v = _slip(u, w)
             F, M = rr.hertz_contensou(v, w, RHO, 1e-9, n_ray=200, n_angle=800)
-            np.testing.assert_allclose(F, -v / np.linalg.norm(v) * 3 * math.pi / 8 * (u - u**3 / 4),
-                                       rtol=0, atol=1e-9)
-            assert M == pytest.approx(-math.copysign(3 * math.pi / 16 * RHO, w)
-                                      * (1 - u**2 + 3 * u**4 / 8), rel=1e-8)
+            np.testing.assert_allclose(
+                F, -v / np.linalg.norm(v) * 3 * math.pi / 8 * (u - u**3 / 4), rtol=0, atol=1e-9
+            )
+            assert M == pytest.approx(
+                -math.copysign(3 * math.pi / 16 * RHO, w) * (1 - u**2 + 3 * u**4 / 8), rel=1e-8
+            )
     # small slip: the viscous-like limit (LG eq. 17)
     v = _slip(1e-4, 180.0)
     F, _ = rr.hertz_contensou(v, 180.0, RHO, 1e-9)
@@ -93,8 +95,9 @@ def test_ellipse_matches_hertz_at_the_limits():
         assert M == pytest.approx(Mh, rel=1e-8, abs=1e-15)
     # small slip: ellipse 16/(3 pi) against Hertz 3 pi/8, a 44% stiffer slip damping
     v = _slip(1e-3, 180.0)
-    ratio = (np.linalg.norm(rr.friction("ellipse", v, 180.0, rho=RHO)[0])
-             / np.linalg.norm(rr.friction("hertz", v, 180.0, rho=RHO)[0]))
+    ratio = np.linalg.norm(rr.friction("ellipse", v, 180.0, rho=RHO)[0]) / np.linalg.norm(
+        rr.friction("hertz", v, 180.0, rho=RHO)[0]
+    )
     assert ratio == pytest.approx(128 / (9 * math.pi**2), rel=1e-4)
 
 
@@ -105,8 +108,9 @@ def test_ellipse_matches_hertz_at_the_limits():
 
 @pytest.fixture(scope="module")
 def viscous_rigid():
-    return rr.solve(rr.STANDARD, "viscous", 0.1, 100.0, 6.0, mu=0.3, stem=False, contact="rigid",
-                    rtol=1e-10)
+    return rr.solve(
+        rr.STANDARD, "viscous", 0.1, 100.0, 6.0, mu=0.3, stem=False, contact="rigid", rtol=1e-10
+    )
 
 
 def test_viscous_matches_vector_reference(viscous_rigid):
@@ -122,8 +126,9 @@ def test_viscous_matches_vector_reference(viscous_rigid):
 
 def test_viscous_matches_euler_reference():
     """A launch past the equator, while the Euler chart stays 0.08 rad from the poles."""
-    r = rr.solve(rr.STANDARD, "viscous", 1.7, 60.0, 1.0, mu=0.3, stem=False, contact="rigid",
-                 rtol=1e-10)
+    r = rr.solve(
+        rr.STANDARD, "viscous", 1.7, 60.0, 1.0, mu=0.3, stem=False, contact="rigid", rtol=1e-10
+    )
     near = np.nonzero(np.minimum(r["theta"], math.pi - r["theta"]) < 0.08)[0]
     keep = r["t"] < (r["t"][near[0]] if near.size else 2.0)
     assert keep.sum() > 400
@@ -137,15 +142,17 @@ def test_viscous_invariants(viscous_rigid):
     J, E = viscous_rigid["jellett"], viscous_rigid["energy"]
     assert np.max(np.abs(J - J[0])) < 1e-9 * abs(J[0])
     assert np.all(np.diff(E) < 1e-12 * E[0])
-    np.testing.assert_allclose(E - E[0], viscous_rigid["friction_work"], rtol=0,
-                               atol=1e-8 * (E[0] - E[-1]))
+    np.testing.assert_allclose(
+        E - E[0], viscous_rigid["friction_work"], rtol=0, atol=1e-8 * (E[0] - E[-1])
+    )
 
 
 def test_compliant_contact_matches_rigid():
     """Hunt-Crossley ball (E* = 5 GPa) against the rigid contact: the same motion to 1e-5 rad."""
     rigid = rr.solve(rr.STANDARD, "viscous", 0.1, 100.0, 1.5, mu=0.3, stem=False, contact="rigid")
-    soft = rr.solve(rr.STANDARD, "viscous", 0.1, 100.0, 1.5, mu=0.3, stem=False,
-                    contact="compliant")
+    soft = rr.solve(
+        rr.STANDARD, "viscous", 0.1, 100.0, 1.5, mu=0.3, stem=False, contact="compliant"
+    )
     assert soft["compliant"].all() and not rigid["compliant"].any()
     assert np.max(np.abs(soft["theta"] - rigid["theta"])) < 1e-5
     assert np.all(soft["depth_ball"] > 0)  # stays in contact
@@ -168,8 +175,9 @@ def test_energy_never_increases(lg_ellipse):
     E = lg_ellipse["energy"]
     assert np.all(np.diff(E) <= 1e-12 * E[0])
     rigid = ~lg_ellipse["compliant"]
-    np.testing.assert_allclose((E - E[0])[rigid], lg_ellipse["friction_work"][rigid], rtol=0,
-                               atol=1e-7 * (E[0] - E[-1]))
+    np.testing.assert_allclose(
+        (E - E[0])[rigid], lg_ellipse["friction_work"][rigid], rtol=0, atol=1e-7 * (E[0] - E[-1])
+    )
 
 
 def test_jellett_balance_under_drilling_torque(lg_ellipse):
@@ -177,8 +185,9 @@ def test_jellett_balance_under_drilling_torque(lg_ellipse):
     r = lg_ellipse
     before = r["t"] < r["t_stem"]
     J = r["jellett"]
-    np.testing.assert_allclose((J - J[0])[before], r["jellett_source"][before], rtol=0,
-                               atol=1e-7 * abs(J[0]))
+    np.testing.assert_allclose(
+        (J - J[0])[before], r["jellett_source"][before], rtol=0, atol=1e-7 * abs(J[0])
+    )
     assert J[before][-1] < 0.99 * J[0]
 
 
@@ -203,23 +212,32 @@ def test_force_only_laws_conserve_jellett(law):
 
 
 def test_hertz_law_jellett_balance():
-    r = rr.solve(LG, "hertz", 0.1, 180.0, 0.3, mu=0.3, rho=RHO, delta=1e-6, stem=False,
-                 contact="rigid")
+    r = rr.solve(
+        LG, "hertz", 0.1, 180.0, 0.3, mu=0.3, rho=RHO, delta=1e-6, stem=False, contact="rigid"
+    )
     J = r["jellett"]
     np.testing.assert_allclose(J - J[0], r["jellett_source"], rtol=0, atol=1e-7 * abs(J[0]))
     assert J[-1] < J[0] * (1 - 1e-3)
 
 
 def test_contensou_converges_in_slip_scale():
-    t = [rr.solve(LG, "ellipse", 0.1, 180.0, 1.2, mu=0.3, rho=RHO, delta=d, stem=False,
-                  contact="rigid")["t_half"] for d in (1e-5, 1e-6)]
+    t = [
+        rr.solve(
+            LG, "ellipse", 0.1, 180.0, 1.2, mu=0.3, rho=RHO, delta=d, stem=False, contact="rigid"
+        )["t_half"]
+        for d in (1e-5, 1e-6)
+    ]
     assert 0.5 < t[0] < 1.2 and abs(t[0] - t[1]) < 1e-6
 
 
 def test_pure_coulomb_inversion_time_grows_as_slip_scale_shrinks():
     """Without Contensou friction the rise is creep below delta: t_half grows like 1/delta."""
-    t = [rr.solve(LG, "coulomb", 0.1, 180.0, 3.0, mu=0.3, delta=d, stem=False,
-                  contact="rigid")["t_half"] for d in (1e-2, 3e-3)]
+    t = [
+        rr.solve(LG, "coulomb", 0.1, 180.0, 3.0, mu=0.3, delta=d, stem=False, contact="rigid")[
+            "t_half"
+        ]
+        for d in (1e-2, 3e-3)
+    ]
     assert 0.5 < t[0] < t[1] - 0.2
 
 

@@ -23,8 +23,16 @@ RTOL, ATOL = 1e-11, 1e-13  # tippejax tolerances (one configuration for every ca
 TOL = 1e-7  # absolute agreement asked of angles (rad), rates (rad/s) and R_n (N)
 # Fields whose natural size is far from 1 get a tolerance on their own scale: J ~ 1e-5 kg m^2/s
 # (compared relative to |J(0)|), position ~ 1e-3 m, velocity ~ 1e-2 m/s.
-TOLS = dict(theta=TOL, theta_dot=TOL, phi_dot=TOL, spin=TOL, normal_force=TOL,
-            jellet_rel=1e-9, position=1e-9, velocity=1e-8)
+TOLS = dict(
+    theta=TOL,
+    theta_dot=TOL,
+    phi_dot=TOL,
+    spin=TOL,
+    normal_force=TOL,
+    jellet_rel=1e-9,
+    position=1e-9,
+    velocity=1e-8,
+)
 THETA_MARGIN = 0.1  # launches must keep theta in [0.1, pi - 0.1] over [0, T1]
 N_LAUNCHES = 4  # per top
 
@@ -39,16 +47,32 @@ def random_params(rng):
     R = rng.uniform(0.01, 0.05)
     m = rng.uniform(0.01, 0.3)
     C = rng.uniform(0.3, 0.5) * m * R**2
-    return dict(m=m, R=R, eps=rng.uniform(0.05, 0.6) * R, A=rng.uniform(0.55, 1.6) * C, C=C,
-                g=rng.uniform(9.7, 9.9), mu=rng.uniform(0.0, 1.5))
+    return dict(
+        m=m,
+        R=R,
+        eps=rng.uniform(0.05, 0.6) * R,
+        A=rng.uniform(0.55, 1.6) * C,
+        C=C,
+        g=rng.uniform(9.7, 9.9),
+        mu=rng.uniform(0.0, 1.5),
+    )
 
 
 def random_state(rng):
-    return np.array([
-        rng.uniform(-0.1, 0.1), rng.uniform(-0.1, 0.1), rng.uniform(0.2, math.pi - 0.2),
-        rng.uniform(-math.pi, math.pi), rng.uniform(-math.pi, math.pi),
-        rng.uniform(-0.2, 0.2), rng.uniform(-0.2, 0.2), rng.uniform(-3, 3),
-        rng.uniform(-10, 10), rng.uniform(-150, 150)])
+    return np.array(
+        [
+            rng.uniform(-0.1, 0.1),
+            rng.uniform(-0.1, 0.1),
+            rng.uniform(0.2, math.pi - 0.2),
+            rng.uniform(-math.pi, math.pi),
+            rng.uniform(-math.pi, math.pi),
+            rng.uniform(-0.2, 0.2),
+            rng.uniform(-0.2, 0.2),
+            rng.uniform(-3, 3),
+            rng.uniform(-10, 10),
+            rng.uniform(-150, 150),
+        ]
+    )
 
 
 def reactie(z, p, variant):
@@ -101,8 +125,12 @@ def energy_rate_terms(z, f, p, variant):
     s, c = math.sin(th), math.cos(th)
     n = psd + phd * c
     dE_dth = m * eps**2 * s * c * thd**2 + A * s * c * phd**2 - C * n * phd * s + m * g * eps * s
-    terms = [dE_dth * thd, (A + m * eps**2 * s**2) * thd * f[7],
-             (A * s**2 * phd + C * n * c) * f[8], C * n * f[9]]
+    terms = [
+        dE_dth * thd,
+        (A + m * eps**2 * s**2) * thd * f[7],
+        (A * s**2 * phd + C * n * c) * f[8],
+        C * n * f[9],
+    ]
     if variant == "full":
         terms += [m * xd * f[5], m * yd * f[6]]
     return np.array(terms)
@@ -117,7 +145,9 @@ def test_energy_rate_is_friction_power(variant):
     for _ in range(400):
         p, z = random_params(rng), random_state(rng)
         v_q = contact_velocity(z, p, variant)
-        assert abs(v_q[2]) < 1e-14 * (1 + np.abs(v_q).max())  # the contact point slides horizontally
+        assert abs(v_q[2]) < 1e-14 * (
+            1 + np.abs(v_q).max()
+        )  # the contact point slides horizontally
         power = -p["mu"] * er.normal_force(z, p, variant) * (v_q @ v_q)
         terms = energy_rate_terms(z, er.rhs(0.0, z, p, variant), p, variant)
         worst = max(worst, abs(terms.sum() - power) / np.abs(terms).sum())
@@ -137,15 +167,24 @@ def launches():
         while len(chosen) < N_LAUNCHES:
             tried += 1
             assert tried < 20 * N_LAUNCHES, "too few admissible launches"
-            kw = dict(theta0=rng.uniform(0.6, 2.4), spin=rng.uniform(20, 120),
-                      theta_dot=rng.uniform(-2, 2), phi_dot=rng.uniform(-5, 5),
-                      vx=rng.uniform(-0.1, 0.1), vy=rng.uniform(-0.1, 0.1))
+            kw = dict(
+                theta0=rng.uniform(0.6, 2.4),
+                spin=rng.uniform(20, 120),
+                theta_dot=rng.uniform(-2, 2),
+                phi_dot=rng.uniform(-5, 5),
+                vx=rng.uniform(-0.1, 0.1),
+                vy=rng.uniform(-0.1, 0.1),
+            )
             try:
                 refs = {v: er.solve(p, t_eval=TS, variant=v, **kw) for v in ("full", "so3")}
             except RuntimeError:  # came within 0.05 rad of a pole
                 continue
-            if all(r["theta"].min() > THETA_MARGIN and r["theta"].max() < math.pi - THETA_MARGIN
-                   and r["normal_force"].min() > 0 for r in refs.values()):
+            if all(
+                r["theta"].min() > THETA_MARGIN
+                and r["theta"].max() < math.pi - THETA_MARGIN
+                and r["normal_force"].min() > 0
+                for r in refs.values()
+            ):
                 chosen.append((kw, refs))
         out[name] = chosen
     return out
@@ -186,8 +225,15 @@ def tippejax_runs():
         if key not in cache:
             top = TOPS[top_name]()
             kw = launches[top_name][index][0]
-            y0 = tj.initial_state(top, kw["theta0"], kw["spin"], theta_dot=kw["theta_dot"],
-                                  phi_dot=kw["phi_dot"], vx=kw["vx"], vy=kw["vy"])
+            y0 = tj.initial_state(
+                top,
+                kw["theta0"],
+                kw["spin"],
+                theta_dot=kw["theta_dot"],
+                phi_dot=kw["phi_dot"],
+                vx=kw["vx"],
+                vy=kw["vy"],
+            )
             cache[key] = tj.simulate(top, y0, T1, model=level, saveat=TS, rtol=RTOL, atol=ATOL)
         return cache[key]
 
@@ -195,15 +241,20 @@ def tippejax_runs():
 
 
 def disagreements(sol, ref, level):
-    d = {name: float(np.max(np.abs(np.asarray(getattr(sol, name)) - ref[name])))
-         for name in ("theta", "theta_dot", "phi_dot", "spin", "normal_force")}
-    d["jellet_rel"] = float(np.max(np.abs(np.asarray(sol.jellet) - ref["jellet"]))
-                            / abs(ref["jellet"][0]))
+    d = {
+        name: float(np.max(np.abs(np.asarray(getattr(sol, name)) - ref[name])))
+        for name in ("theta", "theta_dot", "phi_dot", "spin", "normal_force")
+    }
+    d["jellet_rel"] = float(
+        np.max(np.abs(np.asarray(sol.jellet) - ref["jellet"])) / abs(ref["jellet"][0])
+    )
     if level == "full":
-        d["position"] = float(np.max(np.abs(np.asarray(sol.position)
-                                            - np.stack([ref["x"], ref["y"]], -1))))
-        d["velocity"] = float(np.max(np.abs(np.asarray(sol.velocity)
-                                            - np.stack([ref["vx"], ref["vy"]], -1))))
+        d["position"] = float(
+            np.max(np.abs(np.asarray(sol.position) - np.stack([ref["x"], ref["y"]], -1)))
+        )
+        d["velocity"] = float(
+            np.max(np.abs(np.asarray(sol.velocity) - np.stack([ref["vx"], ref["vy"]], -1)))
+        )
     return d
 
 
@@ -218,8 +269,10 @@ def test_simulate_matches_reference(launches, tippejax_runs, level, top_name, in
     assert np.all(np.isfinite(theta))
     assert theta.min() > THETA_MARGIN and theta.max() < math.pi - THETA_MARGIN
     d = disagreements(sol, ref, level)
-    print(f"\n[{level} ({sol.model}), {top_name} #{index}: th0={kw['theta0']:.3f} "
-          f"n0={kw['spin']:.1f}] max abs diff: " + ", ".join(f"{k} {v:.1e}" for k, v in d.items()))
+    print(
+        f"\n[{level} ({sol.model}), {top_name} #{index}: th0={kw['theta0']:.3f} "
+        f"n0={kw['spin']:.1f}] max abs diff: " + ", ".join(f"{k} {v:.1e}" for k, v in d.items())
+    )
     bad = {k: (v, TOLS[k]) for k, v in d.items() if not v < TOLS[k]}
     assert not bad, f"level {level!r}, top {top_name}, launch {index}: (diff, tol) {bad}"
 
@@ -234,4 +287,6 @@ def test_comparison_is_sensitive(launches, tippejax_runs, factor):
     ref = er.solve(p, t_eval=TS, variant="full", **kw)
     d = disagreements(tippejax_runs(top_name, index, "full", launches), ref, "full")
     print(f"\n[mu x {factor}] max abs diff: " + ", ".join(f"{k} {v:.1e}" for k, v in d.items()))
-    assert d["theta"] > 10 * TOL and d["spin"] > 100 * TOL and d["position"] > 100 * TOLS["position"]
+    assert (
+        d["theta"] > 10 * TOL and d["spin"] > 100 * TOL and d["position"] > 100 * TOLS["position"]
+    )

@@ -27,8 +27,9 @@ def test_message_of_one_code():
 
 
 def test_message_elementwise_on_arrays_and_batched_codes():
-    codes = np.array([[0, int(np.asarray(LOST._value))], [int(np.asarray(LOST._value)), 0]],
-                     dtype=np.int8)
+    codes = np.array(
+        [[0, int(np.asarray(LOST._value))], [int(np.asarray(LOST._value)), 0]], dtype=np.int8
+    )
     out = tj.RESULTS.message(codes)
     assert isinstance(out, np.ndarray) and out.shape == (2, 2)
     assert out[0, 0] == out[1, 1] == "successful" and out[0, 1] == out[1, 0] == _text(LOST)
@@ -46,10 +47,16 @@ def test_message_of_another_enumeration_uses_its_own_table():
     assert result_message(int(np.asarray(item._value)), tj.FIT_RESULTS) == tj.FIT_RESULTS[item]
 
 
-@pytest.mark.parametrize("bad, match", [
-    (99, "lie in"), (-1, "lie in"), (np.array([0.5]), "integers"), ("x", "takes a result code"),
-    (True, "takes a result code"),
-])
+@pytest.mark.parametrize(
+    "bad, match",
+    [
+        (99, "lie in"),
+        (-1, "lie in"),
+        (np.array([0.5]), "integers"),
+        ("x", "takes a result code"),
+        (True, "takes a result code"),
+    ],
+)
 def test_message_refuses_what_is_not_a_code(bad, match):
     with pytest.raises(ValueError, match=match):
         tj.RESULTS.message(bad)
@@ -95,6 +102,7 @@ def test_a_solution_prints_its_events_and_says_when_it_is_on_its_way():
     assert not bool(sol.settled)
     assert "(on its way: not settled by t_final)" in repr(sol)
     assert "theta_end=" in repr(sol)
-    batch = jax.vmap(lambda s: tj.simulate(top, tj.initial_state(top, 0.1, s), 1.0,
-                                           summary=True))(jnp.array([50.0, 60.0]))
+    batch = jax.vmap(lambda s: tj.simulate(top, tj.initial_state(top, 0.1, s), 1.0, summary=True))(
+        jnp.array([50.0, 60.0])
+    )
     assert "f64[2" in repr(batch)

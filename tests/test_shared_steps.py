@@ -22,8 +22,10 @@ LOST = np.array([False, False, False, True, True, False])
 
 
 def _pair(top, theta0, spin, **kw):
-    return tuple(tj.simulate_batch(top, theta0, spin, steps=steps, **kw)
-                 for steps in ("per_member", "shared"))
+    return tuple(
+        tj.simulate_batch(top, theta0, spin, steps=steps, **kw)
+        for steps in ("per_member", "shared")
+    )
 
 
 def _close_times(a, b, atol):
@@ -42,8 +44,18 @@ def so3_summary():
 def so3_reference():
     """The per-member runs of `so3_summary` converged (rtol 1e-12): the inversion times the
     two paths are held to."""
-    return tj.simulate_batch(tj.default_top(), 0.1, SPINS, t1=T1, model="so3", summary=True,
-                             grid=("spin",), steps="per_member", rtol=1e-12, atol=1e-14)
+    return tj.simulate_batch(
+        tj.default_top(),
+        0.1,
+        SPINS,
+        t1=T1,
+        model="so3",
+        summary=True,
+        grid=("spin",),
+        steps="per_member",
+        rtol=1e-12,
+        atol=1e-14,
+    )
 
 
 GRAZING = np.array([False, False, False, True, False, False])
@@ -114,20 +126,37 @@ def test_shared_saves_of_different_tops_full_model():
 
 
 def test_shared_continue_past_contact_loss():
-    per, shared = _pair(tj.default_top(), 0.1, np.array([150.0, 400.0]), t1=T1, model="so3",
-                        summary=True, grid=("spin",), on_contact_loss="continue")
+    per, shared = _pair(
+        tj.default_top(),
+        0.1,
+        np.array([150.0, 400.0]),
+        t1=T1,
+        model="so3",
+        summary=True,
+        grid=("spin",),
+        on_contact_loss="continue",
+    )
     np.testing.assert_array_equal(np.asarray(shared.t_final), [T1, T1])
     np.testing.assert_array_equal(np.asarray(shared.result._value), np.asarray(per.result._value))
-    np.testing.assert_array_equal(np.asarray(shared.result == tj.RESULTS.contact_lost), [False, True])
+    np.testing.assert_array_equal(
+        np.asarray(shared.result == tj.RESULTS.contact_lost), [False, True]
+    )
     _close_times(shared.t_contact_loss, per.t_contact_loss, 1e-3)
 
 
 def test_shared_member_dead_at_launch():
     """A member with R_n < 0 at launch is not integrated (t_final = t0, contact lost at t0) and
     the others run as usual."""
-    per, shared = _pair(tj.default_top(), np.array([0.1, 2.0]), np.array([150.0, 50.0]),
-                        t1=2.0, theta_dot=np.array([0.0, -100.0]), grid=(), model="so3",
-                        summary=True)
+    per, shared = _pair(
+        tj.default_top(),
+        np.array([0.1, 2.0]),
+        np.array([150.0, 50.0]),
+        t1=2.0,
+        theta_dot=np.array([0.0, -100.0]),
+        grid=(),
+        model="so3",
+        summary=True,
+    )
     np.testing.assert_array_equal(np.asarray(shared.t_final), [2.0, 0.0])
     np.testing.assert_array_equal(np.asarray(shared.t_contact_loss)[1], 0.0)
     np.testing.assert_array_equal(np.asarray(shared.result._value), np.asarray(per.result._value))
@@ -140,8 +169,9 @@ def test_shared_invariants_so3():
     level conserves it exactly) and the energy never increases."""
     top = tj.default_top()
     ts = np.linspace(0.0, T1, 81)
-    sol = tj.simulate_batch(top, [0.1, 0.5], [150.0, 100.0], T1, model="so3", saveat=ts,
-                            steps="shared")
+    sol = tj.simulate_batch(
+        top, [0.1, 0.5], [150.0, 100.0], T1, model="so3", saveat=ts, steps="shared"
+    )
     assert np.all(np.asarray(sol.result == tj.RESULTS.successful))
     J = np.asarray(sol.jellet).reshape(-1, ts.size)
     assert np.max(np.abs(J - J[:, :1]) / np.abs(J[:, :1])) < 1e-6
@@ -215,8 +245,16 @@ def test_shared_large_batch_is_split_into_blocks(so3_summary, so3_reference, mon
 
     per, _ = so3_summary
     monkeypatch.setattr(devices, "SHARED_BLOCK", 2)
-    blocks = tj.simulate_batch(tj.default_top(), 0.1, SPINS, t1=T1, model="so3", summary=True,
-                               grid=("spin",), steps="shared")
+    blocks = tj.simulate_batch(
+        tj.default_top(),
+        0.1,
+        SPINS,
+        t1=T1,
+        model="so3",
+        summary=True,
+        grid=("spin",),
+        steps="shared",
+    )
     np.testing.assert_array_equal(np.asarray(blocks.result._value), np.asarray(per.result._value))
     _inversion_times_converge(per, blocks, so3_reference)
     _close_times(blocks.t_final, per.t_final, 1e-3)

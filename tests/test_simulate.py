@@ -178,8 +178,10 @@ def test_routhian_leaves_chart_through_pole(chart_pair):
     assert abs(np.sin(np.interp(t_switch, _np(s.ts), th_s)) - tj.CHART_SIN_MIN) < 5e-3
     assert np.all(np.isfinite(th_r))
     d = np.max(np.abs(th_s - th_r))
-    print(f"routhian->so3 vs so3 over the whole run: max |dtheta| = {d:.2e} rad, "
-          f"t_chart_switch = {t_switch:.4f} s, min theta = {np.min(th_s):.4f}")
+    print(
+        f"routhian->so3 vs so3 over the whole run: max |dtheta| = {d:.2e} rad, "
+        f"t_chart_switch = {t_switch:.4f} s, min theta = {np.min(th_s):.4f}"
+    )
     assert d < 1e-7
 
 
@@ -194,9 +196,11 @@ def test_default_top_inverts(top):
     ss = tj.steady_states(top, sol.jellet[0])
     assert bool(ss.vertical_stable[1]) and not bool(ss.vertical_stable[0])
     th = _np(sol.theta)
-    print(f"inversion: pi - theta(20 s) = {np.pi - th[-1]:.2e}, t_invert = {float(sol.t_invert):.4f}")
+    print(
+        f"inversion: pi - theta(20 s) = {np.pi - th[-1]:.2e}, t_invert = {float(sol.t_invert):.4f}"
+    )
     assert abs(np.pi - th[-1]) < 1e-3
-    assert np.all(np.abs(np.pi - th[-N // 20:]) < 1e-3)
+    assert np.all(np.abs(np.pi - th[-N // 20 :]) < 1e-3)
     # ERRATA, useful facts: first time theta > pi/2 is 5.70 s with translation
     assert np.isfinite(float(sol.t_invert))
     assert abs(float(sol.t_invert) - 5.70) < 0.02
@@ -224,7 +228,7 @@ def test_intermediate_state_attractor(top):
     assert len(stable) == 1
     theta_i = stable[0]
     assert not bool(ss.vertical_stable[0]) and not bool(ss.vertical_stable[1])
-    tail = _np(sol.theta)[-N // 30:]  # the last second
+    tail = _np(sol.theta)[-N // 30 :]  # the last second
     dev = np.max(np.abs(tail - theta_i))
     print(f"intermediate: predicted {theta_i:.6f}, max |theta - theta_i| over last 1 s = {dev:.2e}")
     assert dev < 1e-2
@@ -255,8 +259,9 @@ def test_crossing_pi_over_2_is_not_an_inversion():
     beyond pi/2: sol.outcome says "intermediate", the state the analysis level predicts."""
     top = tj.TippeTop.from_ratios(1.5, 0.3)
     assert tj.classify(top) == "III"
-    sol = tj.simulate(top, tj.initial_state(top, 0.1, 100.0), 20.0, model="full",
-                      saveat=grid(20.0), **DEFAULT)
+    sol = tj.simulate(
+        top, tj.initial_state(top, 0.1, 100.0), 20.0, model="full", saveat=grid(20.0), **DEFAULT
+    )
     assert np.isfinite(float(sol.t_invert))
     assert tj.OUTCOMES[int(sol.outcome)] == "intermediate" and bool(sol.settled)
     ss = tj.steady_states(top, sol.jellet[0])
@@ -297,8 +302,9 @@ def test_contact_loss_throw(top):
 
 def test_contact_loss_continue(top, contact_stop):
     y0 = tj.initial_state(top, 0.1, 200.0)
-    sol = tj.simulate(top, y0, 7.0, model="full", saveat=grid(7.0), on_contact_loss="continue",
-                      **DEFAULT)  # does not raise with throw=True
+    sol = tj.simulate(
+        top, y0, 7.0, model="full", saveat=grid(7.0), on_contact_loss="continue", **DEFAULT
+    )  # does not raise with throw=True
     assert same_result(sol, tj.RESULTS.contact_lost)
     assert float(sol.t_final) == pytest.approx(7.0)
     assert abs(float(sol.t_contact_loss) - float(contact_stop.t_contact_loss)) < 1e-9
@@ -331,12 +337,22 @@ def test_contact_loss_located_by_every_solver(contact_stop):
     """The located loss does not depend on the solver: Tsit5 at rtol 1e-8 (steps ~10x shorter
     than Dopri8's) finds it at the time the default Dopri8 does."""
     y0 = tj.initial_state(tj.default_top(), 0.1, 200.0)
-    sol = tj.simulate(tj.default_top(), y0, 7.0, model="full", saveat=grid(7.0), throw=False,
-                      solver=diffrax.Tsit5(), **DEFAULT)
+    sol = tj.simulate(
+        tj.default_top(),
+        y0,
+        7.0,
+        model="full",
+        saveat=grid(7.0),
+        throw=False,
+        solver=diffrax.Tsit5(),
+        **DEFAULT,
+    )
     assert same_result(sol, tj.RESULTS.contact_lost)
     d = abs(float(sol.t_contact_loss) - float(contact_stop.t_contact_loss))
-    print(f"t_contact_loss Tsit5 - Dopri8 = {d:.1e} s ({int(sol.num_steps)} vs "
-          f"{int(contact_stop.num_steps)} steps)")
+    print(
+        f"t_contact_loss Tsit5 - Dopri8 = {d:.1e} s ({int(sol.num_steps)} vs "
+        f"{int(contact_stop.num_steps)} steps)"
+    )
     assert d < 1e-5
 
 
@@ -354,13 +370,15 @@ def test_contact_loss_too_brief_for_the_watch_is_reported(monkeypatch):
 
     bernstein = watch._bernstein_polygon
     ends_only = np.array([[1.0, 0, 0, 0, 0, 0], [0, 0, 0, 0, 1.0, 0]])
-    monkeypatch.setattr(watch, "_bernstein_polygon",
-                        lambda pieces: ends_only if pieces == 7 else bernstein(pieces))
+    monkeypatch.setattr(
+        watch, "_bernstein_polygon", lambda pieces: ends_only if pieces == 7 else bernstein(pieces)
+    )
     top = tj.default_top()
     y0 = tj.initial_state(top, 0.1, 200.0)
     ts = jnp.linspace(4.9, 5.3, N)
-    opts = dict(model="full", saveat=ts, rtol=1e-5, atol=1e-7, solver=diffrax.Dopri8(),
-                event_pieces=7)
+    opts = dict(
+        model="full", saveat=ts, rtol=1e-5, atol=1e-7, solver=diffrax.Dopri8(), event_pieces=7
+    )
     sol = tj.simulate(top, y0, 5.3, throw=False, **opts)
     assert same_result(sol, tj.RESULTS.contact_loss_missed)
     assert np.isnan(float(sol.t_contact_loss))
@@ -392,8 +410,10 @@ def test_stiff_friction_default_solver():
     assert is_ok(sol)
     # rtol = 1e-8 here (an implicit solve at 1e-10 costs ~3x): J drifts ~1e-10 relative
     j_err, e_rise = check_invariants(sol, j_rtol=1e-9)
-    print(f"stiff mu=300: {int(sol.num_steps)} steps, max |J/J0 - 1| = {j_err:.2e}, "
-          f"max dE/|E| = {e_rise:.2e}")
+    print(
+        f"stiff mu=300: {int(sol.num_steps)} steps, max |J/J0 - 1| = {j_err:.2e}, "
+        f"max dE/|E| = {e_rise:.2e}"
+    )
     # Very stiff friction: the implicit default (Kvaerno5) finishes where Tsit5 needs > 1e6
     # steps per second of motion.
     y0 = tj.initial_state(very_stiff, 0.1, 100.0)
@@ -454,8 +474,7 @@ def test_jit_with_every_input_a_concrete_array(top):
     t0, t1, rtol, atol = (jnp.asarray(v) for v in (0.0, 1.0, DEFAULT["rtol"], DEFAULT["atol"]))
 
     def run():
-        sol = tj.simulate(top, y0, t1, t0=t0, model="full", summary=True, rtol=rtol,
-                          atol=atol)
+        sol = tj.simulate(top, y0, t1, t0=t0, model="full", summary=True, rtol=rtol, atol=atol)
         return sol.states.omega[-1], sol.num_steps
 
     omega, steps = jax.jit(run)()
@@ -498,16 +517,24 @@ def test_vmap_over_tops_explicit_solver():
 
     def one(tp):
         y0 = tj.initial_state(tp, 0.1, 80.0)
-        sol = tj.simulate(tp, y0, 3.0, model="full", saveat=ts, throw=False,
-                          solver=diffrax.Tsit5(), **DEFAULT)
+        sol = tj.simulate(
+            tp, y0, 3.0, model="full", saveat=ts, throw=False, solver=diffrax.Tsit5(), **DEFAULT
+        )
         return sol.theta, sol.result == tj.RESULTS.successful
 
     theta_b, res_b = jax.vmap(one)(_stack(tops))
     assert np.all(np.asarray(res_b))
     worst = 0.0
     for i, tp in enumerate(tops):
-        s = tj.simulate(tp, tj.initial_state(tp, 0.1, 80.0), 3.0, model="full", saveat=ts,
-                        solver=diffrax.Tsit5(), **DEFAULT)
+        s = tj.simulate(
+            tp,
+            tj.initial_state(tp, 0.1, 80.0),
+            3.0,
+            model="full",
+            saveat=ts,
+            solver=diffrax.Tsit5(),
+            **DEFAULT,
+        )
         worst = max(worst, np.max(np.abs(_np(s.theta) - _np(theta_b[i]))))
     print(f"vmap over tops vs loop: max |dtheta| = {worst:.2e}")
     assert worst < 1e-8
@@ -533,15 +560,19 @@ def test_vmap_over_a_stiff_and_a_soft_top_says_so():
     assert bool(ok_b[0]) and not bool(stiff_b[0])
     assert bool(stiff_b[1]) and not bool(ok_b[1])
     assert int(steps_b[1]) == 0 and np.all(np.isnan(_np(theta_b[1])[1:]))
-    eager = tj.simulate(soft, tj.initial_state(soft, 0.1, 80.0), 1.0, model="full", saveat=ts,
-                        **DEFAULT)
+    eager = tj.simulate(
+        soft, tj.initial_state(soft, 0.1, 80.0), 1.0, model="full", saveat=ts, **DEFAULT
+    )
     d = np.max(np.abs(_np(eager.theta) - _np(theta_b[0])))
     print(f"vmap soft member vs eager: {d:.2e} rad")
     assert d < 1e-8
     # With an implicit solver passed explicitly, the stiff member is integrated too.
     with pytest.raises(RuntimeError, match="very stiff"):
-        jax.jit(lambda tp: tj.simulate(tp, tj.initial_state(tp, 0.1, 80.0), 1.0,
-                                       saveat=ts, **DEFAULT).theta)(stiff)
+        jax.jit(
+            lambda tp: (
+                tj.simulate(tp, tj.initial_state(tp, 0.1, 80.0), 1.0, saveat=ts, **DEFAULT).theta
+            )
+        )(stiff)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -552,8 +583,9 @@ def _float32_run():
     top32 = tj.default_top().astype(jnp.float32)
     y0 = tj.initial_state(top32, 0.1, 100.0)
     y0 = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float32), y0)
-    return tj.simulate(top32, y0, 3.0, model="full", saveat=grid(3.0).astype(jnp.float32),
-                       throw=False, **DEFAULT)
+    return tj.simulate(
+        top32, y0, 3.0, model="full", saveat=grid(3.0).astype(jnp.float32), throw=False, **DEFAULT
+    )
 
 
 def test_float32_with_x64_disabled(full_ref):
@@ -583,12 +615,15 @@ def test_convergence_in_rtol(top, y_std, full_ref, full_default):
     ref = _np(full_ref.theta)
     errors = []
     for rtol in (1e-4, 1e-6):
-        s = tj.simulate(top, y_std, 3.0, model="full", saveat=grid(3.0), rtol=rtol,
-                        atol=rtol * 1e-2)
+        s = tj.simulate(
+            top, y_std, 3.0, model="full", saveat=grid(3.0), rtol=rtol, atol=rtol * 1e-2
+        )
         errors.append(np.max(np.abs(_np(s.theta) - ref)))
     errors.append(np.max(np.abs(_np(full_default.theta) - ref)))  # rtol 1e-8, atol 1e-10
-    print("convergence (rtol 1e-4, 1e-6, 1e-8): max |dtheta| = "
-          + ", ".join(f"{e:.2e}" for e in errors))
+    print(
+        "convergence (rtol 1e-4, 1e-6, 1e-8): max |dtheta| = "
+        + ", ".join(f"{e:.2e}" for e in errors)
+    )
     assert errors[0] > errors[1] > errors[2]
     assert errors[2] < 1e-5
     assert errors[0] > 10 * errors[2]  # a real decrease, not noise
@@ -639,8 +674,9 @@ def test_theta_dot_at_the_pole_follows_theta(top, theta0, theta_dot):
 
 
 def test_max_steps_reached(top, y_std):
-    sol = tj.simulate(top, y_std, 3.0, model="full", saveat=grid(3.0), max_steps=16,
-                      throw=False, **DEFAULT)
+    sol = tj.simulate(
+        top, y_std, 3.0, model="full", saveat=grid(3.0), max_steps=16, throw=False, **DEFAULT
+    )
     assert same_result(sol, tj.RESULTS.max_steps_reached)
     assert float(sol.t_final) < 3.0
     assert "maximum number of solver steps" in sol.message()
@@ -666,8 +702,19 @@ def test_bad_arguments(top, y_std):
             tj.simulate(top, y_std, t1, t0=t0)
 
 
-FIELDS = ("theta", "phi", "psi", "theta_dot", "spin", "position", "velocity", "jellet",
-          "energy", "normal_force", "slip_speed")
+FIELDS = (
+    "theta",
+    "phi",
+    "psi",
+    "theta_dot",
+    "spin",
+    "position",
+    "velocity",
+    "jellet",
+    "energy",
+    "normal_force",
+    "slip_speed",
+)
 
 
 def test_successful_runs_are_finite(full_ref, full_default, so3_routhian_pairs, chart_pair):
@@ -713,8 +760,7 @@ def test_dynamics_stay_away_from_singularity():
     sol = tj.simulate(top, y0, 1.0, model="so3", saveat=grid(1.0), throw=False, **VECTOR)
     assert is_ok(sol)
     den = _np(tj.normal_force_denominator(top, sol.states, model="so3"))
-    print(f"singularity: min denominator along the run = {np.min(den):.3g} "
-          f"(at t0 {den[0]:.3g})")
+    print(f"singularity: min denominator along the run = {np.min(den):.3g} (at t0 {den[0]:.3g})")
     assert np.all(den > 0)
 
 

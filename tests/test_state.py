@@ -130,7 +130,9 @@ def test_vector_to_euler_to_vector(samples):
 
 def test_initial_state():
     top = tj.default_top()
-    y = tj.initial_state(top, 0.4, 75.0, theta_dot=1.5, phi_dot=-3.0, phi=0.7, psi=-1.1, vx=0.2, vy=-0.05)
+    y = tj.initial_state(
+        top, 0.4, 75.0, theta_dot=1.5, phi_dot=-3.0, phi=0.7, psi=-1.1, vx=0.2, vy=-0.05
+    )
     np.testing.assert_allclose(float(ti.spin(y)), 75.0, rtol=1e-15)
     np.testing.assert_allclose(float(jnp.dot(y.omega, y.axis)), 75.0, rtol=1e-15)
     np.testing.assert_array_equal(np.asarray(y.position), [0.0, 0.0])
@@ -196,16 +198,19 @@ def test_initial_state_rejects(kwargs, message):
 
 def _pole_state(axis_z, zero_x, zero_y, omega):
     return tj.State(
-        position=jnp.zeros(2), velocity=jnp.zeros(2),
-        axis=jnp.array([zero_x, zero_y, axis_z]), omega=jnp.asarray(omega, float),
+        position=jnp.zeros(2),
+        velocity=jnp.zeros(2),
+        axis=jnp.array([zero_x, zero_y, axis_z]),
+        omega=jnp.asarray(omega, float),
         body=jnp.array([1.0, 0.0, 0.0]),
     )
 
 
 @pytest.mark.parametrize("axis_z", [1.0, -1.0])
 @pytest.mark.parametrize("zero_x, zero_y", [(0.0, 0.0), (-0.0, 0.0), (0.0, -0.0), (-0.0, -0.0)])
-@pytest.mark.parametrize("omega", [[1.0, 0.0, 50.0], [-0.0, 2.0, -3.0], [0.3, -0.4, 7.0],
-                                   [0.0, -0.0, 3.0]])
+@pytest.mark.parametrize(
+    "omega", [[1.0, 0.0, 50.0], [-0.0, 2.0, -3.0], [0.3, -0.4, 7.0], [0.0, -0.0, 3.0]]
+)
 def test_euler_rates_at_the_poles(axis_z, zero_x, zero_y, omega):
     y = _pole_state(axis_z, zero_x, zero_y, omega)
     theta, phi, psi = (np.asarray(v) for v in tj.euler_angles(y))
@@ -215,16 +220,22 @@ def test_euler_rates_at_the_poles(axis_z, zero_x, zero_y, omega):
     # |theta_dot| is the speed of the axis, |omega x a|; theta can only grow from 0, fall from pi.
     speed = np.hypot(omega[0], omega[1])
     np.testing.assert_allclose(thd, speed if axis_z > 0 else -speed, rtol=1e-15, atol=0)
-    np.testing.assert_allclose(psid - phid * np.cos(theta), np.dot(omega, [0, 0, axis_z]),
-                               rtol=1e-15)
+    np.testing.assert_allclose(
+        psid - phid * np.cos(theta), np.dot(omega, [0, 0, axis_z]), rtol=1e-15
+    )
     # The angles and rates rebuild the state (independent check: the rotation matrix).
     axis, body, omega_ref = _reference_state(theta, phi, psi, thd, phid, psid)
     np.testing.assert_allclose(axis, [0.0, 0.0, axis_z], atol=1e-15)
     np.testing.assert_allclose(body, [1.0, 0.0, 0.0], atol=1e-15)
     np.testing.assert_allclose(omega_ref, omega, atol=1e-14)
     # The same answer whatever the signs of the zeros.
-    ref = [np.asarray(v) for v in (*tj.euler_angles(_pole_state(axis_z, 0.0, 0.0, omega)),
-                                    *tj.euler_rates(_pole_state(axis_z, 0.0, 0.0, omega)))]
+    ref = [
+        np.asarray(v)
+        for v in (
+            *tj.euler_angles(_pole_state(axis_z, 0.0, 0.0, omega)),
+            *tj.euler_rates(_pole_state(axis_z, 0.0, 0.0, omega)),
+        )
+    ]
     np.testing.assert_array_equal(_wrap(np.array([theta, phi, psi, thd, phid, psid]) - ref), 0.0)
 
 

@@ -33,8 +33,10 @@ def lg_top(pressure="ellipse", slip_scale=1e-6, rho=RHO, **stem):
 def test_stem_fields_replace_repr_and_batches():
     top = lg_top()
     stem = top.stem
-    assert all(isinstance(getattr(stem, k), jax.Array) for k in
-               ("radius", "offset", "contact_modulus", "contact_damping"))
+    assert all(
+        isinstance(getattr(stem, k), jax.Array)
+        for k in ("radius", "offset", "contact_modulus", "contact_damping")
+    )
     assert float(stem.contact_modulus) == 5e9 and float(stem.contact_damping) == 200.0
     assert "stem=Stem(radius=0.005, offset=0.016" in repr(top)
     assert top.replace(stem=None).stem is None and "stem" not in repr(top.replace(stem=None))
@@ -48,23 +50,37 @@ def test_stem_fields_replace_repr_and_batches():
     assert tops.batch_shape == (2,)
     angles = jax.vmap(lambda t: t.stem_angle)(tops)
     np.testing.assert_allclose(
-        angles, [math.acos((r2 - 0.015) / 0.013) for r2 in (0.005, 0.006)], rtol=1e-14)
+        angles, [math.acos((r2 - 0.015) / 0.013) for r2 in (0.005, 0.006)], rtol=1e-14
+    )
     # differentiable in the stem's fields
     d = jax.grad(lambda r2: top.replace(stem=tj.Stem(r2, 0.016)).stem_angle)(jnp.asarray(0.005))
     s = math.sqrt(1 - ((0.005 - 0.015) / 0.013) ** 2)
     assert float(d) == pytest.approx(-1 / (0.013 * s), rel=1e-10)
 
 
-@pytest.mark.parametrize("radius, offset, message", [
-    (0.0, 0.016, "Stem.radius (radius r2 of the stem's tip, m) must be > 0"),
-    (-1e-3, 0.016, "Stem.radius"),
-    (0.005, 0.002, "Stem.offset a2 (from the centre of mass to the centre of the tip, m) must "
-     "be > eps"),
-    (0.002, 0.01, "the stem lies inside the ball and can never reach the table: "
-     "a2 - eps + r2 <= R"),
-    (0.05, 0.016, "the tip would touch the table at every tilt, upright too: r2 - R >= a2 - eps"),
-    (0.005, float("nan"), "Stem.offset must be finite"),
-])
+@pytest.mark.parametrize(
+    "radius, offset, message",
+    [
+        (0.0, 0.016, "Stem.radius (radius r2 of the stem's tip, m) must be > 0"),
+        (-1e-3, 0.016, "Stem.radius"),
+        (
+            0.005,
+            0.002,
+            "Stem.offset a2 (from the centre of mass to the centre of the tip, m) must be > eps",
+        ),
+        (
+            0.002,
+            0.01,
+            "the stem lies inside the ball and can never reach the table: a2 - eps + r2 <= R",
+        ),
+        (
+            0.05,
+            0.016,
+            "the tip would touch the table at every tilt, upright too: r2 - R >= a2 - eps",
+        ),
+        (0.005, float("nan"), "Stem.offset must be finite"),
+    ],
+)
 def test_bad_geometry_raises(radius, offset, message):
     with pytest.raises(ValueError, match=re.escape(message)):
         lg_top().replace(stem=tj.Stem(radius, offset))
@@ -95,9 +111,11 @@ def test_bad_geometry_raises_under_jit():
     with pytest.raises(Exception, match="r2 <= R"):
         jax.block_until_ready(jax.vmap(angle)(jnp.array([0.016, 0.008])))
     with pytest.raises(Exception, match="must be > 0"):
-        jax.block_until_ready(jax.jit(jax.vmap(
-            lambda r2: lg_top().replace(stem=tj.Stem(r2, 0.016)).stem_angle))(
-                jnp.array([0.005, 0.0])))
+        jax.block_until_ready(
+            jax.jit(jax.vmap(lambda r2: lg_top().replace(stem=tj.Stem(r2, 0.016)).stem_angle))(
+                jnp.array([0.005, 0.0])
+            )
+        )
 
 
 def test_stem_top_runs_at_the_full_level_only():
@@ -131,7 +149,8 @@ def test_compliant_contact_at_rest_carries_the_weight():
     assert float(ball.normal_force) == pytest.approx(LG["m"] * LG["g"], rel=1e-10)
     assert float(stem.normal_force) == 0.0 and float(stem.depth) < 0
     assert float(elastic_energy(top, full.axis, full.height)) == pytest.approx(
-        0.4 * k * depth**2.5, rel=1e-10)
+        0.4 * k * depth**2.5, rel=1e-10
+    )
     # at rest: no acceleration of the centre of mass, no angular acceleration
     dy = level.vector_field(0.0, y, top)
     assert abs(float(dy.height_rate)) < 1e-9 * LG["g"]
@@ -162,8 +181,7 @@ class _References(dict):
     """The reference's runs of the scene by pressure, rtol 1e-9, each made when first asked."""
 
     def __missing__(self, pressure):
-        self[pressure] = rr.solve(LG, pressure, THETA0, SPIN, T_TOUCH, mu=MU, rho=RHO,
-                                  delta=1e-6)
+        self[pressure] = rr.solve(LG, pressure, THETA0, SPIN, T_TOUCH, mu=MU, rho=RHO, delta=1e-6)
         return self[pressure]
 
 
@@ -175,8 +193,17 @@ def reference():
 def _run(pressure, saves=SAVES, t1=T_TOUCH, **kw):
     top = lg_top(pressure)
     y0 = tj.initial_state(top, theta=THETA0, spin=SPIN)
-    return top, tj.simulate(top, y0, t1, saveat=saves, solver=diffrax.Tsit5(), rtol=1e-9,
-                            atol=1e-12, max_steps=200_000, **kw)
+    return top, tj.simulate(
+        top,
+        y0,
+        t1,
+        saveat=saves,
+        solver=diffrax.Tsit5(),
+        rtol=1e-9,
+        atol=1e-12,
+        max_steps=200_000,
+        **kw,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -213,8 +240,9 @@ def test_touch_angle_is_the_geometric_one(ellipse, reference):
     assert theta == pytest.approx(reference["ellipse"]["theta_stem"], abs=1e-6)
 
 
-@pytest.mark.parametrize("pressure", [
-    "ellipse", pytest.param("hertz", marks=pytest.mark.slow)])  # (its own compilation)
+@pytest.mark.parametrize(
+    "pressure", ["ellipse", pytest.param("hertz", marks=pytest.mark.slow)]
+)  # (its own compilation)
 def test_theta_before_the_touch_agrees_with_the_reference(ellipse, reference, pressure):
     if pressure == "ellipse":
         top, sol = ellipse
@@ -271,8 +299,7 @@ def test_jellet_balance_before_the_touch(ellipse):
     top, sol = ellipse
     before = SAVES < float(sol.t_chart_switch)
     J = np.asarray(sol.jellet)[before]
-    rate = np.asarray(tj.jellet_rate(top, jax.tree_util.tree_map(lambda x: x[before],
-                                                                 sol.states)))
+    rate = np.asarray(tj.jellet_rate(top, jax.tree_util.tree_map(lambda x: x[before], sol.states)))
     balance = integrate.cumulative_simpson(rate, x=SAVES[before], initial=0.0)
     assert J[-1] < 0.99 * J[0]  # the torque moves J visibly
     # (Simpson's rule on the 3 ms grid; the torque turns sharply where the drilling rate
@@ -284,8 +311,16 @@ def _stemless(pressure, rho=RHO):
     """LG's top without its stem, to 0.5 s (one program for every patch radius)."""
     top = tj.TippeTop(**BODY, friction=tj.CoulombContensou(MU, rho, 1e-6, pressure=pressure))
     y0 = tj.initial_state(top, theta=THETA0, spin=SPIN)
-    return tj.simulate(top, y0, 0.5, saveat=np.linspace(0.0, 0.5, 11), solver=diffrax.Tsit5(),
-                       rtol=1e-9, atol=1e-12, max_steps=100_000)
+    return tj.simulate(
+        top,
+        y0,
+        0.5,
+        saveat=np.linspace(0.0, 0.5, 11),
+        solver=diffrax.Tsit5(),
+        rtol=1e-9,
+        atol=1e-12,
+        max_steps=100_000,
+    )
 
 
 def test_a_top_without_a_stem_is_unchanged():
@@ -299,15 +334,32 @@ def test_a_top_without_a_stem_is_unchanged():
 # ---------------- Leine & Glocker's figure 15 ----------------
 
 
-@pytest.mark.parametrize("pressure", [
-    "hertz", pytest.param("ellipse", marks=pytest.mark.slow)])  # (LG's law first)
+@pytest.mark.parametrize(
+    "pressure", ["hertz", pytest.param("ellipse", marks=pytest.mark.slow)]
+)  # (LG's law first)
 def test_figure_15_theta_at_half_a_second(pressure):
     """theta at 0.5 s for contact radii 0.5, 0.05 and 0.01 mm (their figure 15), before the
     stem can touch: the reference's values."""
     radii = (5e-4, 5e-5, 1e-5)
-    refs = [rr.theta_at(rr.solve(LG, pressure, THETA0, SPIN, 0.5, mu=MU, rho=rho, delta=1e-6,
-                                 stem=False, contact="rigid", dt_sample=0.05), 0.5)
-            for rho in radii]
+    refs = [
+        rr.theta_at(
+            rr.solve(
+                LG,
+                pressure,
+                THETA0,
+                SPIN,
+                0.5,
+                mu=MU,
+                rho=rho,
+                delta=1e-6,
+                stem=False,
+                contact="rigid",
+                dt_sample=0.05,
+            ),
+            0.5,
+        )
+        for rho in radii
+    ]
     theta = [float(_stemless(pressure, rho).theta[-1]) for rho in radii]
     np.testing.assert_allclose(theta, refs, rtol=0, atol=1e-6)
     # the figure's trend: a smaller patch drills less and the top rises slower
@@ -333,8 +385,16 @@ def test_a_lift_off_before_the_touch_hands_over_to_the_compliant_contacts():
     assert len(bounces) > 2 and np.isnan(ref["t_stem"])  # the scene: bounces, no stem touch
     top = lg_top()
     y0 = tj.initial_state(top, theta=LIFT[0], spin=LIFT[1])
-    sol = tj.simulate(top, y0, T_TOUCH, saveat=SAVES, solver=diffrax.Tsit5(), rtol=1e-9,
-                      atol=1e-12, max_steps=200_000)
+    sol = tj.simulate(
+        top,
+        y0,
+        T_TOUCH,
+        saveat=SAVES,
+        solver=diffrax.Tsit5(),
+        rtol=1e-9,
+        atol=1e-12,
+        max_steps=200_000,
+    )
     assert bool(sol.succeeded) and sol.model == "full->stem"
     assert np.isnan(float(sol.t_contact_loss)) and np.isnan(float(sol.t_stem))
     assert float(sol.t_chart_switch) == pytest.approx(lift, abs=1e-7)

@@ -257,8 +257,9 @@ def test_sweeping_one_field_makes_a_batch():
     np.testing.assert_array_equal(np.asarray(tops.A), float(top.A))
     # jax.vmap over the batch sees one top per member
     rates = jax.vmap(tj.friction_rate)(tops)
-    np.testing.assert_allclose(np.asarray(rates), [float(tj.friction_rate(top.replace(mu=m)))
-                                                   for m in mus], rtol=1e-15)
+    np.testing.assert_allclose(
+        np.asarray(rates), [float(tj.friction_rate(top.replace(mu=m))) for m in mus], rtol=1e-15
+    )
     with pytest.raises(ValueError, match="do not broadcast"):
         tj.TippeTop(m=[0.02, 0.03], R=0.025, eps=0.0075, A=4.5e-6, C=5e-6, mu=[0.1, 0.2, 0.3])
 

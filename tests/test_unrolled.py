@@ -56,8 +56,9 @@ def test_a_step_equals_the_stage_loop(solver_cls, wrapper):
     # the dense output is the base solver's interpolation of the same stages
     interp = unrolled.interpolation_cls(t0=t0, t1=t1, **got[2])
     reference = base.interpolation_cls(t0=t0, t1=t1, **dense)
-    np.testing.assert_allclose(interp.evaluate(0.41)["x"], reference.evaluate(0.41)["x"],
-                               rtol=1e-12)
+    np.testing.assert_allclose(
+        interp.evaluate(0.41)["x"], reference.evaluate(0.41)["x"], rtol=1e-12
+    )
 
 
 @pytest.mark.parametrize("wrapper", WRAPPERS)
@@ -65,9 +66,16 @@ def test_a_solve_with_jumps_equals_the_stage_loop(wrapper):
     # jump_ts makes diffrax pass a traced `made_jump`: the kept last stage is recomputed
     def solve(solver, a):
         return diffrax.diffeqsolve(
-            diffrax.ODETerm(_field), solver, 0.0, 3.0, 0.05, Y0, (a, -1.1),
-            stepsize_controller=diffrax.PIDController(rtol=1e-9, atol=1e-12,
-                                                      jump_ts=jnp.array([0.77, 1.9])),
+            diffrax.ODETerm(_field),
+            solver,
+            0.0,
+            3.0,
+            0.05,
+            Y0,
+            (a, -1.1),
+            stepsize_controller=diffrax.PIDController(
+                rtol=1e-9, atol=1e-12, jump_ts=jnp.array([0.77, 1.9])
+            ),
             saveat=diffrax.SaveAt(ts=jnp.linspace(0.0, 3.0, 7)),
         )
 
@@ -124,13 +132,18 @@ def _run(setting, *parts, prepared="UnrolledERK"):
     "grad"; `prepared`: the solver class the process must run Dopri8 as."""
     # (the same device count as here: shared steps are shared within a device's shard, so the
     # batches below are compared shard for shard)
-    env = dict(os.environ, TIPPEJAX_UNROLL_STAGES=setting,
-               TIPPEJAX_HOST_DEVICES=str(jax.device_count()),
-               PYTHONPATH=os.pathsep.join(
-                   [os.path.dirname(os.path.abspath(__file__))]
-                   + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]))
-    proc = subprocess.run([sys.executable, "-c", SCRIPT, *parts], env=env, capture_output=True,
-                          text=True)
+    env = dict(
+        os.environ,
+        TIPPEJAX_UNROLL_STAGES=setting,
+        TIPPEJAX_HOST_DEVICES=str(jax.device_count()),
+        PYTHONPATH=os.pathsep.join(
+            [os.path.dirname(os.path.abspath(__file__))]
+            + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p]
+        ),
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", SCRIPT, *parts], env=env, capture_output=True, text=True
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
     got = json.loads(proc.stdout.strip().splitlines()[-1])
     assert got["prepared"] == prepared
@@ -142,8 +155,15 @@ def _assert_same_solves(got):
     import tippejax as tj
 
     for model, steps in (("so3", "shared"), ("full", "per_member")):
-        sol = tj.simulate_batch(tj.default_top(), theta0=0.1, spin=[120.0, 150.0, 185.0],
-                                t1=12.0, model=model, steps=steps, saveat=[1.0, 5.0])
+        sol = tj.simulate_batch(
+            tj.default_top(),
+            theta0=0.1,
+            spin=[120.0, 150.0, 185.0],
+            t1=12.0,
+            model=model,
+            steps=steps,
+            saveat=[1.0, 5.0],
+        )
         mine = got[steps]
         np.testing.assert_array_equal(mine["result"], np.asarray(sol.result._value))
         assert np.isfinite(mine["t_invert"]).sum() >= 2  # inversions to compare
@@ -154,8 +174,10 @@ def _assert_same_solves(got):
 
 def test_the_cpu_default_is_tippejaxs_stage_loop():
     prepared = segment._prepared_solver(
-        diffrax.Dopri8(), diffrax.PIDController(rtol=1e-8, atol=1e-8),
-        diffrax.RecursiveCheckpointAdjoint())
+        diffrax.Dopri8(),
+        diffrax.PIDController(rtol=1e-8, atol=1e-8),
+        diffrax.RecursiveCheckpointAdjoint(),
+    )
     if os.environ.get("TIPPEJAX_UNROLL_STAGES", "auto") in ("", "auto"):
         assert isinstance(prepared, StageLoopERK)
 
@@ -193,7 +215,11 @@ def test_stages_written_out_give_the_stage_loops_gradient():
 
 
 def test_a_bad_setting_is_refused_at_import():
-    proc = subprocess.run([sys.executable, "-c", "import tippejax"], capture_output=True,
-                          text=True, env=dict(os.environ, TIPPEJAX_UNROLL_STAGES="sometimes"))
+    proc = subprocess.run(
+        [sys.executable, "-c", "import tippejax"],
+        capture_output=True,
+        text=True,
+        env=dict(os.environ, TIPPEJAX_UNROLL_STAGES="sometimes"),
+    )
     assert proc.returncode != 0
     assert "TIPPEJAX_UNROLL_STAGES must be" in proc.stderr

@@ -14,11 +14,25 @@ import numpy as np
 import pytest
 import vector_reference as vr
 
-STANDARD = dict(m=0.02, R=0.025, eps=0.0075, A=0.9 * 0.4 * 0.02 * 0.025**2,
-                C=0.4 * 0.02 * 0.025**2, g=9.81, mu=0.3)
+STANDARD = dict(
+    m=0.02,
+    R=0.025,
+    eps=0.0075,
+    A=0.9 * 0.4 * 0.02 * 0.025**2,
+    C=0.4 * 0.02 * 0.025**2,
+    g=9.81,
+    mu=0.3,
+)
 # Group III (A/C - 1 > eps/R), heavier, less friction, smaller ball
-GROUP_III = dict(m=0.045, R=0.015, eps=0.0015, A=1.3 * 0.4 * 0.045 * 0.015**2,
-                 C=0.4 * 0.045 * 0.015**2, g=9.81, mu=0.2)
+GROUP_III = dict(
+    m=0.045,
+    R=0.015,
+    eps=0.0015,
+    A=1.3 * 0.4 * 0.045 * 0.015**2,
+    C=0.4 * 0.045 * 0.015**2,
+    g=9.81,
+    mu=0.2,
+)
 POLE_MARGIN = 0.08  # compare only while theta stays this far from 0 and pi
 
 
@@ -49,9 +63,17 @@ def test_agrees_with_euler_reference(variant, top, launch):
     assert t1 >= 0.4, "launch reaches a pole too soon to be compared"
     keep = ts <= t1
     eul = er.solve(top, theta0, spin, ts[keep], variant=variant, **kw)
-    for name, tol in [("theta", 1e-8), ("theta_dot", 1e-6), ("spin", 1e-7),
-                      ("normal_force", 1e-8), ("x", 1e-10), ("y", 1e-10), ("vx", 1e-9),
-                      ("vy", 1e-9), ("energy", 1e-11)]:
+    for name, tol in [
+        ("theta", 1e-8),
+        ("theta_dot", 1e-6),
+        ("spin", 1e-7),
+        ("normal_force", 1e-8),
+        ("x", 1e-10),
+        ("y", 1e-10),
+        ("vx", 1e-9),
+        ("vy", 1e-9),
+        ("energy", 1e-11),
+    ]:
         err = np.max(np.abs(vec[name][keep] - eul[name]))
         assert err < tol, (name, err)
     # the vector form of Jellet's J equals the Euler-angle formula
@@ -89,8 +111,15 @@ def _euler_launch_of(sol, i):
     thd = float(w @ e_n)
     psd = -float(w @ e_perp) / math.sin(th)
     phd = w[2] - psd * math.cos(th)
-    return dict(theta0=th, spin=float(w @ a), theta_dot=thd, phi_dot=phd, phi=ph,
-                vx=sol["vx"][i], vy=sol["vy"][i])
+    return dict(
+        theta0=th,
+        spin=float(w @ a),
+        theta_dot=thd,
+        phi_dot=phd,
+        phi=ph,
+        vx=sol["vx"][i],
+        vy=sol["vy"][i],
+    )
 
 
 @pytest.mark.parametrize("variant", ["full", "so3"])
@@ -103,8 +132,9 @@ def test_upright_launch_is_regular(variant):
     # initial state: a = e_z, da/dt = thd0 (sin phi, -cos phi, 0), spin = w . a
     np.testing.assert_allclose(sol["axis"][0], [0, 0, 1], atol=0)
     adot0 = np.cross(sol["omega"][0], sol["axis"][0])
-    np.testing.assert_allclose(adot0, thd0 * np.array([math.sin(phi), -math.cos(phi), 0]),
-                               atol=1e-15)
+    np.testing.assert_allclose(
+        adot0, thd0 * np.array([math.sin(phi), -math.cos(phi), 0]), atol=1e-15
+    )
     assert sol["spin"][0] == pytest.approx(spin, rel=1e-15)
     assert sol["theta"][1] == pytest.approx(thd0 * ts[1], rel=0.05)
     J = sol["jellet"]
@@ -117,12 +147,18 @@ def test_upright_launch_is_regular(variant):
     assert i > 0
     launch = _euler_launch_of(sol, i)
     tail = ts[i:] - ts[i]
-    eul = er.solve(STANDARD, launch.pop("theta0"), launch.pop("spin"), tail[tail <= 1.0],
-                   variant=variant, **launch)
+    eul = er.solve(
+        STANDARD,
+        launch.pop("theta0"),
+        launch.pop("spin"),
+        tail[tail <= 1.0],
+        variant=variant,
+        **launch,
+    )
     m = len(eul["t"])
     assert m > 50
-    assert np.max(np.abs(eul["theta"] - sol["theta"][i:i + m])) < 1e-8
-    assert np.max(np.abs(eul["normal_force"] - sol["normal_force"][i:i + m])) < 1e-8
+    assert np.max(np.abs(eul["theta"] - sol["theta"][i : i + m])) < 1e-8
+    assert np.max(np.abs(eul["normal_force"] - sol["normal_force"][i : i + m])) < 1e-8
 
 
 def test_scipy_backend_matches_port():

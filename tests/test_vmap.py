@@ -74,7 +74,9 @@ def test_vmap_vector_fields_over_states(top, states, name):
 
 
 def test_vmap_routhian_field_over_states(top, states):
-    r, J = ti.routhian_from_state(top, eqx.tree_at(lambda s: s.velocity, states, 0 * states.velocity))
+    r, J = ti.routhian_from_state(
+        top, eqx.tree_at(lambda s: s.velocity, states, 0 * states.velocity)
+    )
     looped = _stack(
         [ti.routhian_vector_field(0.0, _index(r, i), (top, J[i])) for i in range(N_STATES)]
     )
@@ -92,7 +94,10 @@ def test_vmap_over_tops_effective_potential(tops):
     _assert_trees_close(vmapped, looped)
     _assert_trees_close(tj.effective_potential(batch, theta, J), looped)  # broadcasting
     looped2 = jnp.stack(
-        [tj.effective_potential_derivative(t, theta[i], J[i], order=2) for i, t in enumerate(singles)]
+        [
+            tj.effective_potential_derivative(t, theta[i], J[i], order=2)
+            for i, t in enumerate(singles)
+        ]
     )
     vmapped2 = jax.vmap(lambda t, th, j: tj.effective_potential_derivative(t, th, j, order=2))(
         batch, theta, J
@@ -148,15 +153,24 @@ def public_calls(top, states):
     th = jnp.asarray(1.1)
     Jr = jnp.asarray(2.0 * float(tj.thresholds(top).J1))
     return {
-        "TippeTop": (lambda m, R, e, A, C: tj.TippeTop(m, R, e, A, C), (top.m, top.R, top.eps, top.A, top.C)),
+        "TippeTop": (
+            lambda m, R, e, A, C: tj.TippeTop(m, R, e, A, C),
+            (top.m, top.R, top.eps, top.A, top.C),
+        ),
         "from_ratios": (tj.TippeTop.from_ratios, (jnp.asarray(0.9), jnp.asarray(0.3))),
-        "state_from_euler": (tj.state_from_euler, tuple(jnp.asarray(v) for v in (1.0, 0.2, 0.3, 1.0, 5.0, 30.0))),
+        "state_from_euler": (
+            tj.state_from_euler,
+            tuple(jnp.asarray(v) for v in (1.0, 0.2, 0.3, 1.0, 5.0, 30.0)),
+        ),
         "initial_state": (tj.initial_state, (top, jnp.asarray(0.1), jnp.asarray(50.0))),
         "euler_angles": (tj.euler_angles, (y,)),
         "euler_rates": (tj.euler_rates, (y,)),
         "spin": (ti.spin, (y,)),
         "jellet": (tj.jellet, (top, y)),
-        "jellet_rate": (tj.jellet_rate, (top.replace(friction=tj.CoulombContensou(0.3, 5e-4, 1e-4)), y)),
+        "jellet_rate": (
+            tj.jellet_rate,
+            (top.replace(friction=tj.CoulombContensou(0.3, 5e-4, 1e-4)), y),
+        ),
         "energy": (tj.energy, (top, y)),
         "energy_so3": (lambda t, s: tj.energy(t, s, model="so3"), (top, y)),
         "normal_force": (tj.normal_force, (top, y)),
@@ -175,9 +189,13 @@ def public_calls(top, states):
         ),
         "effective_potential": (tj.effective_potential, (top, th, Jr)),
         "effective_potential_derivative": (
-            lambda t, a, b: tj.effective_potential_derivative(t, a, b, order=2), (top, th, Jr)
+            lambda t, a, b: tj.effective_potential_derivative(t, a, b, order=2),
+            (top, th, Jr),
         ),
-        "effective_potential_d2_closed_form": (ti.effective_potential_d2_closed_form, (top, th, Jr)),
+        "effective_potential_d2_closed_form": (
+            ti.effective_potential_d2_closed_form,
+            (top, th, Jr),
+        ),
         "routhian_terms": (ti.routhian_terms, (top, th, Jr)),
         "thresholds": (tj.thresholds, (top,)),
         "group_index": (ti.group_index, (top,)),
@@ -194,35 +212,75 @@ def public_calls(top, states):
 # Functions whose eager (op-by-op) evaluation is too slow to serve as the reference are checked
 # under jit against independent values instead: see the tests below the parametrized one.
 EXPENSIVE = {
-    "reduced_jacobian_eigenvalues", "vector_field_eigenvalues", "steady_states", "pole_threshold",
+    "reduced_jacobian_eigenvalues",
+    "vector_field_eigenvalues",
+    "steady_states",
+    "pole_threshold",
 }
 
 
 def test_public_api_is_covered(public_calls):
     """Every public function of the physics core (state, invariants, models, analysis) is jitted here."""
-    core = ("tippejax._top", "tippejax._state", "tippejax._invariants", "tippejax._models", "tippejax._analysis")
+    core = (
+        "tippejax._top",
+        "tippejax._state",
+        "tippejax._invariants",
+        "tippejax._models",
+        "tippejax._analysis",
+    )
     names = {
-        n for n in dir(tj)
-        if not n.startswith("_") and callable(getattr(tj, n)) and n[0].islower()
+        n
+        for n in dir(tj)
+        if not n.startswith("_")
+        and callable(getattr(tj, n))
+        and n[0].islower()
         and getattr(getattr(tj, n), "__module__", "").startswith(core)
     }
     assert "jellet" in names and "steady_states" in names
-    covered = {n.removesuffix("_so3") for n in public_calls} | EXPENSIVE | {"default_top", "classify"}
+    covered = (
+        {n.removesuffix("_so3") for n in public_calls} | EXPENSIVE | {"default_top", "classify"}
+    )
     assert names <= covered, names - covered
 
 
 @pytest.mark.parametrize(
     "name",
     [
-        "TippeTop", "from_ratios", "state_from_euler", "initial_state", "euler_angles",
-        "euler_rates", "spin", "jellet", "jellet_rate", "energy", "energy_so3", "normal_force",
-        "normal_force_so3", "normal_force_denominator", "slip_velocity", "full_vector_field",
-        "so3_vector_field", "routhian_vector_field", "routhian_from_state", "state_from_routhian",
-        "routhian_rates", "routhian_normal_force", "effective_potential",
-        "effective_potential_derivative", "effective_potential_d2_closed_form", "routhian_terms",
-        "thresholds", "group_index", "intermediate_condition", "stability_function",
-        "branch_jellet", "relative_equilibrium", "characteristic_polynomial",
-        "polynomial_eigenvalues", "max_real_part",
+        "TippeTop",
+        "from_ratios",
+        "state_from_euler",
+        "initial_state",
+        "euler_angles",
+        "euler_rates",
+        "spin",
+        "jellet",
+        "jellet_rate",
+        "energy",
+        "energy_so3",
+        "normal_force",
+        "normal_force_so3",
+        "normal_force_denominator",
+        "slip_velocity",
+        "full_vector_field",
+        "so3_vector_field",
+        "routhian_vector_field",
+        "routhian_from_state",
+        "state_from_routhian",
+        "routhian_rates",
+        "routhian_normal_force",
+        "effective_potential",
+        "effective_potential_derivative",
+        "effective_potential_d2_closed_form",
+        "routhian_terms",
+        "thresholds",
+        "group_index",
+        "intermediate_condition",
+        "stability_function",
+        "branch_jellet",
+        "relative_equilibrium",
+        "characteristic_polynomial",
+        "polynomial_eigenvalues",
+        "max_real_part",
     ],
 )
 def test_jit_public_function(public_calls, name):

@@ -87,7 +87,9 @@ def _param_vector(params):
     p = np.array([float(params[k]) for k in _KEYS])
     m, R, eps, A, C, g, mu = p
     if not (m > 0 and R > 0 and 0 <= eps < R and A > 0 and C > 0 and g > 0 and mu >= 0):
-        raise ValueError(f"invalid params (need m, R, A, C, g > 0, 0 <= eps < R, mu >= 0): {params}")
+        raise ValueError(
+            f"invalid params (need m, R, A, C, g > 0, 0 <= eps < R, mu >= 0): {params}"
+        )
     return p
 
 
@@ -426,21 +428,35 @@ def fields(y, params, variant="full"):
     adot = np.cross(w, a)
     # theta_dot = d/dt atan2(rho, a_z); at rho = 0 the tilt rate is |da/dt|
     with np.errstate(invalid="ignore", divide="ignore"):
-        rhodot = np.where(rho > 0, (a[..., 0] * adot[..., 0] + a[..., 1] * adot[..., 1]) / rho,
-                          np.linalg.norm(adot, axis=-1))
+        rhodot = np.where(
+            rho > 0,
+            (a[..., 0] * adot[..., 0] + a[..., 1] * adot[..., 1]) / rho,
+            np.linalg.norm(adot, axis=-1),
+        )
     theta_dot = a[..., 2] * rhodot - rho * adot[..., 2]
     L = A * w + (C - A) * n[..., None] * a
     jellet = R * L[..., 2] - eps * C * n
     vz = -eps * adot[..., 2]
     trans = (y[..., 2] ** 2 + y[..., 3] ** 2) if full else 0.0
-    energy = 0.5 * m * (trans + vz**2) + 0.5 * np.sum(w * L, axis=-1) + m * g * (R - eps * a[..., 2])
+    energy = (
+        0.5 * m * (trans + vz**2) + 0.5 * np.sum(w * L, axis=-1) + m * g * (R - eps * a[..., 2])
+    )
     flat = y.reshape(-1, 10)
     out = np.empty(10)
     normal = np.array([_rhs(row, p, full, out) for row in flat]).reshape(y.shape[:-1])
     return {
-        "theta": theta, "theta_dot": theta_dot, "phi": np.arctan2(a[..., 0], -a[..., 1]),
-        "spin": n, "axis": a, "omega": w, "x": y[..., 0], "y": y[..., 1],
-        "vx": y[..., 2], "vy": y[..., 3], "normal_force": normal, "jellet": jellet,
+        "theta": theta,
+        "theta_dot": theta_dot,
+        "phi": np.arctan2(a[..., 0], -a[..., 1]),
+        "spin": n,
+        "axis": a,
+        "omega": w,
+        "x": y[..., 0],
+        "y": y[..., 1],
+        "vx": y[..., 2],
+        "vy": y[..., 3],
+        "normal_force": normal,
+        "jellet": jellet,
         "energy": energy,
     }
 
@@ -457,8 +473,17 @@ def _check_t_eval(t_eval):
     return t_eval
 
 
-def solve_batch(params_list, y0_list, t_eval, *, variant="full", rtol=1e-12, atol=1e-12,
-                max_steps=10_000_000, stop_at_contact_loss=False):
+def solve_batch(
+    params_list,
+    y0_list,
+    t_eval,
+    *,
+    variant="full",
+    rtol=1e-12,
+    atol=1e-12,
+    max_steps=10_000_000,
+    stop_at_contact_loss=False,
+):
     """Integrate K copies (parameter dicts and launch states) with one shared DOP853 step sequence.
 
     Returns (ys (T, K, 10), info) where info has status (0, or 1: stopped at the first contact
@@ -473,13 +498,31 @@ def solve_batch(params_list, y0_list, t_eval, *, variant="full", rtol=1e-12, ato
     if Y0.shape != (P.shape[0], 10):
         raise ValueError(f"need one 10-vector state per parameter dict, got {Y0.shape}")
     ys, status, steps, nfev, t_inv, t_con = _dop853(
-        Y0, P, _VARIANTS[variant], t_eval, float(rtol), float(atol), int(max_steps),
-        bool(stop_at_contact_loss), _A, _B, _C, _E3, _E5, _D)
+        Y0,
+        P,
+        _VARIANTS[variant],
+        t_eval,
+        float(rtol),
+        float(atol),
+        int(max_steps),
+        bool(stop_at_contact_loss),
+        _A,
+        _B,
+        _C,
+        _E3,
+        _E5,
+        _D,
+    )
     if status < 0:
         why = "step size too small" if status == -1 else f"more than {max_steps} steps"
         raise RuntimeError(f"DOP853 failed ({why})")
-    return ys, {"status": status, "n_steps": steps, "nfev": nfev, "t_invert": t_inv,
-                "t_contact": t_con}
+    return ys, {
+        "status": status,
+        "n_steps": steps,
+        "nfev": nfev,
+        "t_invert": t_inv,
+        "t_contact": t_con,
+    }
 
 
 def _scipy_solve(p, y0, t_eval, full, rtol, atol, stop_at_contact_loss):
@@ -498,20 +541,47 @@ def _scipy_solve(p, y0, t_eval, full, rtol, atol, stop_at_contact_loss):
 
     rn.direction = -1
     rn.terminal = bool(stop_at_contact_loss)
-    sol = solve_ivp(f, (0.0, float(t_eval[-1])), y0, method="DOP853", t_eval=t_eval,
-                    rtol=rtol, atol=atol, events=(az, rn))
+    sol = solve_ivp(
+        f,
+        (0.0, float(t_eval[-1])),
+        y0,
+        method="DOP853",
+        t_eval=t_eval,
+        rtol=rtol,
+        atol=atol,
+        events=(az, rn),
+    )
     if not sol.success:
         raise RuntimeError(f"solve_ivp failed: {sol.message}")
     first = [ev[0] if len(ev) else np.nan for ev in sol.t_events]
     ys = np.full((t_eval.size, 10), np.nan)
     ys[: sol.y.shape[1]] = sol.y.T
-    return ys[:, None, :], {"status": int(sol.status == 1), "n_steps": None, "nfev": sol.nfev,
-                                 "t_invert": np.array([first[0]]),
-                                 "t_contact": np.array([first[1]])}
+    return ys[:, None, :], {
+        "status": int(sol.status == 1),
+        "n_steps": None,
+        "nfev": sol.nfev,
+        "t_invert": np.array([first[0]]),
+        "t_contact": np.array([first[1]]),
+    }
 
 
-def solve(params, theta0, spin, t_eval, *, theta_dot=0.0, phi_dot=0.0, phi=0.0, vx=0.0, vy=0.0,
-          variant="full", rtol=1e-12, atol=1e-12, backend="auto", stop_at_contact_loss=False):
+def solve(
+    params,
+    theta0,
+    spin,
+    t_eval,
+    *,
+    theta_dot=0.0,
+    phi_dot=0.0,
+    phi=0.0,
+    vx=0.0,
+    vy=0.0,
+    variant="full",
+    rtol=1e-12,
+    atol=1e-12,
+    backend="auto",
+    stop_at_contact_loss=False,
+):
     """Integrate one launch from t = 0; fields sampled at t_eval (launch as `initial_vector`).
 
     backend: "numba" (the DOP853 port compiled), "python" (the same port uncompiled, slow),
@@ -535,29 +605,59 @@ def solve(params, theta0, spin, t_eval, *, theta_dot=0.0, phi_dot=0.0, phi=0.0, 
     if backend == "scipy":
         if variant not in _VARIANTS:
             raise ValueError(f"variant must be 'full' or 'so3', got {variant!r}")
-        ys, info = _scipy_solve(p, y0, t_eval, _VARIANTS[variant], rtol, atol,
-                                stop_at_contact_loss)
+        ys, info = _scipy_solve(p, y0, t_eval, _VARIANTS[variant], rtol, atol, stop_at_contact_loss)
     elif backend == "numba":
         if not HAVE_NUMBA:
             raise ValueError("backend='numba' needs numba; use 'scipy' or 'python'")
-        ys, info = solve_batch([params], [y0], t_eval, variant=variant, rtol=rtol, atol=atol,
-                               stop_at_contact_loss=stop_at_contact_loss)
+        ys, info = solve_batch(
+            [params],
+            [y0],
+            t_eval,
+            variant=variant,
+            rtol=rtol,
+            atol=atol,
+            stop_at_contact_loss=stop_at_contact_loss,
+        )
     elif backend == "python":
         fn = getattr(_dop853, "py_func", _dop853)
         ys, status, steps, nfev, t_inv, t_con = fn(
-            y0[None], p[None], _VARIANTS[variant], t_eval, float(rtol), float(atol), 10_000_000,
-            bool(stop_at_contact_loss), _A, _B, _C, _E3, _E5, _D)
+            y0[None],
+            p[None],
+            _VARIANTS[variant],
+            t_eval,
+            float(rtol),
+            float(atol),
+            10_000_000,
+            bool(stop_at_contact_loss),
+            _A,
+            _B,
+            _C,
+            _E3,
+            _E5,
+            _D,
+        )
         if status < 0:
             raise RuntimeError("DOP853 failed")
-        info = {"status": status, "n_steps": steps, "nfev": nfev, "t_invert": t_inv,
-                "t_contact": t_con}
+        info = {
+            "status": status,
+            "n_steps": steps,
+            "nfev": nfev,
+            "t_invert": t_inv,
+            "t_contact": t_con,
+        }
     else:
         raise ValueError(f"backend must be 'auto', 'numba', 'python' or 'scipy', got {backend!r}")
     y = ys[:, 0, :]
     out = fields(y, params, variant)
     t_con = float(info["t_contact"][0])
-    out.update(t=t_eval, state=y, t_invert=float(info["t_invert"][0]), t_contact_loss=t_con,
-               contact_lost=bool(np.isfinite(t_con) or np.any(out["normal_force"] <= 0)),
-               stopped=info["status"] == 1,
-               nfev=info["nfev"], n_steps=info["n_steps"])
+    out.update(
+        t=t_eval,
+        state=y,
+        t_invert=float(info["t_invert"][0]),
+        t_contact_loss=t_con,
+        contact_lost=bool(np.isfinite(t_con) or np.any(out["normal_force"] <= 0)),
+        stopped=info["status"] == 1,
+        nfev=info["nfev"],
+        n_steps=info["n_steps"],
+    )
     return out

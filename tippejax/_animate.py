@@ -117,10 +117,15 @@ def frame_times(
     `duration` (s of animation) sets `speed = (t_last - t_first) / duration`; `frames` gives
     exactly that many frames evenly from `t_first` to `t_last`. Give at most one of the three.
     """
-    given = [name for name, v in (("speed", speed), ("duration", duration), ("frames", frames))
-             if v is not None]
+    given = [
+        name
+        for name, v in (("speed", speed), ("duration", duration), ("frames", frames))
+        if v is not None
+    ]
     if len(given) > 1:
-        raise ValueError(f"give at most one of speed, duration and frames (got {', '.join(given)}).")
+        raise ValueError(
+            f"give at most one of speed, duration and frames (got {', '.join(given)})."
+        )
     if not fps > 0:
         raise ValueError(f"fps must be positive, got {fps!r}.")
     span = float(t_last) - float(t_first)
@@ -175,9 +180,7 @@ def frame_geometry(sol: Solution, top: TippeTop, t) -> FrameGeometry:
     body -= np.sum(body * axis, -1, keepdims=True) * axis
     body /= np.linalg.norm(body, axis=-1, keepdims=True)
     R, eps = float(top.R), float(top.eps)
-    position = np.stack(
-        [np.interp(t, ts, _centre_xy(sol)[:n_valid, i]) for i in range(2)], axis=-1
-    )
+    position = np.stack([np.interp(t, ts, _centre_xy(sol)[:n_valid, i]) for i in range(2)], axis=-1)
     height = R - eps * axis[:, 2]
     if sol.states.height is not None:  # (a top with a stem: its height is a state)
         height = np.interp(t, ts, sol.states.height[:n_valid])
@@ -198,8 +201,9 @@ def frame_geometry(sol: Solution, top: TippeTop, t) -> FrameGeometry:
         base = centre + R * math.cos(STEM_RIM) * axis
         tip = stem_tip
     theta = np.arccos(np.clip(axis[:, 2], -1.0, 1.0))
-    return FrameGeometry(t, axis, body, theta, centre, cm, contact, np.stack([base, tip], 1),
-                         stem_tip)
+    return FrameGeometry(
+        t, axis, body, theta, centre, cm, contact, np.stack([base, tip], 1), stem_tip
+    )
 
 
 def _wireframe(n_lat: int = 5, n_lon: int = 12, samples: int = 49):
@@ -211,15 +215,30 @@ def _wireframe(n_lat: int = 5, n_lon: int = 12, samples: int = 49):
     s = np.linspace(0.0, 2 * np.pi, samples)
     lines = []
     for polar in np.linspace(0, np.pi, n_lat + 2)[1:-1]:
-        lines.append(np.stack([np.sin(polar) * np.cos(s), np.sin(polar) * np.sin(s),
-                               np.full_like(s, np.cos(polar))], -1))
+        lines.append(
+            np.stack(
+                [
+                    np.sin(polar) * np.cos(s),
+                    np.sin(polar) * np.sin(s),
+                    np.full_like(s, np.cos(polar)),
+                ],
+                -1,
+            )
+        )
     half = np.linspace(0.0, np.pi, samples // 2 + 1)
     for lon in np.linspace(0, 2 * np.pi, n_lon, endpoint=False)[1:]:
-        lines.append(np.stack([np.sin(half) * np.cos(lon), np.sin(half) * np.sin(lon),
-                               np.cos(half)], -1))
+        lines.append(
+            np.stack([np.sin(half) * np.cos(lon), np.sin(half) * np.sin(lon), np.cos(half)], -1)
+        )
     meridian = np.stack([np.sin(half), np.zeros_like(half), np.cos(half)], -1)
-    rim = np.stack([np.sin(STEM_RIM) * np.cos(s), np.sin(STEM_RIM) * np.sin(s),
-                    np.full_like(s, np.cos(STEM_RIM))], -1)
+    rim = np.stack(
+        [
+            np.sin(STEM_RIM) * np.cos(s),
+            np.sin(STEM_RIM) * np.sin(s),
+            np.full_like(s, np.cos(STEM_RIM)),
+        ],
+        -1,
+    )
     return lines, meridian, rim
 
 
@@ -372,11 +391,13 @@ def animate(
     ax.set_box_aspect((1, 1, height / (2 * half)), zoom=1.25)
     ax.set_zlim(0, height)
     ax.set_axis_off()
-    view = np.array([
-        math.cos(math.radians(elev)) * math.cos(math.radians(azim)),
-        math.cos(math.radians(elev)) * math.sin(math.radians(azim)),
-        math.sin(math.radians(elev)),
-    ])
+    view = np.array(
+        [
+            math.cos(math.radians(elev)) * math.cos(math.radians(azim)),
+            math.cos(math.radians(elev)) * math.sin(math.radians(azim)),
+            math.sin(math.radians(elev)),
+        ]
+    )
 
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
@@ -385,18 +406,28 @@ def animate(
         x1, y1 = mid + half
         return [[(x0, y0, 0), (x1, y0, 0), (x1, y1, 0), (x0, y1, 0)]]
 
-    table = Poly3DCollection(table_square(geom.centre[0, :2] if follow else middle),
-                             facecolor="0.9", edgecolor="0.6", zorder=0)
+    table = Poly3DCollection(
+        table_square(geom.centre[0, :2] if follow else middle),
+        facecolor="0.9",
+        edgecolor="0.6",
+        zorder=0,
+    )
     ax.add_collection3d(table)
     (trace_line,) = ax.plot([], [], [], color="tab:blue", lw=0.6, alpha=0.8, zorder=1)
     lines, meridian, rim = _wireframe()
     back_lines = [ax.plot([], [], [], color="0.55", lw=0.5, alpha=0.35, zorder=2)[0] for _ in lines]
     (back_meridian,) = ax.plot([], [], [], color="tab:red", lw=0.8, alpha=0.35, zorder=2)
     (back_rim,) = ax.plot([], [], [], color="tab:green", lw=0.9, alpha=0.35, zorder=2)
-    (stem_back,) = ax.plot([], [], [], color="tab:green", lw=4, alpha=0.45, zorder=2.5,
-                           solid_capstyle="round")
-    disk = Poly3DCollection([np.zeros((3, 3))], facecolor=(0.93, 0.88, 0.78, 0.75),
-                            edgecolor="0.3", linewidth=0.6, zorder=3)
+    (stem_back,) = ax.plot(
+        [], [], [], color="tab:green", lw=4, alpha=0.45, zorder=2.5, solid_capstyle="round"
+    )
+    disk = Poly3DCollection(
+        [np.zeros((3, 3))],
+        facecolor=(0.93, 0.88, 0.78, 0.75),
+        edgecolor="0.3",
+        linewidth=0.6,
+        zorder=3,
+    )
     ax.add_collection3d(disk)
     front_lines = [ax.plot([], [], [], color="0.25", lw=0.7, zorder=4)[0] for _ in lines]
     (front_meridian,) = ax.plot([], [], [], color="tab:red", lw=1.8, zorder=4.5)
@@ -435,8 +466,10 @@ def animate(
             f, bk = _split(_to_space(poly, centre, a, b, R), centre, view)
             front.set_data_3d(*f.T)
             back.set_data_3d(*bk.T)
-        for poly, front, back in ((meridian, front_meridian, back_meridian),
-                                  (rim, front_rim, back_rim)):
+        for poly, front, back in (
+            (meridian, front_meridian, back_meridian),
+            (rim, front_rim, back_rim),
+        ):
             f, bk = _split(_to_space(poly, centre, a, b, R), centre, view)
             front.set_data_3d(*f.T)
             back.set_data_3d(*bk.T)

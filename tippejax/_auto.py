@@ -57,20 +57,36 @@ from ._top import TippeTop
 
 MEASURED = {
     "Ia": {
-        "stays upright": {"so3": (0.289, 0.80), "routhian": (0.289, 0.86), "gyroscopic": (0.43, 0.20)},
+        "stays upright": {
+            "so3": (0.289, 0.80),
+            "routhian": (0.289, 0.86),
+            "gyroscopic": (0.43, 0.20),
+        },
         "bistable": {"so3": (0.266, 0.89), "routhian": (0.266, 0.81), "gyroscopic": (0.323, 0.11)},
     },
     "Ib": {
-        "stays upright": {"so3": (0.233, 0.84), "routhian": (0.233, 0.83), "gyroscopic": (0.231, 0.16)},
+        "stays upright": {
+            "so3": (0.233, 0.84),
+            "routhian": (0.233, 0.83),
+            "gyroscopic": (0.231, 0.16),
+        },
         "bistable": {"so3": (0.202, 1.00), "routhian": (0.202, 0.98), "gyroscopic": (0.246, 0.07)},
     },
     "IIa": {
-        "stays upright": {"so3": (0.218, 0.85), "routhian": (0.218, 0.86), "gyroscopic": (0.222, 0.11)},
+        "stays upright": {
+            "so3": (0.218, 0.85),
+            "routhian": (0.218, 0.86),
+            "gyroscopic": (0.222, 0.11),
+        },
         "intermediate": {"so3": (1.28, 0.82), "routhian": (1.28, 0.81), "gyroscopic": (2.27, 0.07)},
         "inverts": {"so3": (1.36, 0.92), "routhian": (1.36, 0.94), "gyroscopic": (2.53, 0.05)},
     },
     "IIb": {
-        "stays upright": {"so3": (0.231, 0.87), "routhian": (0.231, 1.06), "gyroscopic": (0.207, 0.14)},
+        "stays upright": {
+            "so3": (0.231, 0.87),
+            "routhian": (0.231, 1.06),
+            "gyroscopic": (0.207, 0.14),
+        },
         "intermediate": {"so3": (0.74, 0.82), "routhian": (0.74, 0.80), "gyroscopic": (1.43, 0.11)},
         "inverts": {"so3": (0.882, 0.88), "routhian": (0.882, 0.89), "gyroscopic": (1.98, 0.38)},
         "stiff": {"so3": (0.536, 0.53), "routhian": (0.536, 0.26), "gyroscopic": (1, 0.01)},
@@ -78,11 +94,19 @@ MEASURED = {
     },
     "IIc": {
         "bistable": {"so3": (0.25, 0.78), "routhian": (0.25, 0.81), "gyroscopic": (0.303, 0.12)},
-        "stays upright": {"so3": (0.267, 0.84), "routhian": (0.267, 0.73), "gyroscopic": (float("inf"), float("inf"))},
+        "stays upright": {
+            "so3": (0.267, 0.84),
+            "routhian": (0.267, 0.73),
+            "gyroscopic": (float("inf"), float("inf")),
+        },
         "inverts": {"so3": (1.41, 0.82), "routhian": (1.41, 0.74), "gyroscopic": (2.27, 0.05)},
     },
     "III": {
-        "stays upright": {"so3": (0.276, 0.77), "routhian": (0.276, 0.82), "gyroscopic": (0.255, 0.23)},
+        "stays upright": {
+            "so3": (0.276, 0.77),
+            "routhian": (0.276, 0.82),
+            "gyroscopic": (0.255, 0.23),
+        },
         "intermediate": {"so3": (0.62, 0.80), "routhian": (0.62, 0.81), "gyroscopic": (1.1, 0.21)},
     },
 }
@@ -115,8 +139,12 @@ def launch_regime(top: TippeTop, y0: State) -> str:
     J = jellet(top, y0)
     up = float(effective_potential_derivative(top, 0.0, J, order=2)) > 0
     down = float(effective_potential_derivative(top, np.pi, J, order=2)) > 0
-    return {(False, True): "inverts", (True, False): "stays upright",
-            (False, False): "intermediate", (True, True): "bistable"}[(up, down)]
+    return {
+        (False, True): "inverts",
+        (True, False): "stays upright",
+        (False, False): "intermediate",
+        (True, True): "bistable",
+    }[(up, down)]
 
 
 def accepts(level: str, top: TippeTop, y0: State) -> bool:

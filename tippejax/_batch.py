@@ -63,8 +63,17 @@ def _batch_run_impl(top, launches, t1, kwargs, mesh=None, block=None):
     def members(top, launches, t1):
         def one(top, launch):
             theta0, spin, theta_dot, phi_dot, phi, psi, vx, vy = launch
-            y0 = initial_state(top, theta0, spin, theta_dot=theta_dot, phi_dot=phi_dot,
-                               phi=phi, psi=psi, vx=vx, vy=vy)
+            y0 = initial_state(
+                top,
+                theta0,
+                spin,
+                theta_dot=theta_dot,
+                phi_dot=phi_dot,
+                phi=phi,
+                psi=psi,
+                vx=vx,
+                vy=vy,
+            )
             return simulate(top, y0, t1, throw=False, **kwargs)
 
         return jax.vmap(one, in_axes=(top_axes(top), 0))(top, launches)
@@ -84,8 +93,9 @@ _batch_run_cpu = CpuProgram(_batch_run_impl)
 
 def _launch_state(top, launch):
     theta0, spin, theta_dot, phi_dot, phi, psi, vx, vy = launch
-    y0 = initial_state(top, theta0, spin, theta_dot=theta_dot, phi_dot=phi_dot, phi=phi,
-                       psi=psi, vx=vx, vy=vy)
+    y0 = initial_state(
+        top, theta0, spin, theta_dot=theta_dot, phi_dot=phi_dot, phi=phi, psi=psi, vx=vx, vy=vy
+    )
     dtype = jnp.result_type(top.m)
     return jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), y0)
 
@@ -222,9 +232,7 @@ def simulate_batch(
         raise ValueError("simulate_batch always runs with throw=False; inspect sol.result.")
     kwargs.pop("throw", None)
     if steps not in ("per_member", "shared"):
-        raise ValueError(
-            f"simulate_batch: steps must be 'per_member' or 'shared', got {steps!r}."
-        )
+        raise ValueError(f"simulate_batch: steps must be 'per_member' or 'shared', got {steps!r}.")
     if steps == "shared":
         bad = sorted(set(kwargs) - set(SHARED_OPTIONS))
         if bad:
@@ -235,15 +243,24 @@ def simulate_batch(
     for bad in ("y0", "theta"):
         if bad in kwargs:
             raise ValueError(
-                f"simulate_batch takes the launch as quantities ({', '.join(LAUNCH)}), not "
-                f"{bad}=."
+                f"simulate_batch takes the launch as quantities ({', '.join(LAUNCH)}), not {bad}=."
             )
     if isinstance(buckets, bool) or not isinstance(buckets, (int, np.integer)) or buckets < 1:
         raise ValueError(f"simulate_batch: buckets must be an integer >= 1, got {buckets!r}.")
     if not isinstance(top, TippeTop):
-        raise TypeError(f"simulate_batch: top must be a tippejax.TippeTop, got {type(top).__name__}.")
-    values = dict(theta0=theta0, spin=spin, theta_dot=theta_dot, phi_dot=phi_dot, phi=phi,
-                  psi=psi, vx=vx, vy=vy)
+        raise TypeError(
+            f"simulate_batch: top must be a tippejax.TippeTop, got {type(top).__name__}."
+        )
+    values = dict(
+        theta0=theta0,
+        spin=spin,
+        theta_dot=theta_dot,
+        phi_dot=phi_dot,
+        phi=phi,
+        psi=psi,
+        vx=vx,
+        vy=vy,
+    )
     launch = {name: _concrete_array(name, v) for name, v in values.items()}
     check_theta0("simulate_batch: theta0", launch["theta0"])
     top_names, top_leaves, top_tree = top_leaf_names(top)
@@ -302,8 +319,10 @@ def simulate_batch(
     batched_top = top_shape != ()
     if batched_top:
         flat_top = {k: np.broadcast_to(v, shape).ravel() for k, v in top_fields.items()}
-    warn_if_implausible_spin(*(np.broadcast_to(top_fields[k], shape) for k in ("m", "R", "C", "g")),
-                             np.broadcast_to(launch["spin"], shape))
+    warn_if_implausible_spin(
+        *(np.broadcast_to(top_fields[k], shape) for k in ("m", "R", "C", "g")),
+        np.broadcast_to(launch["spin"], shape),
+    )
     inputs = batch_inputs(launch, top_fields, shape)
 
     if steps == "shared":
@@ -344,11 +363,12 @@ def simulate_batch(
     t1 = jnp.asarray(t1, dtype)
     parts = []
     for b in range(buckets):
-        idx = order[b * per:(b + 1) * per]
+        idx = order[b * per : (b + 1) * per]
         launches = tuple(put(flat[k][idx]) for k in LAUNCH)
         if batched_top:
             member_tops = jax.tree_util.tree_unflatten(
-                top_tree, [put(flat_top[k][idx]) for k in top_names])
+                top_tree, [put(flat_top[k][idx]) for k in top_names]
+            )
         else:
             member_tops = top
         with cacheable():  # every input was checked above, in Python
@@ -363,17 +383,25 @@ def simulate_batch(
         # (all-gather), and XLA:CPU aborted the process in one of them ("Termination timeout
         # for `all gather RendezvousKey...`: only 1 of them arrived") after 1-3 minutes of
         # repeated 2-device batches with buckets, whatever the batch program's options.
-        parts = [jax.tree_util.tree_map(
-            lambda x: np.asarray(x) if isinstance(x, jax.Array) else x, p) for p in parts]
+        parts = [
+            jax.tree_util.tree_map(lambda x: np.asarray(x) if isinstance(x, jax.Array) else x, p)
+            for p in parts
+        ]
     arrays_types = (jax.Array, np.ndarray)
     if buckets == 1:
         sol = parts[0]
         back = None
     else:
         sol = jax.tree_util.tree_map(
-            lambda *xs: (np.concatenate(xs) if isinstance(xs[0], np.ndarray)
-                         else jnp.concatenate(xs) if isinstance(xs[0], jax.Array) else xs[0]),
-            *parts)
+            lambda *xs: (
+                np.concatenate(xs)
+                if isinstance(xs[0], np.ndarray)
+                else jnp.concatenate(xs)
+                if isinstance(xs[0], jax.Array)
+                else xs[0]
+            ),
+            *parts,
+        )
         back = np.empty(size, dtype=int)
         back[order[:size]] = np.arange(size)
 

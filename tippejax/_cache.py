@@ -146,20 +146,24 @@ def guard_multi_device_programs() -> bool:
     if getattr(read, "_tippejax_guard", False):
         return True
 
-    def guarded_read(module_name, cache_key, compile_options, backend, executable_devices,
-                     *args, **kwargs):
+    def guarded_read(
+        module_name, cache_key, compile_options, backend, executable_devices, *args, **kwargs
+    ):
         if _spans_cpu_devices(backend, executable_devices):
             return None, None
-        return read(module_name, cache_key, compile_options, backend, executable_devices,
-                    *args, **kwargs)
+        return read(
+            module_name, cache_key, compile_options, backend, executable_devices, *args, **kwargs
+        )
 
-    def guarded_write(cache_key, compile_time_secs, module_name, backend, executable,
-                      *args, **kwargs):
+    def guarded_write(
+        cache_key, compile_time_secs, module_name, backend, executable, *args, **kwargs
+    ):
         devices = getattr(executable, "local_devices", lambda: ())()
         if _spans_cpu_devices(backend, devices):
             return None
-        return write(cache_key, compile_time_secs, module_name, backend, executable,
-                     *args, **kwargs)
+        return write(
+            cache_key, compile_time_secs, module_name, backend, executable, *args, **kwargs
+        )
 
     guarded_read._tippejax_guard = True
     compiler._cache_read, compiler._cache_write = guarded_read, guarded_write
@@ -253,8 +257,10 @@ def _key(name: str, in_tree, leaves, static: dict, fixed: dict) -> str | None:
     if _VERSIONS is None:
         _VERSIONS = _versions()
     avals = ";".join(f"{x.dtype}{x.shape}{'w' if x.weak_type else ''}" for x in leaves)
-    flags = (f"x64={jax.config.jax_enable_x64};platform={jax.default_backend()};"
-             f"unroll={unroll_stages()};stages={UNROLL_STAGES}")
+    flags = (
+        f"x64={jax.config.jax_enable_x64};platform={jax.default_backend()};"
+        f"unroll={unroll_stages()};stages={UNROLL_STAGES}"
+    )
     blob = "\n".join([name, text, str(in_tree), avals, flags, _VERSIONS])
     return name + "-" + hashlib.sha256(blob.encode()).hexdigest()[:40]
 
@@ -333,8 +339,9 @@ def _plain_call(fn, args, static, compiler_options):
 
     ident = (fn, tuple(sorted(compiler_options.items())))
     if ident not in _WITH_OPTIONS:
-        _WITH_OPTIONS[ident] = eqx.filter_jit(fn.__wrapped__,
-                                              compiler_options=dict(compiler_options))
+        _WITH_OPTIONS[ident] = eqx.filter_jit(
+            fn.__wrapped__, compiler_options=dict(compiler_options)
+        )
     return _WITH_OPTIONS[ident](*args, **static)
 
 
@@ -354,7 +361,9 @@ def _entry(fn, args, static, compiler_options=None):
     ):
         return None
     fixed = {i: x for i, x in enumerate(leaves) if i not in set(dynamic)}
-    name = getattr(fn, "__name__", None) or getattr(getattr(fn, "__wrapped__", None), "__name__", "fn")
+    name = getattr(fn, "__name__", None) or getattr(
+        getattr(fn, "__wrapped__", None), "__name__", "fn"
+    )
     keyed = static if not compiler_options else {**static, "compiler_options": compiler_options}
     key = _key(name.strip("_"), in_tree, inputs, keyed, fixed)
     if key is None:
@@ -378,8 +387,9 @@ def _entry(fn, args, static, compiler_options=None):
 def _loaded(key, fn, rebuild, inputs, static, compiler_options=None):
     with _LOCKS.setdefault(key, threading.Lock()):
         if key not in _LOADED:
-            _LOADED[key] = (_load(key, compiler_options)
-                            or _export(key, fn, rebuild, inputs, static, compiler_options))
+            _LOADED[key] = _load(key, compiler_options) or _export(
+                key, fn, rebuild, inputs, static, compiler_options
+            )
         return _LOADED[key]
 
 

@@ -10,4 +10,14 @@ Scalar = Float[Array, ""]
 Vector3 = Float[Array, "3"]
 Vector2 = Float[Array, "2"]
 
-__all__ = ["Array", "ArrayLike", "Bool", "Float", "Int", "RealScalarLike", "Scalar", "Vector2", "Vector3"]
+__all__ = [
+    "Array",
+    "ArrayLike",
+    "Bool",
+    "Float",
+    "Int",
+    "RealScalarLike",
+    "Scalar",
+    "Vector2",
+    "Vector3",
+]

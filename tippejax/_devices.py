@@ -119,9 +119,14 @@ def use_sequential_scheduler(environ: MutableMapping[str, str] = os.environ) -> 
     if choice not in ("", "sequential", "concurrent"):
         raise ValueError(
             f"{SCHEDULER_ENV} must be 'sequential' (tippejax's default) or 'concurrent' "
-            f"(XLA's), got {choice!r}.")
-    if (SCHEDULER_FLAG in flags or choice == "concurrent" or _backends_running()
-            or _jaxlib_version() not in SCHEDULER_JAXLIB):
+            f"(XLA's), got {choice!r}."
+        )
+    if (
+        SCHEDULER_FLAG in flags
+        or choice == "concurrent"
+        or _backends_running()
+        or _jaxlib_version() not in SCHEDULER_JAXLIB
+    ):
         return False
     environ["XLA_FLAGS"] = f"{flags} {SCHEDULER_FLAG}=false".strip()
     return True
@@ -190,12 +195,15 @@ def shard_over(fn, mesh, axis: str, args, members):
     def spec(x, split):
         return PartitionSpec(axis) if split and getattr(x, "ndim", 0) >= 1 else PartitionSpec()
 
-    specs = tuple(jax.tree_util.tree_map(lambda x, split=split: spec(x, split), arg)
-                  for arg, split in zip(args, members, strict=True))
+    specs = tuple(
+        jax.tree_util.tree_map(lambda x, split=split: spec(x, split), arg)
+        for arg, split in zip(args, members, strict=True)
+    )
     # check_vma off: diffrax's loop carries arrays made inside it next to the shard's own;
     # with the check on their "varying" types differ and the while loop is refused.
-    return jax.shard_map(fn, mesh=mesh, in_specs=specs, out_specs=PartitionSpec(axis),
-                         check_vma=False)(*args)
+    return jax.shard_map(
+        fn, mesh=mesh, in_specs=specs, out_specs=PartitionSpec(axis), check_vma=False
+    )(*args)
 
 
 def run_in_blocks(fn, block, args):

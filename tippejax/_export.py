@@ -6,11 +6,28 @@ import csv
 
 import numpy as np
 
-SERIES = ("theta", "phi", "psi", "theta_dot", "phi_dot", "psi_dot", "spin", "jellet", "energy",
-          "normal_force", "slip_speed")
+SERIES = (
+    "theta",
+    "phi",
+    "psi",
+    "theta_dot",
+    "phi_dot",
+    "psi_dot",
+    "spin",
+    "jellet",
+    "energy",
+    "normal_force",
+    "slip_speed",
+)
 VECTORS = ("position", "velocity")
-PER_RUN = ("t_invert", "t_contact_loss", "t_chart_switch", "t_final", "num_steps",
-           "num_rejected_steps")
+PER_RUN = (
+    "t_invert",
+    "t_contact_loss",
+    "t_chart_switch",
+    "t_final",
+    "num_steps",
+    "num_rejected_steps",
+)
 OPTIONAL_PER_RUN = ("t_stem", "t_ball_return", "t_hand_over")
 """Event times some results carry (exported when present)."""
 
@@ -51,7 +68,7 @@ def write_csv(arrays: dict, path, *, batch_ndim: int) -> None:
     columns: dict[str, np.ndarray] = {}
     for name, value in arrays.items():
         if name.startswith("inputs."):
-            columns[name[len("inputs."):]] = value
+            columns[name[len("inputs.") :]] = value
     for name in (*PER_RUN, *OPTIONAL_PER_RUN, "outcome_name", "settled", "message"):
         if name in arrays:
             columns["outcome" if name == "outcome_name" else name] = arrays[name]
@@ -79,8 +96,10 @@ def _cell(x):
 
 
 def write_npz(arrays: dict, path, *, grid, model: str) -> None:
-    extra = {"grid": np.asarray(grid if grid is not None else (), dtype=str),
-             "model": np.asarray(model)}
+    extra = {
+        "grid": np.asarray(grid if grid is not None else (), dtype=str),
+        "model": np.asarray(model),
+    }
     np.savez_compressed(path, **arrays, **extra)
 
 
@@ -110,8 +129,15 @@ def to_xarray(arrays: dict, *, batch_shape, grid, model: str):
             data[name] = ((*dims, "time"), arrays[name])
     for name in VECTORS:
         data[name] = ((*dims, "xy") if summary else (*dims, "time", "xy"), arrays[name])
-    for name in (*PER_RUN, *OPTIONAL_PER_RUN, "result", "message", "outcome", "outcome_name",
-                 "settled"):
+    for name in (
+        *PER_RUN,
+        *OPTIONAL_PER_RUN,
+        "result",
+        "message",
+        "outcome",
+        "outcome_name",
+        "settled",
+    ):
         if name in arrays:
             data[name] = (dims, arrays[name])
     coords = {}
@@ -120,7 +146,7 @@ def to_xarray(arrays: dict, *, batch_shape, grid, model: str):
             coords["time"] = times[0]
         else:
             data["ts"] = ((*dims, "time"), ts)
-    inputs = {k[len("inputs."):]: v for k, v in arrays.items() if k.startswith("inputs.")}
+    inputs = {k[len("inputs.") :]: v for k, v in arrays.items() if k.startswith("inputs.")}
     for axis, dim in enumerate(dims):
         if dim in inputs:  # the grid axis's values as its index coordinate
             values = inputs.pop(dim)

@@ -106,8 +106,7 @@ def energy(top: TippeTop, y: State, *, model: str = "full") -> Float[Array, "*ba
             # compliant contacts store elastic energy (zero at the ball's rigid contact)
             height, v_o = y.height, v_o.at[2].set(y.height_rate)
             elastic = elastic_energy(top, y.axis, y.height)
-        return (0.5 * top.m * jnp.dot(v_o, v_o) + rotational + top.m * top.g * height
-                + elastic)
+        return 0.5 * top.m * jnp.dot(v_o, v_o) + rotational + top.m * top.g * height + elastic
 
     return _batched(one, y)
 

@@ -133,9 +133,21 @@ def inversion_time(
             f"y0 must be a tippejax.State (see tj.initial_state), got {type(y0).__name__}."
         )
     sol = simulate(
-        top, y0, t1, model=model, summary=True, t0=t0, rtol=rtol, atol=atol, solver=solver,
-        max_steps=max_steps, adjoint=adjoint, throw=False, on_contact_loss="stop",
-        tolerance=tolerance, event_pieces=event_pieces,
+        top,
+        y0,
+        t1,
+        model=model,
+        summary=True,
+        t0=t0,
+        rtol=rtol,
+        atol=atol,
+        solver=solver,
+        max_steps=max_steps,
+        adjoint=adjoint,
+        throw=False,
+        on_contact_loss="stop",
+        tolerance=tolerance,
+        event_pieces=event_pieces,
     )
     t_invert = sol.t_invert
     if not throw:

@@ -75,8 +75,13 @@ def _stage_batch_impl(level, top, states, level_states, t0, t_stop, options, mes
     """One compiled chunk of a stage: `level` from `(t0, state)` to `t_stop`, per member
     (starting from `level_states`, the level's own states, where given), each device its own
     shard (`shard_over`)."""
-    return shard_over(functools.partial(_stage_runs, level, options), mesh, "launch",
-                      (top, states, level_states, t0, t_stop), (False, True, True, True, True))
+    return shard_over(
+        functools.partial(_stage_runs, level, options),
+        mesh,
+        "launch",
+        (top, states, level_states, t0, t_stop),
+        (False, True, True, True, True),
+    )
 
 
 _stage_batch_default = eqx.filter_jit(_stage_batch_impl)
@@ -96,15 +101,29 @@ def _stage_runs(level, options, top, states, level_states, t0, t_stop):
 
     def one(state, y0, start, stop):
         out = run_chain(
-            level, top, state, start, stop, None, stop_on_contact=True, solver=solver,
-            rtol=rtol, atol=atol, max_steps=max_steps,
+            level,
+            top,
+            state,
+            start,
+            stop,
+            None,
+            stop_on_contact=True,
+            solver=solver,
+            rtol=rtol,
+            atol=atol,
+            max_steps=max_steps,
             adjoint=diffrax.RecursiveCheckpointAdjoint(),
-            progress_meter=diffrax.NoProgressMeter(), pieces=EVENT_PIECES, y0=y0,
+            progress_meter=diffrax.NoProgressMeter(),
+            pieces=EVENT_PIECES,
+            y0=y0,
         )
         return dict(
-            state=out.state_end, t_final=out.t_final,
-            result=out.result._value.astype(jnp.int8), t_invert=out.t_invert,
-            t_contact_loss=out.t_contact_loss, num_steps=out.num_steps.astype(jnp.int32),
+            state=out.state_end,
+            t_final=out.t_final,
+            result=out.result._value.astype(jnp.int8),
+            t_invert=out.t_invert,
+            t_contact_loss=out.t_contact_loss,
+            num_steps=out.num_steps.astype(jnp.int32),
         )
 
     return jax.vmap(one)(states, level_states, t0, t_stop)
@@ -123,8 +142,14 @@ def _launch_states(top, states, log_nutation, rate):
 
     def one(y, la, r):
         z = GyroscopicLevel().from_state(top, y)
-        return GyroscopicLevelState(log_tan_half_theta=z.log_tan_half_theta, phi=z.phi,
-                                    psi=z.psi, nutation=la, jellet=z.jellet, nutation_rate=r)
+        return GyroscopicLevelState(
+            log_tan_half_theta=z.log_tan_half_theta,
+            phi=z.phi,
+            psi=z.psi,
+            nutation=la,
+            jellet=z.jellet,
+            nutation_rate=r,
+        )
 
     return jax.vmap(one)(states, log_nutation, rate)
 
@@ -154,12 +179,24 @@ def _entry(top, theta, phi, J, log_amplitude, rate):
     level = GyroscopicLevel()
 
     def one(th, ph, j, la, r):
-        margin = entry_margin(top, th, j, la, nutation_max=ENTRY_NUTATION,
-                              decay_min=ENTRY_DECAY, balance_min=ENTRY_BALANCE,
-                              contact_max=ENTRY_CONTACT)
-        y = GyroscopicLevelState(log_tan_half_theta=log_tan_half(th), phi=ph,
-                                 psi=jnp.zeros_like(th), nutation=la, jellet=j,
-                                 nutation_rate=r)
+        margin = entry_margin(
+            top,
+            th,
+            j,
+            la,
+            nutation_max=ENTRY_NUTATION,
+            decay_min=ENTRY_DECAY,
+            balance_min=ENTRY_BALANCE,
+            contact_max=ENTRY_CONTACT,
+        )
+        y = GyroscopicLevelState(
+            log_tan_half_theta=log_tan_half(th),
+            phi=ph,
+            psi=jnp.zeros_like(th),
+            nutation=la,
+            jellet=j,
+            nutation_rate=r,
+        )
         return margin, y, level.to_state(top, y)
 
     return jax.vmap(one)(theta, phi, J, log_amplitude, rate)
@@ -209,8 +246,14 @@ def split_state(top: TippeTop, states: State, J: np.ndarray):
     rolling = np.argmax(real, axis=1)
     rows = np.arange(axis.shape[0])
     velocity, omega = np.asarray(states.velocity), np.asarray(states.omega)
-    z = np.stack([velocity[:, 0] + 1j * velocity[:, 1], axis[:, 0] + 1j * axis[:, 1],
-                  omega[:, 0] + 1j * omega[:, 1]], axis=1)
+    z = np.stack(
+        [
+            velocity[:, 0] + 1j * velocity[:, 1],
+            axis[:, 0] + 1j * axis[:, 1],
+            omega[:, 0] + 1j * omega[:, 1],
+        ],
+        axis=1,
+    )
     with np.errstate(all="ignore"):
         coefficients = np.linalg.solve(vectors, z[..., None])[..., 0]
     tilt = coefficients * vectors[:, 1, :]  # each mode's part of a_X + i a_Y
@@ -224,8 +267,12 @@ def split_state(top: TippeTop, states: State, J: np.ndarray):
     lin_theta, lin_phi, lin_log_a = _bucketed(_linear_split, top, states)
     near = np.hypot(axis[:, 0], axis[:, 1]) <= POLE_SPLIT_SIN
     ok = near & np.isfinite(theta_s) & np.isfinite(rest) & np.isfinite(rate)
-    return (np.where(ok, theta_s, lin_theta), np.where(ok, phi_s, lin_phi),
-            np.where(ok, rest, np.exp(lin_log_a)), np.where(ok, rate, 0.0))
+    return (
+        np.where(ok, theta_s, lin_theta),
+        np.where(ok, phi_s, lin_phi),
+        np.where(ok, rest, np.exp(lin_log_a)),
+        np.where(ok, rate, 0.0),
+    )
 
 
 class _Runner:
@@ -255,18 +302,26 @@ class _Runner:
         perm = np.argsort(order, kind="stable")
         parts = []
         for start in range(0, size, self.chunk):
-            index = perm[start:start + self.chunk]
+            index = perm[start : start + self.chunk]
             pad = self.chunk - index.size
             sel = np.concatenate([index, np.repeat(index[-1:], pad)]) if pad else index
             stop = np.asarray(t_stop, float)[sel].copy()
             begin = np.asarray(t0, float)[sel]
             if pad:
-                stop[index.size:] = begin[index.size:]  # zero-length padding
+                stop[index.size :] = begin[index.size :]  # zero-length padding
             chunk_states, chunk_level = jax.tree_util.tree_map(
-                lambda x: self._put(np.asarray(x, self.dtype)[sel]), (states, level_states))
-            out = _stage_batch(level, self.top_host, chunk_states, chunk_level,
-                               self._put(begin.astype(self.dtype)),
-                               self._put(stop.astype(self.dtype)), self.options, self.mesh)
+                lambda x: self._put(np.asarray(x, self.dtype)[sel]), (states, level_states)
+            )
+            out = _stage_batch(
+                level,
+                self.top_host,
+                chunk_states,
+                chunk_level,
+                self._put(begin.astype(self.dtype)),
+                self._put(stop.astype(self.dtype)),
+                self.options,
+                self.mesh,
+            )
             parts.append(jax.tree_util.tree_map(lambda x: gather(x)[: index.size], out))
         joined = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs), *parts)
         inverse = np.empty_like(perm)
@@ -278,8 +333,9 @@ def _spin(states) -> np.ndarray:
     return np.abs(np.sum(np.asarray(states.axis) * np.asarray(states.omega), axis=-1))
 
 
-def staged_outcomes(top: TippeTop, y0: State, t1: float, *, rtol, atol, solver, slow_solver,
-                    max_steps, devices) -> dict[str, np.ndarray]:
+def staged_outcomes(
+    top: TippeTop, y0: State, t1: float, *, rtol, atol, solver, slow_solver, max_steps, devices
+) -> dict[str, np.ndarray]:
     r"""Run the launches `y0` (a batched `State`) to `t1` in stages, each at the cheapest
     adequate level.
 
@@ -349,8 +405,7 @@ def staged_outcomes(top: TippeTop, y0: State, t1: float, *, rtol, atol, solver, 
     dtype = jnp.result_type(top.m)
     runner = _Runner(top, devices, (rtol, atol, solver, max_steps))
     slow_runner = _Runner(top, devices, (rtol, atol, slow_solver, max_steps))
-    slow = GyroscopicLevel(stop_at_hand_over=True, contact_margin=HAND_OVER_CONTACT,
-                           body=False)
+    slow = GyroscopicLevel(stop_at_hand_over=True, contact_margin=HAND_OVER_CONTACT, body=False)
     full = FullLevel(body=False)
 
     state = jax.tree_util.tree_map(lambda x: np.asarray(x, dtype), y0)
@@ -370,9 +425,13 @@ def staged_outcomes(top: TippeTop, y0: State, t1: float, *, rtol, atol, solver, 
     # where each run last left the full model (for a replay), and the slow stage's states
     left, t_left = state, np.zeros(size)
     _, _, nutation, growth = split_state(top, state, J)
-    slow_states = _bucketed(_launch_states, top, state,
-                            np.log(np.maximum(nutation, NUTATION_FLOOR)).astype(dtype),
-                            growth.astype(dtype))
+    slow_states = _bucketed(
+        _launch_states,
+        top,
+        state,
+        np.log(np.maximum(nutation, NUTATION_FLOOR)).astype(dtype),
+        growth.astype(dtype),
+    )
 
     def record(index, out, stage):
         nonlocal state
@@ -395,8 +454,13 @@ def staged_outcomes(top: TippeTop, y0: State, t1: float, *, rtol, atol, solver, 
             if not last:
                 ahead = np.maximum(t[members] + window[members], replay_until[members])
                 stop = np.minimum(ahead, t1)
-            out = runner.run(full, _take(state, members), t[members], stop,
-                             -_spin(_take(state, members)) * (stop - t[members]))
+            out = runner.run(
+                full,
+                _take(state, members),
+                t[members],
+                stop,
+                -_spin(_take(state, members)) * (stop - t[members]),
+            )
             record(members, out, "full")
             code = out["result"]
             ended = (code != RESULTS.successful._value) | (out["t_final"] >= t1)
@@ -405,12 +469,17 @@ def staged_outcomes(top: TippeTop, y0: State, t1: float, *, rtol, atol, solver, 
             going = members[~ended]
             if going.size:
                 # does the slow stage take over where the window ended?
-                theta_s, phi_s, nutation, growth = split_state(top, _take(state, going),
-                                                               J[going])
+                theta_s, phi_s, nutation, growth = split_state(top, _take(state, going), J[going])
                 log_nutation = np.log(np.maximum(nutation, NUTATION_FLOOR)).astype(dtype)
                 margin, entering, on_manifold = _bucketed(
-                    _entry, top, theta_s.astype(dtype), phi_s.astype(dtype), J[going],
-                    log_nutation, growth.astype(dtype))
+                    _entry,
+                    top,
+                    theta_s.astype(dtype),
+                    phi_s.astype(dtype),
+                    J[going],
+                    log_nutation,
+                    growth.astype(dtype),
+                )
                 enter = (margin > 0) & (hand_overs[going] <= MAX_HAND_OVERS)
                 index, rows = going[enter], np.flatnonzero(enter)
                 left = _put_back(left, index, _take(state, index))
@@ -425,9 +494,14 @@ def staged_outcomes(top: TippeTop, y0: State, t1: float, *, rtol, atol, solver, 
                 break
             continue
         t_invert_before = t_invert[members].copy()
-        out = slow_runner.run(slow, _take(state, members), t[members],
-                              np.full(members.size, float(t1)), np.zeros(members.size),
-                              level_states=_take(slow_states, members))
+        out = slow_runner.run(
+            slow,
+            _take(state, members),
+            t[members],
+            np.full(members.size, float(t1)),
+            np.zeros(members.size),
+            level_states=_take(slow_states, members),
+        )
         record(members, out, "gyroscopic")
         code = out["result"]
         handed = code == RESULTS.no_gyroscopic_balance._value
@@ -447,14 +521,25 @@ def staged_outcomes(top: TippeTop, y0: State, t1: float, *, rtol, atol, solver, 
             hand_overs[index] += 1
     members = np.flatnonzero(~done)
     if members.size:
-        out = runner.run(full, _take(state, members), t[members], np.full(members.size, float(t1)),
-                         -_spin(_take(state, members)))
+        out = runner.run(
+            full,
+            _take(state, members),
+            t[members],
+            np.full(members.size, float(t1)),
+            -_spin(_take(state, members)),
+        )
         record(members, out, "full")
         result[members] = out["result"]
     return dict(
-        state=state, t_final=t, result=result, t_invert=t_invert, t_contact_loss=t_loss,
-        num_steps=steps, route=np.array(["->".join(r) for r in routes]),
-        hand_overs=hand_overs, stages=stages,
+        state=state,
+        t_final=t,
+        result=result,
+        t_invert=t_invert,
+        t_contact_loss=t_loss,
+        num_steps=steps,
+        route=np.array(["->".join(r) for r in routes]),
+        hand_overs=hand_overs,
+        stages=stages,
     )
 
 

@@ -180,15 +180,27 @@ def bifurcation_diagram(top: TippeTop, *, ax=None, scaled: bool = True, legend: 
             ax.plot([x], [value / scale], "o", color="black", markersize=4)
             offset = 0.05 if x == 0.0 else -0.05
             ax.annotate(
-                label, (x + offset, value / scale), ha="left" if x == 0.0 else "right",
-                va="bottom", fontsize=9,
+                label,
+                (x + offset, value / scale),
+                ha="left" if x == 0.0 else "right",
+                va="bottom",
+                fontsize=9,
             )
-    for value, label, colour in ((theta_c, r"$\theta_c$", "tab:red"), (theta_b, r"$\theta_b$", "tab:blue")):
+    for value, label, colour in (
+        (theta_c, r"$\theta_c$", "tab:red"),
+        (theta_b, r"$\theta_b$", "tab:blue"),
+    ):
         if value is not None:
             ax.axvline(value, color=colour, linestyle=":", linewidth=1.2)
             ax.annotate(
-                label, (value, 0.97 * ymax), xytext=(3, 0), textcoords="offset points",
-                ha="left", va="top", color=colour, fontsize=10,
+                label,
+                (value, 0.97 * ymax),
+                xytext=(3, 0),
+                textcoords="offset points",
+                ha="left",
+                va="top",
+                color=colour,
+                fontsize=10,
             )
 
     # A margin either side, so that the vertical states are not hidden by the frame.
@@ -239,7 +251,9 @@ def bifurcation_diagrams(tops_by_group: Mapping[str, TippeTop], *, scaled: bool 
         Line2D([], [], **_STABLE, label="stable steady states"),
         Line2D([], [], **_UNSTABLE, label="unstable steady states"),
         Line2D([], [], color="tab:red", linestyle=":", label=r"$\theta_c$: end of the branch"),
-        Line2D([], [], color="tab:blue", linestyle=":", label=r"$\theta_b$: fold (change of stability)"),
+        Line2D(
+            [], [], color="tab:blue", linestyle=":", label=r"$\theta_b$: fold (change of stability)"
+        ),
     ]
     fig.legend(handles=handles, loc="outside lower center", ncols=4, fontsize=9)
     fig.suptitle(
@@ -294,7 +308,12 @@ def group_map(
         a, e, index = _group_grid(a_range, e_range, grid_n)
         da, de = a[1] - a[0], e[1] - e[0]
         axes.imshow(
-            index, cmap=cmap, norm=norm, origin="lower", aspect="auto", interpolation="nearest",
+            index,
+            cmap=cmap,
+            norm=norm,
+            origin="lower",
+            aspect="auto",
+            interpolation="nearest",
             extent=(a[0] - da / 2, a[-1] + da / 2, e[0] - de / 2, e[-1] + de / 2),
         )
         ee = np.linspace(0.0, 1.0, 400)
@@ -373,7 +392,11 @@ def fit_figure(result, *, title: str | None = None):
     fitted_until, rms_fitted = float(fitted_until), float(rms_fitted)
 
     fig, (ax, ax_res) = plt.subplots(
-        2, 1, figsize=(8.0, 6.0), sharex=True, layout="constrained",
+        2,
+        1,
+        figsize=(8.0, 6.0),
+        sharex=True,
+        layout="constrained",
         gridspec_kw=dict(height_ratios=(2.2, 1.0)),
     )
     seen = np.isfinite(theta_obs)
@@ -384,9 +407,14 @@ def fit_figure(result, *, title: str | None = None):
             axes.axvline(describes, color="black", linestyle="--", linewidth=1.0)
         left = describes - ts[0] > 0.5 * (ts[-1] - ts[0])  # the label on the roomier side
         ax.annotate(
-            f"describes until {describes:.3g} s", (describes, 1.0),
-            xycoords=("data", "axes fraction"), xytext=(-4 if left else 4, -4),
-            textcoords="offset points", ha="right" if left else "left", va="top", fontsize=9,
+            f"describes until {describes:.3g} s",
+            (describes, 1.0),
+            xycoords=("data", "axes fraction"),
+            xytext=(-4 if left else 4, -4),
+            textcoords="offset points",
+            ha="right" if left else "left",
+            va="top",
+            fontsize=9,
         )
     ax.set_ylabel(r"$\theta$ (rad)")
     if np.nanmax(theta_obs) - np.nanmin(theta_obs) > math.pi / 2:  # a record that inverts
@@ -451,7 +479,6 @@ def _draw_outcomes(ax, x, y, outcome, settled):
     """Categorical image of `outcome[y, x]`; unsettled cells hatched."""
     from matplotlib.colors import BoundaryNorm, ListedColormap
 
-
     cmap = ListedColormap(OUTCOME_COLOURS)
     norm = BoundaryNorm(np.arange(-0.5, len(OUTCOMES) + 0.5), cmap.N)
     xe, ye = _cell_edges(x), _cell_edges(y)
@@ -459,7 +486,12 @@ def _draw_outcomes(ax, x, y, outcome, settled):
     unsettled = (~settled) & (outcome <= 2)
     if np.any(unsettled):
         ax.contourf(
-            x, y, unsettled.astype(float), levels=[0.5, 1.5], colors="none", hatches=["///"],
+            x,
+            y,
+            unsettled.astype(float),
+            levels=[0.5, 1.5],
+            colors="none",
+            hatches=["///"],
         )
     ax.set_xlim(xe[0], xe[-1])
     ax.set_ylim(ye[0], ye[-1])
@@ -468,7 +500,6 @@ def _draw_outcomes(ax, x, y, outcome, settled):
 def _outcome_handles(outcome, settled, extra=()):
     from matplotlib.patches import Patch
 
-
     present = set(np.unique(outcome).tolist())
     handles = [
         Patch(color=c, label=name.replace("_", " "))
@@ -476,7 +507,9 @@ def _outcome_handles(outcome, settled, extra=()):
         if k in present
     ]
     if np.any((~settled) & (outcome <= 2)):
-        handles.append(Patch(facecolor="white", edgecolor="black", hatch="///", label="unsettled at t1"))
+        handles.append(
+            Patch(facecolor="white", edgecolor="black", hatch="///", label="unsettled at t1")
+        )
     return handles + list(extra)
 
 
@@ -523,22 +556,51 @@ def outcome_map_figure(om, *, title: str | None = None):
         ax.contour(SP, TH, down, levels=[0.0], colors="black", linewidths=1.2, linestyles="--")
         both = n_stable >= 2
         if np.any(both):
-            ax.contourf(SP, TH, both.astype(float), levels=[0.5, 1.5], colors="none",
-                        hatches=["..."])
-            ax.contour(SP, TH, both.astype(float), levels=[0.5], colors="0.3", linewidths=0.8,
-                       linestyles=":")
+            ax.contourf(
+                SP, TH, both.astype(float), levels=[0.5, 1.5], colors="none", hatches=["..."]
+            )
+            ax.contour(
+                SP,
+                TH,
+                both.astype(float),
+                levels=[0.5],
+                colors="0.3",
+                linewidths=0.8,
+                linestyles=":",
+            )
         extra = [
-            Line2D([], [], color="black",
-                   label=r"$W''(0;J)=0$: $J = J_1$ ($n = n_1$ at $\theta_0 = 0$); upright stable left"),
-            Line2D([], [], color="black", linestyle="--",
-                   label=r"$W''(\pi;J)=0$: $J = J_2$ ($n = n_2\frac{R+\epsilon}{R-\epsilon}$ at "
-                         r"$\theta_0 = 0$); inverted stable right"),
+            Line2D(
+                [],
+                [],
+                color="black",
+                label=r"$W''(0;J)=0$: $J = J_1$ ($n = n_1$ at $\theta_0 = 0$); upright stable left",
+            ),
+            Line2D(
+                [],
+                [],
+                color="black",
+                linestyle="--",
+                label=r"$W''(\pi;J)=0$: $J = J_2$ ($n = n_2\frac{R+\epsilon}{R-\epsilon}$ at "
+                r"$\theta_0 = 0$); inverted stable right",
+            ),
         ]
         if np.any(both):
-            extra.append(Patch(facecolor="none", edgecolor="0.3", hatch="...",
-                               label="two stable states for this J: colours are basins"))
-        ax.legend(handles=_outcome_handles(outcome, settled, extra), fontsize=8, ncol=2,
-                  loc="upper center", bbox_to_anchor=(0.5, -0.13), framealpha=0.9)
+            extra.append(
+                Patch(
+                    facecolor="none",
+                    edgecolor="0.3",
+                    hatch="...",
+                    label="two stable states for this J: colours are basins",
+                )
+            )
+        ax.legend(
+            handles=_outcome_handles(outcome, settled, extra),
+            fontsize=8,
+            ncol=2,
+            loc="upper center",
+            bbox_to_anchor=(0.5, -0.13),
+            framealpha=0.9,
+        )
         ax.set_xlabel("launch spin $n$ (rad/s)")
         ax.set_ylabel(r"launch tilt $\theta_0$ (rad)")
         group = classify(top)
@@ -554,9 +616,16 @@ def outcome_map_figure(om, *, title: str | None = None):
         j2 = np.asarray(om.jellet) ** 2 / scale
         th_final = np.asarray(om.theta_final)
         for k, colour in enumerate(OUTCOME_COLOURS[:3]):
-            sel = (outcome == k)
-            ax2.scatter(th_final[sel], j2[sel], s=10, color=colour, edgecolors="black",
-                        linewidths=0.3, zorder=5)
+            sel = outcome == k
+            ax2.scatter(
+                th_final[sel],
+                j2[sel],
+                s=10,
+                color=colour,
+                edgecolors="black",
+                linewidths=0.3,
+                zorder=5,
+            )
         ax2.set_title("end states on the bifurcation diagram (solid: stable)", fontsize=10)
         ymax = ax2.get_ylim()[1]
         ended = outcome <= 2
@@ -572,13 +641,20 @@ def outcome_map_figure(om, *, title: str | None = None):
             other.plot(1.0 - ee**2, ee, color="black", linewidth=1.0, linestyle="--")
         ax.set_xlim(_cell_edges(a)[[0, -1]])
         ax.set_ylim(_cell_edges(e)[[0, -1]])
-        ax.legend(handles=_outcome_handles(outcome, settled), fontsize=8, ncol=3,
-                  loc="upper center", bbox_to_anchor=(0.5, -0.13), framealpha=0.9)
+        ax.legend(
+            handles=_outcome_handles(outcome, settled),
+            fontsize=8,
+            ncol=3,
+            loc="upper center",
+            bbox_to_anchor=(0.5, -0.13),
+            framealpha=0.9,
+        )
         ax.set_xlabel(r"$A/C$")
         ax.set_ylabel(r"$\epsilon/R$")
         ax.set_title(
             f"Outcome at t1 = {om.t1:g} s of the launch theta0 = {float(om.theta0):.3g} rad, "
-            f"n = {float(om.spin):.4g} rad/s", fontsize=10,
+            f"n = {float(om.spin):.4g} rad/s",
+            fontsize=10,
         )
         group_map(ax=ax2, inset=False)
         ax2.set_xlim(ax.get_xlim())

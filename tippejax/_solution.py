@@ -37,9 +37,7 @@ class RESULTS(eqxi.Enumeration):
         "time."
     )
     nonfinite = "The solution became NaN or infinite."
-    solver_failed = (
-        "The ODE solver failed (step size underflow or an internal diffrax error)."
-    )
+    solver_failed = "The ODE solver failed (step size underflow or an internal diffrax error)."
     contact_loss_missed = (
         "R_n was negative at a save time before any contact loss the solver located: a dip of "
         "R_n below 0 too brief for the event watch's quintic over one step to follow went "
@@ -91,9 +89,7 @@ def result_message(code, enumeration=None):
     if _is_item(code):
         enumeration = code._enumeration
         code = code._value
-    elif not isinstance(code, (int, np.integer, np.ndarray, jax.Array)) and hasattr(
-        code, "result"
-    ):
+    elif not isinstance(code, (int, np.integer, np.ndarray, jax.Array)) and hasattr(code, "result"):
         return result_message(code.result, enumeration)
     if isinstance(code, jax.core.Tracer):
         raise ValueError(
@@ -138,20 +134,36 @@ def _export_name(name: str) -> str:
     return name if name in ("theta0", "top") else f"{name}0"
 
 
-SAVED_FIELDS = ("ts", "theta", "phi", "psi", "theta_dot", "phi_dot", "psi_dot", "spin",
-                "position", "velocity", "jellet", "energy", "normal_force", "slip_speed")
+SAVED_FIELDS = (
+    "ts",
+    "theta",
+    "phi",
+    "psi",
+    "theta_dot",
+    "phi_dot",
+    "psi_dot",
+    "spin",
+    "position",
+    "velocity",
+    "jellet",
+    "energy",
+    "normal_force",
+    "slip_speed",
+)
 """The fields with a save axis (and `states`)."""
 
 
 def drop_save_axis(sol: Solution, batch_ndim: int) -> Solution:
     """A summary-mode batch with the save axis (of length one, after the batch's axes)
     dropped from every saved field and the states."""
+
     def squeeze(x):
         return x if x is None else jnp.squeeze(x, axis=batch_ndim)
 
     names = [k for k in SAVED_FIELDS if getattr(sol, k) is not None]
-    sol = eqx.tree_at(lambda s: [getattr(s, k) for k in names], sol,
-                      [squeeze(getattr(sol, k)) for k in names])
+    sol = eqx.tree_at(
+        lambda s: [getattr(s, k) for k in names], sol, [squeeze(getattr(sol, k)) for k in names]
+    )
     if sol.states is not None:
         sol = eqx.tree_at(lambda s: s.states, sol, jax.tree_util.tree_map(squeeze, sol.states))
     return sol
@@ -298,17 +310,26 @@ class Solution(eqx.Module):
             x = float(x)
             return "nan" if np.isnan(x) else f"{x:.6g} s"
 
-        parts = [f"model={self.model!r}", f"result={result_message(self.result)!r}",
-                 f"t_final={seconds(self.t_final)}", f"saves={ts.size}",
-                 f"t_invert={seconds(self.t_invert)}",
-                 f"t_contact_loss={seconds(self.t_contact_loss)}"]
+        parts = [
+            f"model={self.model!r}",
+            f"result={result_message(self.result)!r}",
+            f"t_final={seconds(self.t_final)}",
+            f"saves={ts.size}",
+            f"t_invert={seconds(self.t_invert)}",
+            f"t_contact_loss={seconds(self.t_contact_loss)}",
+        ]
         if "->stem" in self.model:  # (a top with a stem that reached the stem level)
-            parts += [f"t_stem={seconds(self.t_stem)}",
-                      f"t_ball_return={seconds(self.t_ball_return)}"]
+            parts += [
+                f"t_stem={seconds(self.t_stem)}",
+                f"t_ball_return={seconds(self.t_ball_return)}",
+            ]
         if self.outcome is not None:
             name = OUTCOMES[int(self.outcome)]
-            if self.settled is not None and not bool(self.settled) and name in (
-                    "upright", "inverted", "intermediate"):
+            if (
+                self.settled is not None
+                and not bool(self.settled)
+                and name in ("upright", "inverted", "intermediate")
+            ):
                 name += " (on its way: not settled by t_final)"
             parts.append(f"outcome={name!r}")
         finite = np.isfinite(theta)
@@ -359,8 +380,9 @@ class Solution(eqx.Module):
         for the default grid, with their values as coordinates; `member_k` where there is no
         grid), `time` for the save times and `xy` for `position`, `velocity`; the inputs as
         coordinates over the batch's dimensions. Needs xarray (`pip install xarray`)."""
-        return _export.to_xarray(self.to_dict(), batch_shape=np.shape(self.t_final),
-                                 grid=self.grid, model=self.model)
+        return _export.to_xarray(
+            self.to_dict(), batch_shape=np.shape(self.t_final), grid=self.grid, model=self.model
+        )
 
     @property
     def t_hand_over(self):

@@ -78,14 +78,14 @@ def state_from_euler(
     body $= \cos\psi\, N + \sin\psi\, M$ with $M = a \times N$.
     """
     theta, phi, psi, theta_dot, phi_dot, psi_dot = jnp.broadcast_arrays(
-        *[jnp.asarray(x, dtype=jnp.result_type(x, float)) for x in
-          (theta, phi, psi, theta_dot, phi_dot, psi_dot)]
+        *[
+            jnp.asarray(x, dtype=jnp.result_type(x, float))
+            for x in (theta, phi, psi, theta_dot, phi_dot, psi_dot)
+        ]
     )
     axis, nodes, m_vec = _frame(theta, phi)
     e_z = jnp.zeros_like(axis).at[..., 2].set(1.0)
-    omega = (
-        phi_dot[..., None] * e_z + theta_dot[..., None] * nodes + psi_dot[..., None] * axis
-    )
+    omega = phi_dot[..., None] * e_z + theta_dot[..., None] * nodes + psi_dot[..., None] * axis
     body = jnp.cos(psi)[..., None] * nodes + jnp.sin(psi)[..., None] * m_vec
     batch = theta.shape
     position = jnp.broadcast_to(jnp.asarray(position, dtype=axis.dtype), batch + (2,))
@@ -179,7 +179,8 @@ def check_theta0(name: str, theta) -> None:
         bad = theta[(theta < 0) | (theta > np.pi)].ravel()[0]
         hint = (
             f" It looks like degrees: pass np.deg2rad({bad:g}) = {np.deg2rad(bad):.6g} rad."
-            if np.pi < bad <= 180 else ""
+            if np.pi < bad <= 180
+            else ""
         )
         raise ValueError(
             f"{name} must lie in [0, pi] rad (the tilt of the axis from the vertical, in "

@@ -68,9 +68,14 @@ class Stem(eqx.Module):
     contact_modulus: Float[Array, "*batch"]
     contact_damping: Float[Array, "*batch"]
 
-    def __init__(self, radius: ArrayLike, offset: ArrayLike, *,
-                 contact_modulus: ArrayLike = CONTACT_MODULUS,
-                 contact_damping: ArrayLike = CONTACT_DAMPING):
+    def __init__(
+        self,
+        radius: ArrayLike,
+        offset: ArrayLike,
+        *,
+        contact_modulus: ArrayLike = CONTACT_MODULUS,
+        contact_damping: ArrayLike = CONTACT_DAMPING,
+    ):
         values = [as_float(v) for v in (radius, offset, contact_modulus, contact_damping)]
         values = broadcast_fields("Stem", _FIELDS, values)
         values = checked("Stem", _FIELDS, values, _own_rules)
@@ -81,17 +86,23 @@ class Stem(eqx.Module):
         del xp
         r2, a2 = self.radius, self.offset
         return [
-            (a2 <= eps,
-             "TippeTop.stem: Stem.offset a2 (from the centre of mass to the centre of the tip, "
-             "m) must be > eps: the stem sits on the ball centre's side, beyond it."),
-            (a2 - eps + r2 <= R,
-             "TippeTop.stem: the stem lies inside the ball and can never reach the table: "
-             "a2 - eps + r2 <= R (cos theta_s = (r2 - R)/(a2 - eps) < -1). Allowed: "
-             "a2 - eps + r2 > R."),
-            (r2 - R >= a2 - eps,
-             "TippeTop.stem: the tip would touch the table at every tilt, upright too: "
-             "r2 - R >= a2 - eps (cos theta_s = (r2 - R)/(a2 - eps) >= 1). Allowed: "
-             "r2 - R < a2 - eps."),
+            (
+                a2 <= eps,
+                "TippeTop.stem: Stem.offset a2 (from the centre of mass to the centre of the tip, "
+                "m) must be > eps: the stem sits on the ball centre's side, beyond it.",
+            ),
+            (
+                a2 - eps + r2 <= R,
+                "TippeTop.stem: the stem lies inside the ball and can never reach the table: "
+                "a2 - eps + r2 <= R (cos theta_s = (r2 - R)/(a2 - eps) < -1). Allowed: "
+                "a2 - eps + r2 > R.",
+            ),
+            (
+                r2 - R >= a2 - eps,
+                "TippeTop.stem: the tip would touch the table at every tilt, upright too: "
+                "r2 - R >= a2 - eps (cos theta_s = (r2 - R)/(a2 - eps) >= 1). Allowed: "
+                "r2 - R < a2 - eps.",
+            ),
         ]
 
     def __repr__(self) -> str:
@@ -114,10 +125,14 @@ def _own_rules(radius, offset, modulus, damping):
     xp = array_module(radius, offset, modulus, damping)
     return finite_rules("Stem", _FIELDS, (radius, offset, modulus, damping), xp) + [
         (radius <= 0, "Stem.radius (radius r2 of the stem's tip, m) must be > 0."),
-        (offset <= 0, "Stem.offset (distance a2 from the centre of mass to the tip's centre, "
-         "m) must be > 0."),
-        (modulus <= 0, "Stem.contact_modulus (effective modulus E* of the contacts, Pa) must "
-         "be > 0."),
+        (
+            offset <= 0,
+            "Stem.offset (distance a2 from the centre of mass to the tip's centre, m) must be > 0.",
+        ),
+        (
+            modulus <= 0,
+            "Stem.contact_modulus (effective modulus E* of the contacts, Pa) must be > 0.",
+        ),
         (damping < 0, "Stem.contact_damping (Hunt-Crossley damping c, s/m) must be >= 0."),
     ]
 
@@ -131,4 +146,3 @@ def stem_angle(R, eps, stem: Stem):
 def hertz_stiffness(stem: Stem, radius):
     r"""$k = \tfrac43 E^*\sqrt{r}$ (N/m^{3/2}) of a sphere of radius `radius` on the table."""
     return (4.0 / 3.0) * stem.contact_modulus * jnp.sqrt(radius)
-

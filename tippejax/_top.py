@@ -36,9 +36,7 @@ def _checks(m, R, eps, A, C, g, mu=None):
     xp = array_module(*values)
     checks = []
     for name, value in zip(_FIELDS, values):
-        checks.append(
-            (~xp.isfinite(value), f"TippeTop.{name} must be finite (got NaN or inf).")
-        )
+        checks.append((~xp.isfinite(value), f"TippeTop.{name} must be finite (got NaN or inf)."))
     checks += [
         (m <= 0, "TippeTop.m (mass) must be > 0."),
         (R <= 0, "TippeTop.R (radius of the sphere) must be > 0."),
@@ -167,26 +165,34 @@ class TippeTop(eqx.Module):
             # mu is checked here, with the top's messages, then again by Viscous.
             names = (*_FIELDS, *stem_names)
             values = broadcast_fields("TippeTop", names, [*body, _as_float(mu), *stem_leaves])
-            values = checked("TippeTop", names, values, _with_stem_rules(
-                lambda *v: _checks(*v[:7]), 7, stem_tree))
+            values = checked(
+                "TippeTop",
+                names,
+                values,
+                _with_stem_rules(lambda *v: _checks(*v[:7]), 7, stem_tree),
+            )
             body, friction = values[:6], Viscous(values[6])
             stem = jax.tree_util.tree_unflatten(stem_tree, list(values[7:]))
         else:
             law_leaves, law_tree = jax.tree_util.tree_flatten(friction)
-            names = (*_BODY_FIELDS, *(f"friction.{k}" for k in friction._array_field_names()),
-                     *stem_names)
+            names = (
+                *_BODY_FIELDS,
+                *(f"friction.{k}" for k in friction._array_field_names()),
+                *stem_names,
+            )
             values = broadcast_fields("TippeTop", names, [*body, *law_leaves, *stem_leaves])
             n, n_law = len(body), len(law_leaves)
 
             def rules(*v):
-                law = jax.tree_util.tree_unflatten(law_tree, list(v[n:n + n_law]))
+                law = jax.tree_util.tree_unflatten(law_tree, list(v[n : n + n_law]))
                 return _checks(*v[:n]) + law.ball_rules(v[1], array_module(*v))
 
-            values = checked("TippeTop", names, values,
-                             _with_stem_rules(rules, n + n_law, stem_tree))
+            values = checked(
+                "TippeTop", names, values, _with_stem_rules(rules, n + n_law, stem_tree)
+            )
             body = values[:n]
-            friction = jax.tree_util.tree_unflatten(law_tree, list(values[n:n + n_law]))
-            stem = jax.tree_util.tree_unflatten(stem_tree, list(values[n + n_law:]))
+            friction = jax.tree_util.tree_unflatten(law_tree, list(values[n : n + n_law]))
+            stem = jax.tree_util.tree_unflatten(stem_tree, list(values[n + n_law :]))
         if not any(_is_traced(v) for v in body):
             warn_if_implausible_top(*body)
         self.m, self.R, self.eps, self.A, self.C, self.g = body

@@ -22,10 +22,12 @@ def mathjax_script() -> pathlib.Path:
 
 
 def on_files(files, config):
-    files.append(File.generated(config, f"assets/mathjax/{MATHJAX}",
-                                abs_src_path=str(mathjax_script())))
+    files.append(
+        File.generated(config, f"assets/mathjax/{MATHJAX}", abs_src_path=str(mathjax_script()))
+    )
     for figure in sorted((ROOT / "examples" / "figures").iterdir()):
         if figure.suffix in (".png", ".gif", ".svg", ".jpg"):
-            files.append(File.generated(config, f"examples/figures/{figure.name}",
-                                        abs_src_path=str(figure)))
+            files.append(
+                File.generated(config, f"examples/figures/{figure.name}", abs_src_path=str(figure))
+            )
     return files

@@ -35,17 +35,29 @@ def page(path: pathlib.Path) -> str:
     parts = [f"# {path.name}", "", f"*{title}.*", "", rest, ""]
     for name in figures(source):
         parts += [f"![{name}](figures/{name})", ""]
-    parts += ["## Source", "", f"Run from the repository root: `python examples/{path.name}`.",
-              "", "```python", source.rstrip(), "```", ""]
+    parts += [
+        "## Source",
+        "",
+        f"Run from the repository root: `python examples/{path.name}`.",
+        "",
+        "```python",
+        source.rstrip(),
+        "```",
+        "",
+    ]
     return "\n".join(parts)
 
 
 def index() -> str:
-    parts = ["# Examples", "",
-             "Scripts in `examples/` that use the public API. Each page shows the script's "
-             "description, the figure it writes to `examples/figures/` and its source. Run "
-             "one from the repository root, after `pip install -e .`, with "
-             "`python examples/<name>.py`.", ""]
+    parts = [
+        "# Examples",
+        "",
+        "Scripts in `examples/` that use the public API. Each page shows the script's "
+        "description, the figure it writes to `examples/figures/` and its source. Run "
+        "one from the repository root, after `pip install -e .`, with "
+        "`python examples/<name>.py`.",
+        "",
+    ]
     for path in scripts():
         title, _ = split_docstring(path.read_text())
         parts.append(f"- [`{path.name}`]({path.stem}.md): {title}.")

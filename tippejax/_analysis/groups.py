@@ -51,7 +51,8 @@ class Thresholds(eqx.Module):
         except Exception:  # noqa: BLE001 - tracers
             return super().__repr__()
         body = ", ".join(
-            f"{name}={v.item():.6g}" if v.ndim == 0 else f"{name}={v!r}" for name, v in values.items()
+            f"{name}={v.item():.6g}" if v.ndim == 0 else f"{name}={v!r}"
+            for name, v in values.items()
         )
         return f"Thresholds({body})"
 
@@ -116,9 +117,7 @@ def group_index(top: TippeTop) -> Int[Array, "*batch"]:
     group_i = a - 1.0 < -e
     group_iii = a - 1.0 > e
     index_i = jnp.where(x_b < -1, 0, 1)
-    index_ii = jnp.where(
-        disc > 0, jnp.where(jnp.abs(x_b) < 1, 2, jnp.where(x_b < -1, 4, 3)), 3
-    )
+    index_ii = jnp.where(disc > 0, jnp.where(jnp.abs(x_b) < 1, 2, jnp.where(x_b < -1, 4, 3)), 3)
     return jnp.where(group_i, index_i, jnp.where(group_iii, 5, index_ii))
 
 

@@ -53,13 +53,18 @@ def reduced_jacobian_eigenvalues(top: TippeTop, theta0, J) -> Complex[Array, "3"
 
     def field(z):
         y = RouthianState(
-            theta=z[0], phibar=jnp.zeros_like(z[0]), c=jnp.zeros_like(z[0]),
-            theta_dot=z[1], phibar_dot=z[2],
+            theta=z[0],
+            phibar=jnp.zeros_like(z[0]),
+            c=jnp.zeros_like(z[0]),
+            theta_dot=z[1],
+            phibar_dot=z[2],
         )
         dy = _routhian_single(top, y, J)
         return jnp.stack([dy.theta, dy.theta_dot, dy.phibar_dot])
 
-    z0 = jnp.stack([jnp.asarray(theta0, dtype=jnp.result_type(theta0, top.m)), 0.0 * top.m, 0.0 * top.m])
+    z0 = jnp.stack(
+        [jnp.asarray(theta0, dtype=jnp.result_type(theta0, top.m)), 0.0 * top.m, 0.0 * top.m]
+    )
     return jnp.linalg.eigvals(jax.jacfwd(field)(z0))
 
 
@@ -88,9 +93,13 @@ def characteristic_polynomial(top: TippeTop, theta0, J, *, corrected: bool = Tru
     return jnp.stack([one, alpha + gamma, alpha * gamma + beta2 + delta, delta * gamma])
 
 
-def polynomial_eigenvalues(top: TippeTop, theta0, J, *, corrected: bool = True) -> Complex[Array, "3"]:
+def polynomial_eigenvalues(
+    top: TippeTop, theta0, J, *, corrected: bool = True
+) -> Complex[Array, "3"]:
     """Roots of `characteristic_polynomial` (see there)."""
-    return jnp.roots(characteristic_polynomial(top, theta0, J, corrected=corrected), strip_zeros=False)
+    return jnp.roots(
+        characteristic_polynomial(top, theta0, J, corrected=corrected), strip_zeros=False
+    )
 
 
 def relative_equilibrium(top: TippeTop, theta0, J):
@@ -177,7 +186,7 @@ def vector_field_eigenvalues(
         rows.append(jnp.concatenate(sym))
     constraints = jnp.stack(rows)
     _, _, vt = jnp.linalg.svd(constraints, full_matrices=True)
-    basis = vt[len(rows):].T
+    basis = vt[len(rows) :].T
     return jnp.linalg.eigvals(basis.T @ jac @ basis)
 
 

@@ -169,37 +169,57 @@ class SteadyStates(eqx.Module):
             ev_so3 = np.asarray(self.vertical_eigenvalues_so3[i])
             ev_full = np.asarray(self.vertical_eigenvalues_full[i])
             stable = bool(self.vertical_stable[i])
-            out.append(dict(
-                state="vertical", theta=float(self.vertical_theta[i]),
-                spin=float(self.vertical_spin[i]), d2W=float(self.vertical_d2W[i]),
-                stable=stable, eigenvalues_so3=ev_so3, eigenvalues_full=ev_full,
-                max_real_so3=float(np.max(ev_so3.real)),
-                max_real_full=float(np.max(ev_full.real)),
-                routes_agree=None if self.drifts else _signs_agree(stable, ev_so3, ev_full),
-                jellet_rate=float(self.vertical_jellet_rate[i]),
-                slip_coefficient=float(self.vertical_slip_coefficient[i]),
-            ))
+            out.append(
+                dict(
+                    state="vertical",
+                    theta=float(self.vertical_theta[i]),
+                    spin=float(self.vertical_spin[i]),
+                    d2W=float(self.vertical_d2W[i]),
+                    stable=stable,
+                    eigenvalues_so3=ev_so3,
+                    eigenvalues_full=ev_full,
+                    max_real_so3=float(np.max(ev_so3.real)),
+                    max_real_full=float(np.max(ev_full.real)),
+                    routes_agree=None if self.drifts else _signs_agree(stable, ev_so3, ev_full),
+                    jellet_rate=float(self.vertical_jellet_rate[i]),
+                    slip_coefficient=float(self.vertical_slip_coefficient[i]),
+                )
+            )
         for i in range(2):
             if not bool(self.intermediate_valid[i]):
                 continue
-            ev = {k: np.asarray(getattr(self, f"intermediate_eigenvalues_{k}")[i])
-                  for k in ("reduced", "polynomial", "so3", "full")}
+            ev = {
+                k: np.asarray(getattr(self, f"intermediate_eigenvalues_{k}")[i])
+                for k in ("reduced", "polynomial", "so3", "full")
+            }
             stable = bool(self.intermediate_stable[i])
-            spread = float("nan") if self.drifts else max(
-                _eigen_distance(ev["so3"], ev["reduced"]),
-                _eigen_distance(ev["so3"], ev["polynomial"]))
-            out.append(dict(
-                state="intermediate", theta=float(self.intermediate_theta[i]),
-                spin=float(self.intermediate_spin[i]), d2W=float(self.intermediate_d2W[i]),
-                stable=stable, eigenvalues_so3=ev["so3"], eigenvalues_full=ev["full"],
-                eigenvalues_reduced=ev["reduced"], eigenvalues_polynomial=ev["polynomial"],
-                max_real_so3=float(np.max(ev["so3"].real)),
-                max_real_full=float(np.max(ev["full"].real)),
-                routes_agree=None if self.drifts else _signs_agree(stable, *ev.values()),
-                route_spread=spread,
-                jellet_rate=float(self.intermediate_jellet_rate[i]),
-                slip_coefficient=float(self.intermediate_slip_coefficient[i]),
-            ))
+            spread = (
+                float("nan")
+                if self.drifts
+                else max(
+                    _eigen_distance(ev["so3"], ev["reduced"]),
+                    _eigen_distance(ev["so3"], ev["polynomial"]),
+                )
+            )
+            out.append(
+                dict(
+                    state="intermediate",
+                    theta=float(self.intermediate_theta[i]),
+                    spin=float(self.intermediate_spin[i]),
+                    d2W=float(self.intermediate_d2W[i]),
+                    stable=stable,
+                    eigenvalues_so3=ev["so3"],
+                    eigenvalues_full=ev["full"],
+                    eigenvalues_reduced=ev["reduced"],
+                    eigenvalues_polynomial=ev["polynomial"],
+                    max_real_so3=float(np.max(ev["so3"].real)),
+                    max_real_full=float(np.max(ev["full"].real)),
+                    routes_agree=None if self.drifts else _signs_agree(stable, *ev.values()),
+                    route_spread=spread,
+                    jellet_rate=float(self.intermediate_jellet_rate[i]),
+                    slip_coefficient=float(self.intermediate_slip_coefficient[i]),
+                )
+            )
         return out
 
     def table(self) -> str:
@@ -210,9 +230,10 @@ class SteadyStates(eqx.Module):
             last = f"{'dJ/dt':>13}"
         else:
             last = f"{'max Re so3':>12}{'max Re full':>13}  routes"
-        lines = [f"steady states at J = {float(self.jellet):.6g} kg m^2/s ({self.law} law)",
-                 f"  {'state':<13}{'theta (rad)':>12}{'spin (rad/s)':>14}{d2w:>12}  "
-                 f"{'stable':<9}{last}"]
+        lines = [
+            f"steady states at J = {float(self.jellet):.6g} kg m^2/s ({self.law} law)",
+            f"  {'state':<13}{'theta (rad)':>12}{'spin (rad/s)':>14}{d2w:>12}  {'stable':<9}{last}",
+        ]
         for row in self.rows():
             if self.drifts:
                 tail = f"{row['jellet_rate']:>13.4g}"
@@ -231,12 +252,14 @@ class SteadyStates(eqx.Module):
             lines.append(
                 f"  The {self.law} law's drilling torque does not vanish at these states: J "
                 "drifts at dJ/dt (kg m^2/s^2), so they are quasi-steady states that move with "
-                "J, 'stable' at frozen J (W'' > 0); no eigenvalues (stability margins).")
+                "J, 'stable' at frozen J (W'' > 0); no eigenvalues (stability margins)."
+            )
         elif self.law != "Viscous":
             k = np.asarray(self.vertical_slip_coefficient)[0]
             lines.append(
                 f"  Eigenvalues of the {self.law} law linearised at zero slip: a viscous law of "
-                f"coefficient {k:.4g} s/m (mu/slip_scale for Coulomb).")
+                f"coefficient {k:.4g} s/m (mu/slip_scale for Coulomb)."
+            )
         return "\n".join(lines)
 
     def __repr__(self) -> str:
@@ -249,8 +272,7 @@ class SteadyStates(eqx.Module):
 
 def _is_concrete_single(ss: SteadyStates) -> bool:
     leaves = jax.tree_util.tree_leaves(ss)
-    return (not any(isinstance(x, jax.core.Tracer) for x in leaves)
-            and jnp.ndim(ss.jellet) == 0)
+    return not any(isinstance(x, jax.core.Tracer) for x in leaves) and jnp.ndim(ss.jellet) == 0
 
 
 def _check_concrete_single(ss: SteadyStates, what: str) -> None:
@@ -400,12 +422,16 @@ def _steady_states(top: TippeTop, J) -> SteadyStates:
     poles = jnp.array([0.0, jnp.pi], dtype=J.dtype)
     vertical_d2w = effective_potential_d2_closed_form(top, poles, J)
     vertical_so3 = jnp.stack(
-        [eigenvalues(p, 4, vector_field_eigenvalues, model="so3", pole=True)
-         for p in (poles[0], poles[1])]
+        [
+            eigenvalues(p, 4, vector_field_eigenvalues, model="so3", pole=True)
+            for p in (poles[0], poles[1])
+        ]
     )
     vertical_full = jnp.stack(
-        [eigenvalues(p, 6, vector_field_eigenvalues, model="full", pole=True)
-         for p in (poles[0], poles[1])]
+        [
+            eigenvalues(p, 6, vector_field_eigenvalues, model="full", pole=True)
+            for p in (poles[0], poles[1])
+        ]
     )
     jdot_v, k_v = (jnp.stack(x) for x in zip(*(law_at(p) for p in (poles[0], poles[1]))))
     x = jnp.cos(safe)
@@ -414,7 +440,9 @@ def _steady_states(top: TippeTop, J) -> SteadyStates:
     return SteadyStates(
         jellet=J,
         vertical_theta=poles,
-        vertical_spin=jnp.stack([J / (top.C * (top.R - top.eps)), -J / (top.C * (top.R + top.eps))]),
+        vertical_spin=jnp.stack(
+            [J / (top.C * (top.R - top.eps)), -J / (top.C * (top.R + top.eps))]
+        ),
         vertical_d2W=vertical_d2w,
         vertical_stable=vertical_d2w > 0,
         vertical_eigenvalues_so3=vertical_so3,

@@ -97,10 +97,16 @@ def demo_simulation(top, theta0: float, spin: float, out: str, *, t1: float = 12
     t_inv = float(sol.t_invert)
     print(
         "  inversion time:    "
-        + (f"{t_inv:.4f} s (first upward crossing of theta = pi/2)" if np.isfinite(t_inv) else "none")
+        + (
+            f"{t_inv:.4f} s (first upward crossing of theta = pi/2)"
+            if np.isfinite(t_inv)
+            else "none"
+        )
     )
     print(f"  Jellet drift:      {np.nanmax(np.abs(J / J[0] - 1)):.2e} (relative, max over t)")
-    print(f"  energy lost:       {E[0] - E[last]:.4e} J of {E[0]:.4e} J ({100 * (1 - E[last] / E[0]):.1f} %)")
+    print(
+        f"  energy lost:       {E[0] - E[last]:.4e} J of {E[0]:.4e} J ({100 * (1 - E[last] / E[0]):.1f} %)"
+    )
     print(
         f"  final state:       t = {ts[last]:.2f} s, theta = {theta[last]:.4f} rad "
         f"(pi - theta = {np.pi - theta[last]:.2e}), spin n = {float(sol.spin[last]):.2f} rad/s, "

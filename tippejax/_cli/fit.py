@@ -82,7 +82,7 @@ def launch_tilt_guess(t, theta) -> float:
     """A guess of the launch tilt from the record: the mean of the samples in its first 2% (at
     least 5 samples), which averages the noise of one sample, kept away from the poles."""
     finite = np.isfinite(theta)
-    first = t[finite][:max(5, int(0.02 * finite.sum()))]
+    first = t[finite][: max(5, int(0.02 * finite.sum()))]
     guess = float(np.mean(theta[finite][: first.size]))
     return min(max(guess, FIT_MIN_THETA0), math.pi - FIT_MIN_THETA0)
 
@@ -149,8 +149,18 @@ def _run_fit(args) -> int:
     )
     start = time.perf_counter()
     result = fit(
-        top, y0, t, theta, free=free, phi_obs=phi, model=args.model, method=args.method,
-        strategy=args.strategy, max_steps=args.max_steps, sigma=args.sigma, trim=args.trim,
+        top,
+        y0,
+        t,
+        theta,
+        free=free,
+        phi_obs=phi,
+        model=args.model,
+        method=args.method,
+        strategy=args.strategy,
+        max_steps=args.max_steps,
+        sigma=args.sigma,
+        trim=args.trim,
         t0=args.t0,
     )
     wall = time.perf_counter() - start
@@ -162,12 +172,16 @@ def _run_fit(args) -> int:
     elif describes >= t[-1]:
         note = "  (the whole record)"
     else:
-        note = (f"  (of {t[-1]:g} s: the model stops describing the data there; try --t-max or "
-                "another model)")
+        note = (
+            f"  (of {t[-1]:g} s: the model stops describing the data there; try --t-max or "
+            "another model)"
+        )
     print(f"describes until: {fmt(describes, '.4g')} s{note}")
-    print(f"rms residual:    {float(result.rms):.4g} rad over the whole record, "
-          f"{float(result.rms_fitted):.4g} rad over the fitted part (to "
-          f"{float(result.fitted_until):.4g} s)")
+    print(
+        f"rms residual:    {float(result.rms):.4g} rad over the whole record, "
+        f"{float(result.rms_fitted):.4g} rad over the fitted part (to "
+        f"{float(result.fitted_until):.4g} s)"
+    )
     print(f"converged:       {bool(result.converged)} ({result.message()})")
     print(f"wall time:       {wall:.1f} s (including compilation)")
     for path in write_fit_outputs(result, args.out):
@@ -181,4 +195,3 @@ def run(args) -> int:
     except (ValueError, TypeError, OSError) as err:  # bad input: a message, not a traceback
         print(f"error: {err}", file=sys.stderr)
         return 2
-

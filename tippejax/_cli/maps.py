@@ -51,27 +51,39 @@ def map_arrays(om) -> dict[str, np.ndarray]:
     parts (`boundary_pairs`, `"a|b"`); the same with the prefix `theory_` (`"J1"`,
     `"J2"`)."""
     out = dict(
-        axes=np.array(om.axes), axis0=np.asarray(om.axis_values[0]),
-        axis1=np.asarray(om.axis_values[1]), outcomes=np.array(OUTCOMES),
+        axes=np.array(om.axes),
+        axis0=np.asarray(om.axis_values[0]),
+        axis1=np.asarray(om.axis_values[1]),
+        outcomes=np.array(OUTCOMES),
         fixed_names=np.array([k for k, _ in om.fixed], dtype=str),
         fixed_values=np.array([v for _, v in om.fixed], dtype=float),
         refine=np.array(om.refine),
     )
-    for key in ("outcome", "settled", "simulated", "resolved", "theta_final", "t_invert",
-                "t_contact_loss", "jellet", "contact_margin", "theta_max", "result",
-                "num_steps"):
+    for key in (
+        "outcome",
+        "settled",
+        "simulated",
+        "resolved",
+        "theta_final",
+        "t_invert",
+        "t_contact_loss",
+        "jellet",
+        "contact_margin",
+        "theta_max",
+        "result",
+        "num_steps",
+    ):
         out[key] = np.asarray(getattr(om, key))
     if om.axes == ("theta0", "spin"):  # (the keys of earlier versions)
         out["theta0"], out["spin"] = out["axis0"], out["axis1"]
 
     def lines(prefix, named):
         points = [line for _, line in named]
-        out[f"{prefix}_points"] = (np.concatenate(points) if points else np.zeros((0, 2)))
+        out[f"{prefix}_points"] = np.concatenate(points) if points else np.zeros((0, 2))
         out[f"{prefix}_starts"] = np.cumsum([0] + [len(p) for p in points])[:-1].astype(int)
         out[f"{prefix}_pairs"] = np.array([name for name, _ in named], dtype=str)
 
-    lines("boundary", [("|".join(b.outcomes), line) for b in om.boundaries()
-                       for line in b.lines])
+    lines("boundary", [("|".join(b.outcomes), line) for b in om.boundaries() for line in b.lines])
     lines("theory", [(name, line) for name, ls in om.theory_curves().items() for line in ls])
     return out
 
@@ -85,8 +97,14 @@ def _image(ax, values, first, second, **style):
     """`values[i, j]` over (second axis across, first up): an image on a uniform grid, cells
     between the midpoints elsewhere."""
     if _uniform(first) and _uniform(second):
-        ax.imshow(values, origin="lower", extent=(second[0], second[-1], first[0], first[-1]),
-                  aspect="auto", interpolation="nearest", **style)
+        ax.imshow(
+            values,
+            origin="lower",
+            extent=(second[0], second[-1], first[0], first[-1]),
+            aspect="auto",
+            interpolation="nearest",
+            **style,
+        )
     else:
         ax.pcolormesh(second, first, values, shading="nearest", **style)
 
@@ -121,33 +139,50 @@ def adaptive_map_figure(om, *, title: str | None = None):
     styles = {"J1": "-", "J2": "--"}
     for name, lines in om.theory_curves().items():
         for line in lines:
-            ax.plot(line[:, 1], line[:, 0], color="#e7298a", linewidth=1.2,
-                    linestyle=styles[name])
+            ax.plot(line[:, 1], line[:, 0], color="#e7298a", linewidth=1.2, linestyle=styles[name])
     present = [k for k in range(len(OUTCOMES)) if np.any(outcome == k)]
-    handles = [Patch(color=OUTCOME_COLOURS[k], label=OUTCOMES[k].replace("_", " "))
-               for k in present]
-    handles += [Line2D([], [], color="black", label="boundaries (map)"),
-                Line2D([], [], color="#e7298a", label=r"$J = J_1$: $W''(0;J)=0$"),
-                Line2D([], [], color="#e7298a", linestyle="--",
-                       label=r"$J = J_2$: $W''(\pi;J)=0$")]
-    ax.legend(handles=handles, fontsize=8, ncol=3, loc="upper center",
-              bbox_to_anchor=(0.5, -0.11), framealpha=0.9)
+    handles = [
+        Patch(color=OUTCOME_COLOURS[k], label=OUTCOMES[k].replace("_", " ")) for k in present
+    ]
+    handles += [
+        Line2D([], [], color="black", label="boundaries (map)"),
+        Line2D([], [], color="#e7298a", label=r"$J = J_1$: $W''(0;J)=0$"),
+        Line2D([], [], color="#e7298a", linestyle="--", label=r"$J = J_2$: $W''(\pi;J)=0$"),
+    ]
+    ax.legend(
+        handles=handles,
+        fontsize=8,
+        ncol=3,
+        loc="upper center",
+        bbox_to_anchor=(0.5, -0.11),
+        framealpha=0.9,
+    )
     ax.set_xlim(extent[0], extent[1])
     ax.set_ylim(extent[2], extent[3])
     ax.set_xlabel(om.axes[1])
     ax.set_ylabel(om.axes[0])
-    kind = (f"adaptive, refine = {om.refine}" if om.refine else "dense")
-    ax.set_title(f"Outcome at t1 = {om.t1:g} s, {outcome.shape[0]} x {outcome.shape[1]} "
-                 f"launches ({kind})", fontsize=10)
+    kind = f"adaptive, refine = {om.refine}" if om.refine else "dense"
+    ax.set_title(
+        f"Outcome at t1 = {om.t1:g} s, {outcome.shape[0]} x {outcome.shape[1]} launches ({kind})",
+        fontsize=10,
+    )
     flags = np.where(np.asarray(om.simulated), 1, 0)
     flags = np.where(np.asarray(om.resolved), flags, 2)
-    _image(ax2, flags, first, second,
-           cmap=ListedColormap(["#f0f0f0", "#252525", "#de2d26"]),
-           norm=BoundaryNorm([-0.5, 0.5, 1.5, 2.5], 3))
+    _image(
+        ax2,
+        flags,
+        first,
+        second,
+        cmap=ListedColormap(["#f0f0f0", "#252525", "#de2d26"]),
+        norm=BoundaryNorm([-0.5, 0.5, 1.5, 2.5], 3),
+    )
     ax2.set_xlabel(om.axes[1])
     ax2.set_ylabel(om.axes[0])
-    ax2.set_title(f"simulated: {100 * om.share_simulated:.2f}% of the launches (dark); "
-                  "refinement stopped: red", fontsize=10)
+    ax2.set_title(
+        f"simulated: {100 * om.share_simulated:.2f}% of the launches (dark); "
+        "refinement stopped: red",
+        fontsize=10,
+    )
     if title:
         fig.suptitle(title)
     return fig
@@ -171,22 +206,34 @@ def run(args) -> int:
         spin_max = args.spin_max if args.spin_max is not None else 6.0 * float(thresholds(top).n1)
         spin = np.linspace(args.spin_min, spin_max, n_spin)
         os.makedirs(args.out, exist_ok=True)
-        print(f"top: Group {group}, A/C = {float(top.A_over_C):.4g}, "
-              f"eps/R = {float(top.eps_over_R):.4g}, {mu_text(top)}")
+        print(
+            f"top: Group {group}, A/C = {float(top.A_over_C):.4g}, "
+            f"eps/R = {float(top.eps_over_R):.4g}, {mu_text(top)}"
+        )
         start = time.perf_counter()
-        om = outcome_map(top, theta0, spin, t1=args.t1, model=args.model,
-                         tolerance=args.tolerance, refine=refine or None,
-                         progress=bool(refine))
+        om = outcome_map(
+            top,
+            theta0,
+            spin,
+            t1=args.t1,
+            model=args.model,
+            tolerance=args.tolerance,
+            refine=refine or None,
+            progress=bool(refine),
+        )
         elapsed = time.perf_counter() - start
         n = theta0.size * spin.size
         print(om.summary())
-        print(f"{n} launches in {elapsed:.1f} s ({n / elapsed:.1f} launches/s, compilation "
-              f"included) on {len(jax.devices())} device(s)")
+        print(
+            f"{n} launches in {elapsed:.1f} s ({n / elapsed:.1f} launches/s, compilation "
+            f"included) on {len(jax.devices())} device(s)"
+        )
         for b in om.boundaries():
-            near = (f"; {b.distance:.2f} cells (median) from J = {b.theory[1:]}" if b.theory
-                    else "")
-            print(f"boundary {b.outcomes[0]} | {b.outcomes[1]}: {b.cells} cells, box-counting "
-                  f"dimension {b.dimension:.2f}{near}")
+            near = f"; {b.distance:.2f} cells (median) from J = {b.theory[1:]}" if b.theory else ""
+            print(
+                f"boundary {b.outcomes[0]} | {b.outcomes[1]}: {b.cells} cells, box-counting "
+                f"dimension {b.dimension:.2f}{near}"
+            )
         figure = adaptive_map_figure(om) if refine else outcome_map_figure(om)
         paths = [save(figure, os.path.join(args.out, "outcome_map.png"), dpi=110)]
         np.savez(os.path.join(args.out, "outcome_map.npz"), **map_arrays(om))
@@ -194,14 +241,26 @@ def run(args) -> int:
         if args.tops:
             a = np.linspace(0.55, 1.6, args.n_tops)
             e = np.linspace(0.04, 0.7, max(2, (3 * args.n_tops) // 4))
-            spin_tops = args.spin_tops if args.spin_tops is not None else float(spin[len(spin) // 2])
+            spin_tops = (
+                args.spin_tops if args.spin_tops is not None else float(spin[len(spin) // 2])
+            )
             start = time.perf_counter()
-            omt = outcome_map_tops(top, a, e, theta0=args.theta0_tops, spin=spin_tops,
-                                   t1=args.t1, model="full" if args.model == "auto" else args.model)
+            omt = outcome_map_tops(
+                top,
+                a,
+                e,
+                theta0=args.theta0_tops,
+                spin=spin_tops,
+                t1=args.t1,
+                model="full" if args.model == "auto" else args.model,
+            )
             print(omt.summary())
             print(f"{a.size * e.size} tops in {time.perf_counter() - start:.1f} s")
-            paths.append(save(outcome_map_figure(omt),
-                              os.path.join(args.out, "outcome_map_tops.png"), dpi=110))
+            paths.append(
+                save(
+                    outcome_map_figure(omt), os.path.join(args.out, "outcome_map_tops.png"), dpi=110
+                )
+            )
     except (ValueError, TypeError, OSError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -57,12 +57,19 @@ def _bernstein_polygon(pieces: int) -> np.ndarray:
     with $q(u) = \sum_i c_i u^i$, $c_i = \sum_{j\ge i} a_j \binom ji k^{j-i}/P^j$ and
     $b_i = \sum_{l\le i} \binom il c_l / \binom5l$. The sign changes of the whole sequence bound
     the crossings of the quintic in the step from above (`docs/derivations/event-watch.md`)."""
-    to_bernstein = [[Fraction(math.comb(i, j), math.comb(5, j)) if j <= i else Fraction(0)
-                     for j in range(6)] for i in range(6)]
+    to_bernstein = [
+        [Fraction(math.comb(i, j), math.comb(5, j)) if j <= i else Fraction(0) for j in range(6)]
+        for i in range(6)
+    ]
     rows = []
     for k in range(pieces):
-        shift = [[Fraction(math.comb(j, i) * k ** (j - i), pieces**j) if j >= i else Fraction(0)
-                  for j in range(6)] for i in range(6)]
+        shift = [
+            [
+                Fraction(math.comb(j, i) * k ** (j - i), pieces**j) if j >= i else Fraction(0)
+                for j in range(6)
+            ]
+            for i in range(6)
+        ]
         part = _matmul(_matmul(to_bernstein, shift), _hermite_to_power())
         rows.extend(part if k == pieces - 1 else part[:-1])
     return np.array(rows, dtype=float)

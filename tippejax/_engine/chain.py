@@ -101,8 +101,16 @@ class _Start(eqx.Module):
     result: RESULTS
 
 
-def _chain_start(level: AbstractLevel, top, state0: State, t0, ts, stop_on_contact: bool,
-                 lowest=(), event_names: tuple[str, ...] = ()):
+def _chain_start(
+    level: AbstractLevel,
+    top,
+    state0: State,
+    t0,
+    ts,
+    stop_on_contact: bool,
+    lowest=(),
+    event_names: tuple[str, ...] = (),
+):
     """The carry of one member before its first segment: the checks at `t0`; `event_names`:
     the chain's levels' own observed events."""
     dtype = jnp.result_type(top.m)
@@ -121,12 +129,20 @@ def _chain_start(level: AbstractLevel, top, state0: State, t0, ts, stop_on_conta
             lambda x: jnp.full(ts.shape + x.shape, jnp.nan, dtype), state0
         )
     return _Carry(
-        states=states, state_end=state0, t_final=t_start, result=result, t_invert=nan,
-        t_contact_loss=jnp.where(lost0, t_start, nan), t_chart_switch=nan,
-        num_steps=jnp.array(0), num_rejected_steps=jnp.array(0),
+        states=states,
+        state_end=state0,
+        t_final=t_start,
+        result=result,
+        t_invert=nan,
+        t_contact_loss=jnp.where(lost0, t_start, nan),
+        t_chart_switch=nan,
+        num_steps=jnp.array(0),
+        num_rejected_steps=jnp.array(0),
         lowest={name: jnp.array(jnp.inf, dtype) for name in lowest},
-        level_events={name: nan for name in event_names}, state=state0,
-        t_start=t_start, active=~dead0,
+        level_events={name: nan for name in event_names},
+        state=state0,
+        t_start=t_start,
+        active=~dead0,
     )
 
 
@@ -140,8 +156,9 @@ def _segment_start(chain, i: int, top, carry: _Carry, t1, y0=None) -> _Start:
     stand_in = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), stand_in)
     # (states of a chain through the stem level carry the height: the stand-in keeps the
     # state's, which no level reads on entry)
-    stand_in = dataclasses.replace(stand_in, height=carry.state.height,
-                                   height_rate=carry.state.height_rate)
+    stand_in = dataclasses.replace(
+        stand_in, height=carry.state.height, height_rate=carry.state.height_rate
+    )
     active, state, result = carry.active, carry.state, carry.result
     runs = active & lvl.in_chart(top, state)
     chart_end = _chart_end_code(lvl)
@@ -151,37 +168,47 @@ def _segment_start(chain, i: int, top, carry: _Carry, t1, y0=None) -> _Start:
         hand_over_now = active & ~runs
     elif chart_end is not None:
         # Outside the chart of a level with no fallback: nothing to integrate; say why.
-        result = RESULTS.where(
-            active & ~runs & (result == RESULTS.successful), chart_end, result
-        )
+        result = RESULTS.where(active & ~runs & (result == RESULTS.successful), chart_end, result)
     if i == 0 and y0 is not None:
         y_start = y0
     else:
         y_start = lvl.from_state(top, _where_tree(runs, state, stand_in))
     t_stop = jnp.where(runs, t1, carry.t_start)
-    return _Start(runs=runs, hand_over_now=hand_over_now, y_start=y_start, t_stop=t_stop,
-                  result=result)
+    return _Start(
+        runs=runs, hand_over_now=hand_over_now, y_start=y_start, t_stop=t_stop, result=result
+    )
 
 
 def _segment_events(lvl: AbstractLevel, stop_on_contact: bool, inversion: bool):
     """The terminating and the observed event names of a segment of `lvl`."""
-    terminating = ("singular",) + (("chart",) if lvl.has_chart else ()) + (
-        ("contact",) if stop_on_contact else ()
+    terminating = (
+        ("singular",)
+        + (("chart",) if lvl.has_chart else ())
+        + (("contact",) if stop_on_contact else ())
     )
     observed = (("upright",) if inversion else ()) + (() if stop_on_contact else ("contact",))
     return terminating, observed + lvl.observed_events
 
 
-def _segment_end(chain, i: int, top, carry: _Carry, start: _Start, seg, ts, *,
-                 stop_on_contact: bool, inversion: bool) -> _Carry:
+def _segment_end(
+    chain,
+    i: int,
+    top,
+    carry: _Carry,
+    start: _Start,
+    seg,
+    ts,
+    *,
+    stop_on_contact: bool,
+    inversion: bool,
+) -> _Carry:
     """The carry of one member after segment `i` of `chain` (its `Segment` `seg`)."""
     lvl, last = chain[i], i == len(chain) - 1
     dtype = jnp.result_type(top.m)
     nan = jnp.array(jnp.nan, dtype)
     runs, t_start = start.runs, carry.t_start
     seg_result = _segment_result(seg, stop_on_contact, _chart_end_code(lvl))
-    result = RESULTS.where(runs & (start.result == RESULTS.successful), seg_result,
-                           start.result)
+    result = RESULTS.where(runs & (start.result == RESULTS.successful), seg_result, start.result)
     states = carry.states
     if ts is not None:
         inside = runs & (ts >= t_start) & (ts <= seg.t_end)
@@ -206,8 +233,9 @@ def _segment_end(chain, i: int, top, carry: _Carry, start: _Start, seg, ts, *,
     t_contact_loss = jnp.where(runs & jnp.isnan(t_contact_loss), contact, t_contact_loss)
     level_events = dict(carry.level_events)  # the level's own events: their first crossing
     for name in lvl.observed_events:
-        level_events[name] = jnp.where(runs & jnp.isnan(level_events[name]),
-                                       seg.observed[name], level_events[name])
+        level_events[name] = jnp.where(
+            runs & jnp.isnan(level_events[name]), seg.observed[name], level_events[name]
+        )
     state, active, t_chart_switch = carry.state, carry.active, carry.t_chart_switch
     if not last:
         switch = runs & seg.fired["chart"] & (seg_result == RESULTS.successful)
@@ -226,8 +254,10 @@ def _segment_end(chain, i: int, top, carry: _Carry, start: _Start, seg, ts, *,
         t_chart_switch=t_chart_switch,
         num_steps=carry.num_steps + seg.num_steps,
         num_rejected_steps=carry.num_rejected_steps + seg.num_rejected_steps,
-        lowest={name: jnp.where(runs, jnp.minimum(low, seg.lowest[name].astype(low.dtype)), low)
-                for name, low in carry.lowest.items()},
+        lowest={
+            name: jnp.where(runs, jnp.minimum(low, seg.lowest[name].astype(low.dtype)), low)
+            for name, low in carry.lowest.items()
+        },
         level_events=level_events,
         state=state,
         t_start=t_start,
@@ -315,8 +345,9 @@ def run_chain(
         raise ValueError("run_chain: lowest= is not kept with shared steps.")
     event_names = tuple(dict.fromkeys(e for lvl in chain for e in lvl.observed_events))
     each = _each_member(top) if shared_steps else _as_one
-    carry = each(lambda top, s: _chain_start(chain[0], top, s, t0, ts, stop_on_contact,
-                                             lowest, event_names))(top, state0)
+    carry = each(
+        lambda top, s: _chain_start(chain[0], top, s, t0, ts, stop_on_contact, lowest, event_names)
+    )(top, state0)
     for i, lvl in enumerate(chain):
         start = each(lambda top, c: _segment_start(chain, i, top, c, t1, y0))(top, carry)
         terminating, observed = _segment_events(lvl, stop_on_contact, inversion)
@@ -324,21 +355,21 @@ def run_chain(
         events["solver"] = _solver_of(events["solver"], i)
         if not shared_steps:
             events["lowest"] = lowest
-        end = functools.partial(_segment_end, chain, i, ts=ts, stop_on_contact=stop_on_contact,
-                                inversion=inversion)
+        end = functools.partial(
+            _segment_end, chain, i, ts=ts, stop_on_contact=stop_on_contact, inversion=inversion
+        )
         if shared_steps:
-            seg = run_segment_shared(lvl, top, start.y_start, t0, t1, ts, idle=~start.runs,
-                                     **events)
+            seg = run_segment_shared(
+                lvl, top, start.y_start, t0, t1, ts, idle=~start.runs, **events
+            )
             carry = each(end)(top, carry, start, seg)
         elif i == 0:
-            seg = run_segment(lvl, top, start.y_start, carry.t_start, start.t_stop, ts,
-                              **events)
+            seg = run_segment(lvl, top, start.y_start, carry.t_start, start.t_stop, ts, **events)
             carry = end(top, carry, start, seg)
         elif i == len(chain) - 1:
             carry = _last_fallback(lvl, top, carry, start, ts, events, end)
         else:  # (no chain has a fallback that falls back again: a segment for every member)
-            seg = run_segment(lvl, top, start.y_start, carry.t_start, start.t_stop, ts,
-                              **events)
+            seg = run_segment(lvl, top, start.y_start, carry.t_start, start.t_stop, ts, **events)
             carry = end(top, carry, start, seg)
     return each(lambda top, c: _chain_output(c, stop_on_contact))(top, carry)
 
@@ -350,8 +381,9 @@ def _solver_of(solver, i: int):
     return solver[i] if isinstance(solver, tuple) else solver
 
 
-def _last_fallback(lvl: AbstractLevel, top, carry: _Carry, start: _Start, ts, events,
-                   end) -> _Carry:
+def _last_fallback(
+    lvl: AbstractLevel, top, carry: _Carry, start: _Start, ts, events, end
+) -> _Carry:
     """The carry after the chain's last segment, a fallback level's (`end(top, carry, start,
     segment)`, `_segment_end`): integrated, and its states at the save times converted and
     merged, only where some member enters it (`lax.cond`). A run that never leaves its first
@@ -365,8 +397,7 @@ def _last_fallback(lvl: AbstractLevel, top, carry: _Carry, start: _Start, ts, ev
         seg = run_segment(lvl, top, start.y_start, carry.t_start, start.t_stop, ts, **events)
         out = end(top, carry, start, seg)
         # (the same dtypes in both branches of `lax.cond`)
-        return jax.tree_util.tree_map(lambda x, ref: jnp.asarray(x).astype(ref.dtype), out,
-                                      skipped)
+        return jax.tree_util.tree_map(lambda x, ref: jnp.asarray(x).astype(ref.dtype), out, skipped)
 
     skipped = eqx.tree_at(lambda c: c.result, carry, start.result)
     return jax.lax.cond(eqxi.unvmap_any(start.runs), integrate, lambda: skipped)

@@ -64,9 +64,7 @@ def locate_observed(
     def fn(t, _):
         return solver.watch(interpolation.evaluate(t), args)[index].astype(t1.dtype)
 
-    root = optx.root_find(
-        fn, root_finder, y0=t1, options=dict(lower=t0, upper=t1), throw=False
-    )
+    root = optx.root_find(fn, root_finder, y0=t1, options=dict(lower=t0, upper=t1), throw=False)
     return jnp.where(state.found[k], root.value, jnp.nan)
 
 
@@ -84,9 +82,7 @@ def locate_terminating(
     def fn(t, _):
         return jnp.min(solver.watch(interpolation.evaluate(t), args)[stops]).astype(t1.dtype)
 
-    root = optx.root_find(
-        fn, root_finder, y0=t1, options=dict(lower=t0, upper=t1), throw=False
-    )
+    root = optx.root_find(fn, root_finder, y0=t1, options=dict(lower=t0, upper=t1), throw=False)
     return root.value, interpolation.evaluate(root.value)
 
 

@@ -33,17 +33,30 @@ def short_solve(vector_field, y0, t0, t1, norm, *, rtol, atol):
     the state at `t1` and whether the solve succeeded (it never raises)."""
     controller = diffrax.PIDController(rtol=rtol, atol=atol, norm=norm)
     sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(lambda t, y, args: vector_field(t, y)), diffrax.Tsit5(), t0, t1, None,
-        y0, stepsize_controller=controller, saveat=diffrax.SaveAt(t1=True),
-        max_steps=SETTLE_MAX_STEPS, throw=False,
+        diffrax.ODETerm(lambda t, y, args: vector_field(t, y)),
+        diffrax.Tsit5(),
+        t0,
+        t1,
+        None,
+        y0,
+        stepsize_controller=controller,
+        saveat=diffrax.SaveAt(t1=True),
+        max_steps=SETTLE_MAX_STEPS,
+        throw=False,
     )
     ok = sol.result == diffrax.RESULTS.successful
     return jax.tree_util.tree_map(lambda x: x[-1], sol.ys), ok
 
 
-def settle_launch(top: TippeTop, state: State, *, amplitude: float = SETTLE_AMPLITUDE,
-                  time_max: float = SETTLE_TIME_MAX, rtol: float = SETTLE_RTOL,
-                  atol: float = SETTLE_ATOL) -> GyroscopicLevelState:
+def settle_launch(
+    top: TippeTop,
+    state: State,
+    *,
+    amplitude: float = SETTLE_AMPLITUDE,
+    time_max: float = SETTLE_TIME_MAX,
+    rtol: float = SETTLE_RTOL,
+    atol: float = SETTLE_ATOL,
+) -> GyroscopicLevelState:
     """The fibre projection of a (single) state (see `FibreProjection`)."""
     linear = linear_state(top, state)
     T = settle_time(top, state, amplitude=amplitude, time_max=time_max)
@@ -51,16 +64,26 @@ def settle_launch(top: TippeTop, state: State, *, amplitude: float = SETTLE_AMPL
     t_end = jnp.where(short, 1e-6, T).astype(T.dtype)
     so3 = SO3Level()
     forward, ok_forward = short_solve(
-        lambda t, y: so3.vector_field(t, y, top), so3.from_state(top, state),
-        jnp.zeros_like(t_end), t_end, so3.error_norm, rtol=rtol, atol=atol,
+        lambda t, y: so3.vector_field(t, y, top),
+        so3.from_state(top, state),
+        jnp.zeros_like(t_end),
+        t_end,
+        so3.error_norm,
+        rtol=rtol,
+        atol=atol,
     )
     settled = linear_state(top, so3.to_state(top, forward))
     # J is exact in the SO(3) model: keep the launch's, not the solve's rounding of it
     settled = eqx.tree_at(lambda y: y.jellet, settled, linear.jellet)
     level = GyroscopicLevel()
     back, ok_back = short_solve(
-        lambda t, y: level.vector_field(t, y, top), settled, t_end, jnp.zeros_like(t_end),
-        level.error_norm, rtol=rtol, atol=atol,
+        lambda t, y: level.vector_field(t, y, top),
+        settled,
+        t_end,
+        jnp.zeros_like(t_end),
+        level.error_norm,
+        rtol=rtol,
+        atol=atol,
     )
     finite = jnp.all(jnp.stack([jnp.isfinite(x) for x in jax.tree_util.tree_leaves(back)]))
     use = ~short & ok_forward & ok_back & finite
@@ -94,9 +117,16 @@ class FibreProjection(AbstractProjection):
     def __check_init__(self):
         for name in ("amplitude", "time_max", "rtol", "atol"):
             if not getattr(self, name) > 0:
-                raise ValueError(f"FibreProjection: {name} must be positive, got "
-                                 f"{getattr(self, name)!r}.")
+                raise ValueError(
+                    f"FibreProjection: {name} must be positive, got {getattr(self, name)!r}."
+                )
 
     def project(self, top, state):
-        return settle_launch(top, state, amplitude=self.amplitude, time_max=self.time_max,
-                             rtol=self.rtol, atol=self.atol)
+        return settle_launch(
+            top,
+            state,
+            amplitude=self.amplitude,
+            time_max=self.time_max,
+            rtol=self.rtol,
+            atol=self.atol,
+        )

@@ -125,7 +125,7 @@ def ravel_state(y: PyTree, width: int = PACK_WIDTH):
         for group, vector in zip(groups, flat):
             start = 0
             for i in group:
-                out[i] = vector[start:start + sizes[i]].reshape(shapes[i])
+                out[i] = vector[start : start + sizes[i]].reshape(shapes[i])
                 start += sizes[i]
         return jax.tree_util.tree_unflatten(treedef, out)
 
@@ -203,22 +203,45 @@ def run_segment(
     y0_flat, unravel = ravel_state(y0, pack_width)
     field = FlatField(level, unravel, pack_width)
     watch = Watch(level, unravel, names)
-    controller = diffrax.PIDController(rtol=rtol, atol=atol, norm=field.error_norm,
-                                       **STEP_CONTROL)
+    controller = diffrax.PIDController(rtol=rtol, atol=atol, norm=field.error_norm, **STEP_CONTROL)
     solver = _prepared_solver(solver, controller, adjoint)
-    watched = WatchedSolver(solver, watch, **_event_indices(terminating, observed),
-                            pieces=pieces, lowest=tuple(names.index(n) for n in lowest))
+    watched = WatchedSolver(
+        solver,
+        watch,
+        **_event_indices(terminating, observed),
+        pieces=pieces,
+        lowest=tuple(names.index(n) for n in lowest),
+    )
     terms = diffrax.ODETerm(field)
-    sol = _solve(terms, watched, controller, top, y0_flat, t0, t1, ts, max_steps=max_steps,
-                 adjoint=adjoint, progress_meter=progress_meter)
+    sol = _solve(
+        terms,
+        watched,
+        controller,
+        top,
+        y0_flat,
+        t0,
+        t1,
+        ts,
+        max_steps=max_steps,
+        adjoint=adjoint,
+        progress_meter=progress_meter,
+    )
     # The watch ends the solve on the step where a terminating condition fell through zero
     # (its result is `event_occurred`); the crossing is then located inside that step.
     stopped = ended_on_event(sol.result, sol.solver_state)
     solver_result = diffrax.RESULTS.where(stopped, diffrax.RESULTS.event_occurred, sol.result)
     t_end, flat_end, fired, observed_times = _run_end(
-        watched, terms, top, sol.solver_state.records(), stopped, sol.ts[0][-1],
-        jax.tree_util.tree_map(lambda x: x[-1], sol.ys[0]), terminating, observed,
-        locate=locate, finder=event_root_finder(jnp.result_type(t0)),
+        watched,
+        terms,
+        top,
+        sol.solver_state.records(),
+        stopped,
+        sol.ts[0][-1],
+        jax.tree_util.tree_map(lambda x: x[-1], sol.ys[0]),
+        terminating,
+        observed,
+        locate=locate,
+        finder=event_root_finder(jnp.result_type(t0)),
     )
     return Segment(
         ys=jax.vmap(unravel)(sol.ys[1]) if ts is not None else None,
@@ -241,8 +264,9 @@ def _event_indices(terminating, observed) -> dict[str, tuple[int, ...]]:
     return dict(observed=tuple(range(n, n + len(observed))), terminating=tuple(range(n)))
 
 
-def _solve(terms, watched, controller, top, y0_flat, t0, t1, ts, *, max_steps, adjoint,
-           progress_meter):
+def _solve(
+    terms, watched, controller, top, y0_flat, t0, t1, ts, *, max_steps, adjoint, progress_meter
+):
     """The segment's `diffrax.diffeqsolve`: saving the end (and the save times `ts` inside
     `[t0, t1]`) and the watch's final state."""
     subs = [diffrax.SubSaveAt(t1=True)]
@@ -265,8 +289,20 @@ def _solve(terms, watched, controller, top, y0_flat, t0, t1, ts, *, max_steps, a
     )
 
 
-def _run_end(watched: WatchedSolver, terms, top, records: EventRecords, stopped, t_last,
-             flat_last, terminating, observed, *, locate: bool, finder):
+def _run_end(
+    watched: WatchedSolver,
+    terms,
+    top,
+    records: EventRecords,
+    stopped,
+    t_last,
+    flat_last,
+    terminating,
+    observed,
+    *,
+    locate: bool,
+    finder,
+):
     """Where one run's segment ended and what fired in it, from the watch's `records`: the
     end time and flat state (at the located terminating crossing where the run `stopped` on
     one, else its last saved time and state `t_last`, `flat_last`), which terminating event
@@ -306,7 +342,8 @@ def _prepared_solver(solver, controller, adjoint):
         # diffrax gives an implicit solver's root finder the controller's tolerances; it
         # cannot see through the wrapper below, so do it here.
         attrs = [
-            a for a in ("rtol", "atol", "norm")
+            a
+            for a in ("rtol", "atol", "norm")
             if getattr(solver.root_finder, a) is use_stepsize_tol
         ]
         solver = eqx.tree_at(
@@ -366,8 +403,9 @@ class SharedField(eqx.Module):
     axes: PyTree = eqx.field(static=True)  # `top_axes` of the top
 
     def __call__(self, t, y, top):
-        return jax.vmap(self.field, in_axes=(None, MEMBER_AXIS, self.axes),
-                        out_axes=MEMBER_AXIS)(t, y, top)
+        return jax.vmap(self.field, in_axes=(None, MEMBER_AXIS, self.axes), out_axes=MEMBER_AXIS)(
+            t, y, top
+        )
 
     def error_norm(self, scaled_error):
         """The largest of the members' own norms (`FlatField.error_norm`): a step is accepted
@@ -437,21 +475,34 @@ def run_segment_shared(
     watch = Watch(level, unravel, names)
     axes = top_axes(top)
     shared_field = SharedField(field, axes)
-    controller = diffrax.PIDController(rtol=rtol, atol=atol, norm=shared_field.error_norm,
-                                       **STEP_CONTROL)
+    controller = diffrax.PIDController(
+        rtol=rtol, atol=atol, norm=shared_field.error_norm, **STEP_CONTROL
+    )
     solver = _prepared_solver(solver, controller, adjoint)
     indices = _event_indices(terminating, observed)
-    watched = SharedWatchedSolver(solver, SharedWatch(watch, axes), **indices, pieces=pieces,
-                                  idle=idle)
-    sol = _solve(diffrax.ODETerm(shared_field), watched, controller, top,
-                 members_last(y0_members), t0, t1, ts, max_steps=max_steps, adjoint=adjoint,
-                 progress_meter=progress_meter)
+    watched = SharedWatchedSolver(
+        solver, SharedWatch(watch, axes), **indices, pieces=pieces, idle=idle
+    )
+    sol = _solve(
+        diffrax.ODETerm(shared_field),
+        watched,
+        controller,
+        top,
+        members_last(y0_members),
+        t0,
+        t1,
+        ts,
+        max_steps=max_steps,
+        adjoint=adjoint,
+        progress_meter=progress_meter,
+    )
     state = sol.solver_state
     ended = state.stopped & ~idle  # frozen by a terminating event
     common = diffrax.RESULTS.where(sol.result == STOP, diffrax.RESULTS.successful, sol.result)
     solver_result = jax.vmap(
         lambda ended, idle: diffrax.RESULTS.where(
-            idle, diffrax.RESULTS.successful,
+            idle,
+            diffrax.RESULTS.successful,
             diffrax.RESULTS.where(ended, diffrax.RESULTS.event_occurred, common),
         )
     )(ended, idle)
@@ -460,16 +511,34 @@ def run_segment_shared(
     finder = event_root_finder(jnp.result_type(t0))
     t_end, flat_end, fired, observed_times = jax.vmap(
         lambda top, records, ended, flat_last: _run_end(
-            single, diffrax.ODETerm(field), top, records, ended, sol.ts[0][-1], flat_last,
-            terminating, observed, locate=locate, finder=finder),
+            single,
+            diffrax.ODETerm(field),
+            top,
+            records,
+            ended,
+            sol.ts[0][-1],
+            flat_last,
+            terminating,
+            observed,
+            locate=locate,
+            finder=finder,
+        ),
         in_axes=(axes, 0, 0, 0),
-    )(top, state.member_states(), ended,
-      members_first(jax.tree_util.tree_map(lambda x: x[-1], sol.ys[0])))
+    )(
+        top,
+        state.member_states(),
+        ended,
+        members_first(jax.tree_util.tree_map(lambda x: x[-1], sol.ys[0])),
+    )
     # Idle members end where they started, with no event.
     t_end = jnp.where(idle, jnp.asarray(t0, t_end.dtype), t_end)
     flat_end = jax.tree_util.tree_map(
-        lambda a, b: jnp.where(idle.reshape(idle.shape + (1,) * (b.ndim - 1)),
-                               a.astype(b.dtype), b), y0_members, flat_end)
+        lambda a, b: jnp.where(
+            idle.reshape(idle.shape + (1,) * (b.ndim - 1)), a.astype(b.dtype), b
+        ),
+        y0_members,
+        flat_end,
+    )
     observed_times = {name: jnp.where(idle, jnp.nan, t) for name, t in observed_times.items()}
     ys = None
     if ts is not None:

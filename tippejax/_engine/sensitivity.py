@@ -49,8 +49,9 @@ def _is_float(x) -> bool:
     return jnp.issubdtype(jnp.result_type(x), jnp.inexact)
 
 
-def forward_sensitivities(primal: Callable, forward: Callable, *,
-                          jacobian: Callable | None = None) -> Callable:
+def forward_sensitivities(
+    primal: Callable, forward: Callable, *, jacobian: Callable | None = None
+) -> Callable:
     """`primal` (a function of pytrees of arrays) with its derivatives computed from the
     forward-mode Jacobian of `forward`, which must compute the same function (see the module
     docstring). Integer outputs have zero derivatives (`float0`). `primal` and `forward` may
@@ -70,8 +71,11 @@ def forward_sensitivities(primal: Callable, forward: Callable, *,
     def rule(primals, tangents):
         flat, tree = jax.tree_util.tree_flatten(primals)
         flat_tangents = tree.flatten_up_to(tangents)
-        live = tuple(i for i, t in enumerate(flat_tangents)
-                     if not isinstance(t, SymbolicZero) and _is_float(flat[i]))
+        live = tuple(
+            i
+            for i, t in enumerate(flat_tangents)
+            if not isinstance(t, SymbolicZero) and _is_float(flat[i])
+        )
         if not live:
             out = primal(*primals)
             return out, jax.tree_util.tree_map(_zero_tangent, out)
@@ -80,7 +84,8 @@ def forward_sensitivities(primal: Callable, forward: Callable, *,
         else:
             out, jac = jacobian_of(forward, primals, live)
         direction = jnp.concatenate(
-            [jnp.ravel(jnp.asarray(flat_tangents[i], jnp.result_type(flat[i]))) for i in live])
+            [jnp.ravel(jnp.asarray(flat_tangents[i], jnp.result_type(flat[i]))) for i in live]
+        )
 
         def tangent(o, j):
             if not _is_float(o):
@@ -112,8 +117,10 @@ def jacobian_of(forward: Callable, args: tuple, live: tuple[int, ...]):
     k = sum(sizes)
     eye = jnp.eye(k, dtype=jnp.result_type(*inputs))
     offsets = np.cumsum([0] + sizes)
-    basis = [eye[:, a:b].reshape((k,) + x.shape).astype(x.dtype)
-             for a, b, x in zip(offsets[:-1], offsets[1:], inputs)]
+    basis = [
+        eye[:, a:b].reshape((k,) + x.shape).astype(x.dtype)
+        for a, b, x in zip(offsets[:-1], offsets[1:], inputs)
+    ]
     return jax.vmap(lambda *t: jax.jvp(of_live, tuple(inputs), t), out_axes=(None, 0))(*basis)
 
 

@@ -42,8 +42,13 @@ import jax.numpy as jnp
 import numpy as np
 
 __all__ = [
-    "UNROLL_STAGES", "AbstractTableauSolver", "StageLoopERK", "UnrolledERK", "own_stage_loop",
-    "unroll_stages", "unrollable",
+    "UNROLL_STAGES",
+    "AbstractTableauSolver",
+    "StageLoopERK",
+    "UnrolledERK",
+    "own_stage_loop",
+    "unroll_stages",
+    "unrollable",
 ]
 
 
@@ -129,7 +134,8 @@ def _refresh_first_stage(terms, t0, y0, args, f0, made_jump):
     return jax.lax.cond(
         eqxi.unvmap_any(made_jump),
         lambda: jax.tree_util.tree_map(
-            lambda a, b: jnp.where(made_jump, a, b), terms.vf(t0, y0, args), f0),
+            lambda a, b: jnp.where(made_jump, a, b), terms.vf(t0, y0, args), f0
+        ),
         lambda: f0,
     )
 
@@ -220,7 +226,8 @@ class StageLoopERK(AbstractTableauSolver):
         dt = t1 - t0
         k0 = terms.prod(f0, control)
         ks = jax.tree_util.tree_map(
-            lambda k: jnp.zeros((stages,) + k.shape, k.dtype).at[0].set(k), k0)
+            lambda k: jnp.zeros((stages,) + k.shape, k.dtype).at[0].set(k), k0
+        )
 
         def stage(carry):
             i, ks, _, _ = carry
@@ -247,9 +254,15 @@ class StageLoopERK(AbstractTableauSolver):
         # it for the adjoint ("lax" for forward mode).
         kind = getattr(self.base, "scan_kind", None) or "checkpointed"
         _, ks, y1, f1 = eqxi.while_loop(
-            lambda carry: carry[0] < stages - 1, stage, (jnp.asarray(0), ks, y0, f0),
-            max_steps=stages - 1, buffers=lambda carry: carry[1], kind=kind,
-            checkpoints=stages - 1, base=stages - 1)
+            lambda carry: carry[0] < stages - 1,
+            stage,
+            (jnp.asarray(0), ks, y0, f0),
+            max_steps=stages - 1,
+            buffers=lambda carry: carry[1],
+            kind=kind,
+            checkpoints=stages - 1,
+            base=stages - 1,
+        )
         slices = [jax.tree_util.tree_map(lambda k, j=j: k[j], ks) for j in range(stages)]
         y_error = _sum(tableau.b_error, slices, y0)
         dense_info = dict(y0=y0, y1=y1, k=ks)

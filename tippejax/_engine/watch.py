@@ -53,19 +53,26 @@ class _RecordLayout(eqx.Module):
         lead = vector.shape[:-1]
         for shape, dtype in zip(self.shapes, self.dtypes):
             size = math.prod(shape)
-            leaves.append(vector[..., start:start + size].reshape(lead + shape).astype(dtype))
+            leaves.append(vector[..., start : start + size].reshape(lead + shape).astype(dtype))
             start += size
         return jax.tree_util.tree_unflatten(self.treedef, leaves)
 
-    def pack(self, found, stopped, step_t0, step_t1, step_y0, last_t0, last_t1, last_y0,
-             dtype) -> Array:
+    def pack(
+        self, found, stopped, step_t0, step_t1, step_y0, last_t0, last_t1, last_y0, dtype
+    ) -> Array:
         m = self.events
-        return jnp.concatenate([
-            found.astype(dtype), stopped.astype(dtype)[None],
-            step_t0.astype(dtype), step_t1.astype(dtype),
-            jnp.reshape(step_y0, (m * self.size,)).astype(dtype),
-            last_t0.astype(dtype)[None], last_t1.astype(dtype)[None], last_y0.astype(dtype),
-        ])
+        return jnp.concatenate(
+            [
+                found.astype(dtype),
+                stopped.astype(dtype)[None],
+                step_t0.astype(dtype),
+                step_t1.astype(dtype),
+                jnp.reshape(step_y0, (m * self.size,)).astype(dtype),
+                last_t0.astype(dtype)[None],
+                last_t1.astype(dtype)[None],
+                last_y0.astype(dtype),
+            ]
+        )
 
     def unpack(self, record) -> EventRecords:
         m, n = self.events, self.size
@@ -73,9 +80,14 @@ class _RecordLayout(eqx.Module):
         part = [record[..., a:b] for a, b in zip(at[:-1], at[1:])]
         lead = record.shape[:-1]
         return EventRecords(
-            found=part[0] > 0.5, stopped=part[1][..., 0] > 0.5, step_t0=part[2],
-            step_t1=part[3], step_y0=self.unflat(part[4].reshape(lead + (m, n))),
-            last_t0=part[5][..., 0], last_t1=part[6][..., 0], last_y0=self.unflat(part[7]),
+            found=part[0] > 0.5,
+            stopped=part[1][..., 0] > 0.5,
+            step_t0=part[2],
+            step_t1=part[3],
+            step_y0=self.unflat(part[4].reshape(lead + (m, n))),
+            last_t0=part[5][..., 0],
+            last_t1=part[6][..., 0],
+            last_y0=self.unflat(part[7]),
         )
 
 
@@ -101,7 +113,7 @@ class _WatchState(eqx.Module):
     def lowest(self) -> Float[Array, " k"]:
         """The lowest value of each condition of `WatchedSolver.lowest` at the accepted steps'
         ends (and at the start)."""
-        return self.tally[self.previous.shape[-1]:-1]
+        return self.tally[self.previous.shape[-1] : -1]
 
     @property
     def accepted(self) -> Float[Array, ""]:
@@ -139,13 +151,17 @@ class _SharedWatchState(eqx.Module):
     def member_states(self) -> EventRecords:
         """The per-member records with a leading member axis, for `jax.vmap` of
         `locate_observed` and `locate_terminating`."""
-        lead = lambda x, k: jnp.moveaxis(x, tuple(range(x.ndim - k, x.ndim)),  # noqa: E731
-                                         tuple(range(k)))
+
+        def lead(x, k):
+            return jnp.moveaxis(x, tuple(range(x.ndim - k, x.ndim)), tuple(range(k)))
+
         return EventRecords(
             last_t0=self.last_t0,
             last_t1=self.last_t1,
             last_y0=jax.tree_util.tree_map(lambda x: lead(x, 1), self.last_y0),
-            stopped=self.stopped, found=self.found, step_t0=self.step_t0,
+            stopped=self.stopped,
+            found=self.found,
+            step_t0=self.step_t0,
             step_t1=self.step_t1,
             step_y0=jax.tree_util.tree_map(lambda x: lead(x, 2), self.step_y0),
         )
@@ -239,8 +255,7 @@ class AbstractWatchedSolver(diffrax.AbstractWrappedSolver):
             return inner[1]
         return self.solver.func(terms, t1, y1, args)
 
-    def _watched_step(self, terms, t0, t1, y0, args, inner, previous, previous_rate,
-                      made_jump):
+    def _watched_step(self, terms, t0, t1, y0, args, inner, previous, previous_rate, made_jump):
         """The inner solver's step, the watched conditions and their rates at its end, and
         the signs of every condition along it (`bernstein_signs`, from `previous` and
         `previous_rate` at its start):
@@ -255,14 +270,16 @@ class AbstractWatchedSolver(diffrax.AbstractWrappedSolver):
         points = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), y_mid, y1)
         tangents = jax.tree_util.tree_map(
             lambda a, b: jnp.stack([a, b.astype(a.dtype)]),
-            y_mid_dot, self._end_rate(terms, t1, y1, args, inner),
+            y_mid_dot,
+            self._end_rate(terms, t1, y1, args, inner),
         )
         values, rates = jax.vmap(lambda y, y_dot: self._watch_with_rate(y, y_dot, args))(
             points, tangents
         )
         end, end_rate = values[1], rates[1]
-        positive = bernstein_signs(previous, previous_rate, values[0], rates[0], end, end_rate,
-                                   h, self.pieces)
+        positive = bernstein_signs(
+            previous, previous_rate, values[0], rates[0], end, end_rate, h, self.pieces
+        )
         return y1, y_error, dense_info, inner, result, end, end_rate, positive
 
 
@@ -316,27 +333,50 @@ class WatchedSolver(AbstractWatchedSolver):
         t0, dummy, previous, previous_rate = self._start(terms, t0, t1, y0, args)
         dtype = t0.dtype
         leaves, treedef = jax.tree_util.tree_flatten(y0)
-        layout = _RecordLayout(m, treedef, tuple(jnp.shape(x) for x in leaves),
-                               tuple(jnp.result_type(x) for x in leaves))
+        layout = _RecordLayout(
+            m,
+            treedef,
+            tuple(jnp.shape(x) for x in leaves),
+            tuple(jnp.result_type(x) for x in leaves),
+        )
         record_dtype = jnp.result_type(dtype, *leaves)
         y_flat = layout.flat(y0, record_dtype)
         record = layout.pack(
-            jnp.zeros(m, bool), jnp.array(False), jnp.full(m, t0), jnp.full(m, dummy),
-            jnp.broadcast_to(y_flat, (m, y_flat.shape[0])), t0, dummy, y_flat, record_dtype,
+            jnp.zeros(m, bool),
+            jnp.array(False),
+            jnp.full(m, t0),
+            jnp.full(m, dummy),
+            jnp.broadcast_to(y_flat, (m, y_flat.shape[0])),
+            t0,
+            dummy,
+            y_flat,
+            record_dtype,
         )
         return _WatchState(
             inner=self.solver.init(terms, t0, t1, y0, args),
             previous=previous,
-            tally=jnp.concatenate([previous_rate, *self._lowest_of(previous, previous_rate),
-                                   jnp.zeros(1, previous_rate.dtype)]),
+            tally=jnp.concatenate(
+                [
+                    previous_rate,
+                    *self._lowest_of(previous, previous_rate),
+                    jnp.zeros(1, previous_rate.dtype),
+                ]
+            ),
             record=record,
             layout=layout,
         )
 
     def step(self, terms, t0, t1, y0, args, solver_state: _WatchState, made_jump):
         y1, y_error, dense_info, inner, result, end, end_rate, positive = self._watched_step(
-            terms, t0, t1, y0, args, solver_state.inner, solver_state.previous,
-            solver_state.previous_rate, made_jump,
+            terms,
+            t0,
+            t1,
+            y0,
+            args,
+            solver_state.inner,
+            solver_state.previous,
+            solver_state.previous_rate,
+            made_jump,
         )
         hidden = hidden_crossing(positive)
         if y_error is not None:
@@ -361,18 +401,34 @@ class WatchedSolver(AbstractWatchedSolver):
         def write(record):
             y_flat = layout.flat(y0, dtype)
             written = layout.pack(
-                jnp.ones(m, bool), stopped, jnp.full(m, t0), jnp.full(m, t1),
-                jnp.broadcast_to(y_flat, (m, n)), t0, t1, y_flat, dtype,
+                jnp.ones(m, bool),
+                stopped,
+                jnp.full(m, t0),
+                jnp.full(m, t1),
+                jnp.broadcast_to(y_flat, (m, n)),
+                t0,
+                t1,
+                y_flat,
+                dtype,
             )
             where = layout.pack(
-                new, jnp.array(True), new, new, jnp.broadcast_to(new[:, None], (m, n)),
-                stopped, stopped, jnp.full(n, stopped), bool,
+                new,
+                jnp.array(True),
+                new,
+                new,
+                jnp.broadcast_to(new[:, None], (m, n)),
+                stopped,
+                stopped,
+                jnp.full(n, stopped),
+                bool,
             )
             return jnp.where(where, written, record)
 
         record = jax.lax.cond(jnp.any(new) | stopped, write, lambda r: r, record)
-        lowest = [jnp.minimum(solver_state.lowest, low)
-                  for low in self._lowest_of(end, solver_state.tally)]
+        lowest = [
+            jnp.minimum(solver_state.lowest, low)
+            for low in self._lowest_of(end, solver_state.tally)
+        ]
         state = _WatchState(
             inner=inner,
             previous=end,
@@ -434,8 +490,15 @@ class SharedWatchedSolver(AbstractWatchedSolver):
     def step(self, terms, t0, t1, y0, args, solver_state: _SharedWatchState, made_jump):
         # end, end_rate: (N, n); positive: (5 * pieces + 1, N, n)
         y1, y_error, dense_info, inner, result, end, end_rate, positive = self._watched_step(
-            terms, t0, t1, y0, args, solver_state.inner, solver_state.previous,
-            solver_state.previous_rate, made_jump,
+            terms,
+            t0,
+            t1,
+            y0,
+            args,
+            solver_state.inner,
+            solver_state.previous,
+            solver_state.previous_rate,
+            made_jump,
         )
         frozen = solver_state.stopped
         running = ~frozen
@@ -443,26 +506,24 @@ class SharedWatchedSolver(AbstractWatchedSolver):
         new = fell(positive, self.observed) & ~solver_state.found & running[:, None]
         stops_now = jnp.zeros_like(running)
         if self.terminating:
-            stops_now = jnp.any(fell(positive, self.terminating), axis=-1) & running & (
-                result == diffrax.RESULTS.successful
+            stops_now = (
+                jnp.any(fell(positive, self.terminating), axis=-1)
+                & running
+                & (result == diffrax.RESULTS.successful)
             )
         hold = frozen | stops_now
 
         # Masks over the members, `(N,)` or `(N, m)`, broadcast against the states' trailing
         # member axes: `(w, N)` or `(w, N, m)`.
-        y1 = jax.tree_util.tree_map(
-            lambda a, b: jnp.where(hold, a.astype(b.dtype), b), y0, y1
-        )
+        y1 = jax.tree_util.tree_map(lambda a, b: jnp.where(hold, a.astype(b.dtype), b), y0, y1)
         if y_error is not None:
             y_error = jax.tree_util.tree_map(
-                lambda e: jnp.where(frozen, jnp.zeros((), e.dtype),
-                                    jnp.where(hidden, jnp.inf, e)),
+                lambda e: jnp.where(frozen, jnp.zeros((), e.dtype), jnp.where(hidden, jnp.inf, e)),
                 y_error,
             )
         stopped = hold
         every = jnp.all(stopped)
-        result = diffrax.RESULTS.where(every & (result == diffrax.RESULTS.successful), STOP,
-                                       result)
+        result = diffrax.RESULTS.where(every & (result == diffrax.RESULTS.successful), STOP, result)
         time_dtype = solver_state.step_t0.dtype
         t0, t1 = jnp.asarray(t0, time_dtype), jnp.asarray(t1, time_dtype)
 
@@ -483,9 +544,15 @@ class SharedWatchedSolver(AbstractWatchedSolver):
                 ),
             )
 
-        book = (solver_state.found, solver_state.step_t0, solver_state.step_t1,
-                solver_state.step_y0, solver_state.last_t0, solver_state.last_t1,
-                solver_state.last_y0)
+        book = (
+            solver_state.found,
+            solver_state.step_t0,
+            solver_state.step_t1,
+            solver_state.step_y0,
+            solver_state.last_t0,
+            solver_state.last_t1,
+            solver_state.last_y0,
+        )
         book = jax.lax.cond(jnp.any(new) | jnp.any(stops_now), write, lambda b: b, book)
         found, step_t0, step_t1, step_y0, last_t0, last_t1, last_y0 = book
         state = _SharedWatchState(

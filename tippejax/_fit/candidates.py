@@ -43,9 +43,14 @@ def candidate(setup, refined, obs2, sigma):
     out = setup.finish(u, code, setup.data(tol=setup.tol, final=True))
     residuals, verdicts = judge(out, setup, obs2, sigma)
     steps = np.asarray(sum(np.asarray(c) for c in counts)).reshape(-1)
-    cand = dict(out=out, residuals=residuals, verdicts=verdicts, u=u,
-                history=pack(histories, counts, setup.bsize, setup.cfg.max_steps),
-                loss=np.asarray(out["loss"]).reshape(-1))
+    cand = dict(
+        out=out,
+        residuals=residuals,
+        verdicts=verdicts,
+        u=u,
+        history=pack(histories, counts, setup.bsize, setup.cfg.max_steps),
+        loss=np.asarray(out["loss"]).reshape(-1),
+    )
     return cand, steps
 
 
@@ -142,7 +147,8 @@ def better(a, b, bsize):
 def pack(histories, counts, bsize, max_steps):
     """Each optimisation's losses one after the other, nan-padded to a fixed length."""
     hist = np.concatenate([np.asarray(h) for h in histories], axis=-1).reshape(
-        bsize, len(histories), max_steps)
+        bsize, len(histories), max_steps
+    )
     cnt = np.stack([np.asarray(c) for c in counts], -1).reshape(bsize, -1)
     packed = np.full((bsize, len(histories) * max_steps), np.nan)
     for b in range(bsize):

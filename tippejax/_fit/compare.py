@@ -131,16 +131,21 @@ class LawComparison(eqx.Module):
         lines.append("  fitted parameters (value +- standard error, units):")
         for name, res in zip(self.names, self.fits):
             law = res.top.friction
-            parts = [f"{n} = {float(v):.5g} +- {float(e):.2g} {units(n, law)}"
-                     for n, v, e in zip(res.free, np.asarray(res.values),
-                                        np.asarray(res.std_errors))]
+            parts = [
+                f"{n} = {float(v):.5g} +- {float(e):.2g} {units(n, law)}"
+                for n, v, e in zip(res.free, np.asarray(res.values), np.asarray(res.std_errors))
+            ]
             lines.append(f"  {name:<24}{'; '.join(parts)}")
         if self.preferred_index >= 0:
-            lines.append(f"The record prefers {self.preferred_name} (lowest "
-                         f"{self.criterion.upper()} of the laws it does not rule out).")
+            lines.append(
+                f"The record prefers {self.preferred_name} (lowest "
+                f"{self.criterion.upper()} of the laws it does not rule out)."
+            )
         else:
-            lines.append("The record rules out every law compared (or their fits failed: see "
-                         "each fit's message()).")
+            lines.append(
+                "The record rules out every law compared (or their fits failed: see "
+                "each fit's message())."
+            )
         if self.ruled_out.any():
             lines.append(f"It rules out: {', '.join(self.ruled_out_names)}.")
         return "\n".join(lines)
@@ -250,7 +255,9 @@ def compare_laws(
             check_model(model, law)
     obs = np.asarray(theta_obs, float)
     if obs.ndim != 1:
-        raise ValueError(f"compare_laws takes one record: theta_obs of shape (N,), got {obs.shape}.")
+        raise ValueError(
+            f"compare_laws takes one record: theta_obs of shape (N,), got {obs.shape}."
+        )
     tops = [top_guess.replace(friction=law) for law in laws]
     frees = [free + identifiable(law) for law in laws]
     for law, f in zip(laws, frees):
@@ -259,14 +266,22 @@ def compare_laws(
         fit(top, y0_guess, ts, obs, free=f, sigma=sigma, weights=weights, **fit_options)
         for top, f in zip(tops, frees)
     )
-    w = np.ones_like(obs) if weights is None else np.broadcast_to(np.asarray(weights, float),
-                                                                  obs.shape)
+    w = (
+        np.ones_like(obs)
+        if weights is None
+        else np.broadcast_to(np.asarray(weights, float), obs.shape)
+    )
     residuals = [np.asarray(res.residuals, float) for res in fits]
     used = np.isfinite(obs) & (w > 0)
     n = int(used.sum())
     k = np.array([len(f) for f in frees])
-    rss = np.array([float(np.sum(np.where(used & np.isfinite(r), w * r**2, 0.0)))
-                    + float(np.sum(used & ~np.isfinite(r))) * np.pi**2 for r in residuals])
+    rss = np.array(
+        [
+            float(np.sum(np.where(used & np.isfinite(r), w * r**2, 0.0)))
+            + float(np.sum(used & ~np.isfinite(r))) * np.pi**2
+            for r in residuals
+        ]
+    )
     if sigma is None:
         s = math.sqrt(float(np.min(rss / (n - k))))
         deviance = n * np.log(rss / n)
@@ -277,19 +292,32 @@ def compare_laws(
     dof = n - k
     p = np.array([diagnostics.chi2_sf(float(c), float(d)) for c, d in zip(chi2, dof)])
     ts_np = np.asarray(ts, float)
-    white = np.array([
-        diagnostics.describes(np.where(used, r, np.nan), ts_np, None)["passes"]
-        for r in residuals
-    ])
+    white = np.array(
+        [diagnostics.describes(np.where(used, r, np.nan), ts_np, None)["passes"] for r in residuals]
+    )
     aic, bic = deviance + 2 * k, deviance + k * math.log(n)
     ruled_out = (p < level) | ~white
     score = bic if criterion == "bic" else aic
     candidates = np.flatnonzero(~ruled_out)
     preferred = int(candidates[np.argmin(score[candidates])]) if candidates.size else -1
     return LawComparison(
-        names=tuple(law_name(law) for law in laws), fits=fits, num_params=k, num_samples=n,
-        rss=rss, sigma=s, sigma_given=sigma is not None, chi2=chi2, dof=dof, p_value=p,
-        white=white, deviance=deviance, aic=aic, bic=bic,
-        likelihood_ratio=deviance - np.min(deviance), ruled_out=ruled_out,
-        preferred_index=preferred, level=float(level), criterion=criterion,
+        names=tuple(law_name(law) for law in laws),
+        fits=fits,
+        num_params=k,
+        num_samples=n,
+        rss=rss,
+        sigma=s,
+        sigma_given=sigma is not None,
+        chi2=chi2,
+        dof=dof,
+        p_value=p,
+        white=white,
+        deviance=deviance,
+        aic=aic,
+        bic=bic,
+        likelihood_ratio=deviance - np.min(deviance),
+        ruled_out=ruled_out,
+        preferred_index=preferred,
+        level=float(level),
+        criterion=criterion,
     )

@@ -62,8 +62,9 @@ def _chi2_quantile(p: float, nu: float) -> float:
     return nu * (1.0 - a + z * math.sqrt(a)) ** 3
 
 
-def window_test(ts: np.ndarray, residuals: np.ndarray, sigma: float | None, *,
-                reference: str = "median"):
+def window_test(
+    ts: np.ndarray, residuals: np.ndarray, sigma: float | None, *, reference: str = "median"
+):
     """Mean squares of the residuals in windows, the noise level, and the end of the record
     the model describes.
 
@@ -137,8 +138,14 @@ def describes(residuals: np.ndarray, ts: np.ndarray, sigma: float | None) -> dic
         # (by a stretch the model cannot describe). Judge the windows against the quietest one
         # to find where the description ends (what trim=True refits on).
         until = window_test(ts, residuals, sigma, reference="quietest")[1]
-    return dict(runs_z=z, ljung_box=q / q_limit if np.isfinite(q) else float("nan"), noise=noise,
-                describes_until=until, rms=rms, passes=passes)
+    return dict(
+        runs_z=z,
+        ljung_box=q / q_limit if np.isfinite(q) else float("nan"),
+        noise=noise,
+        describes_until=until,
+        rms=rms,
+        passes=passes,
+    )
 
 
 def chi2_sf(x: float, nu: float) -> float:

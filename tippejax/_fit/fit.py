@@ -184,9 +184,23 @@ def fit(
     if not isinstance(trim, bool):
         raise ValueError(f"trim must be True or False, got {trim!r}.")
 
-    setup = build_setup(top_guess, y0_guess, records, fields, launch, free=free, model=model,
-                        method=method, max_steps=max_steps, tol=tol, rtol=rtol, atol=atol,
-                        solver=solver, sim_max_steps=sim_max_steps, learning_rate=learning_rate)
+    setup = build_setup(
+        top_guess,
+        y0_guess,
+        records,
+        fields,
+        launch,
+        free=free,
+        model=model,
+        method=method,
+        max_steps=max_steps,
+        tol=tol,
+        rtol=rtol,
+        atol=atol,
+        solver=solver,
+        sim_max_steps=sim_max_steps,
+        learning_rate=learning_rate,
+    )
     obs2, batch = records.theta, records.batch
     attempts = STRATEGIES[strategy]
     if "spin" in free or strategy == "search":  # the phase check or the search will need it
@@ -221,14 +235,18 @@ def _fit_starts(setup, attempts, obs2, sigma):
         idx = np.flatnonzero(todo)
         sub = setup if idx.size == setup.bsize else setup.subset(idx)
         u0 = start_point(sub)
-        starts = (np.asarray(u0)[None] if search is None or search == IF_NOISE
-                  else np.asarray(search.starts(u0, sub)))
+        starts = (
+            np.asarray(u0)[None]
+            if search is None or search == IF_NOISE
+            else np.asarray(search.starts(u0, sub))
+        )
         chains = stages if isinstance(stages[0], tuple) else (stages,)
         for s in range(starts.shape[0]):
             for chain in chains:  # alternative chains from the same start, in turn
                 tried[idx] += 1
-                cand, steps = candidate(sub, refine(to_device(starts[s]), sub, chain),
-                                        obs2[idx], sigma)
+                cand, steps = candidate(
+                    sub, refine(to_device(starts[s]), sub, chain), obs2[idx], sigma
+                )
                 total_steps[idx] += steps
                 if sub is not setup:
                     cand = widen(cand, idx, setup.bsize, sub.batched)
@@ -282,16 +300,26 @@ def _check_phase(setup, best, obs2, sigma):
     if not flat.any():
         return best
     one = (lambda x: x) if setup.batched else (lambda x: x[0])  # noqa: E731
-    cov = profile.widen(out["covariance"], best["u"], setup.template.base, setup.cfg.free,
-                        one(prof.direction), one(np.where(flat, reach, 0.0)))
+    cov = profile.widen(
+        out["covariance"],
+        best["u"],
+        setup.template.base,
+        setup.cfg.free,
+        one(prof.direction),
+        one(np.where(flat, reach, 0.0)),
+    )
     dtype = out["covariance"].dtype
     std = np.sqrt(np.maximum(np.diagonal(cov, axis1=-2, axis2=-1), 0.0))
 
     code = flag(out["result"], one(flat), FIT_RESULTS.phase_ambiguous)
     best = dict(best)
-    best["out"] = dict(out, covariance=to_device(cov, dtype), std_errors=to_device(std, dtype),
-                       correlation=to_device(cov / (std[..., :, None] * std[..., None, :]), dtype),
-                       result=code)
+    best["out"] = dict(
+        out,
+        covariance=to_device(cov, dtype),
+        std_errors=to_device(std, dtype),
+        correlation=to_device(cov / (std[..., :, None] * std[..., None, :]), dtype),
+        result=code,
+    )
     return best
 
 
@@ -323,8 +351,12 @@ def _result(best, setup, obs2, ends, batch, free, model, method, strategy, sigma
         num_steps=best["num_steps"],
         starts=best["starts"],
     )
-    arrays = dict(residuals=whole, theta_obs=np.where(mask, obs2, np.nan), ts=ts_out,
-                  loss_history=best["history"])
+    arrays = dict(
+        residuals=whole,
+        theta_obs=np.where(mask, obs2, np.nan),
+        ts=ts_out,
+        loss_history=best["history"],
+    )
     dtype = out["values"].dtype
     if batch is None:
         per = {k: v[0] for k, v in per.items()}
@@ -338,19 +370,33 @@ def _result(best, setup, obs2, ends, batch, free, model, method, strategy, sigma
         wrapped = np.arctan2(np.sin(dphi), np.cos(dphi))
         phi_res = to_device(wrapped if batch is not None else wrapped[0], dtype)
     return FitResult(
-        top=out["top"], y0=out["y0"], t0=out["t0"], values=out["values"], std_errors=out["std_errors"],
-        covariance=out["covariance"], correlation=out["correlation"],
+        top=out["top"],
+        y0=out["y0"],
+        t0=out["t0"],
+        values=out["values"],
+        std_errors=out["std_errors"],
+        covariance=out["covariance"],
+        correlation=out["correlation"],
         loss_history=to_device(arrays["loss_history"], dtype),
-        ts=to_device(arrays["ts"], dtype), theta_obs=to_device(arrays["theta_obs"], dtype),
-        theta_fit=out["theta_fit"], residuals=to_device(arrays["residuals"], dtype),
-        rms=to_device(per["rms"], dtype), rms_fitted=to_device(per["rms_fitted"], dtype),
-        noise=to_device(per["noise"], dtype), runs_z=to_device(per["runs_z"], dtype),
+        ts=to_device(arrays["ts"], dtype),
+        theta_obs=to_device(arrays["theta_obs"], dtype),
+        theta_fit=out["theta_fit"],
+        residuals=to_device(arrays["residuals"], dtype),
+        rms=to_device(per["rms"], dtype),
+        rms_fitted=to_device(per["rms_fitted"], dtype),
+        noise=to_device(per["noise"], dtype),
+        runs_z=to_device(per["runs_z"], dtype),
         ljung_box=to_device(per["ljung_box"], dtype),
         describes_until=to_device(per["describes_until"], dtype),
         fitted_until=to_device(per["fitted_until"], dtype),
-        phi_fit=out["phi_fit"], phi_residuals=phi_res,
+        phi_fit=out["phi_fit"],
+        phi_residuals=phi_res,
         converged=to_device(np.asarray(code._value) == np.asarray(FIT_RESULTS.successful._value)),
         result=code,
-        num_steps=to_device(per["num_steps"]), starts=to_device(per["starts"]),
-        free=free, model=model, method=method, strategy=strategy,
+        num_steps=to_device(per["num_steps"]),
+        starts=to_device(per["starts"]),
+        free=free,
+        model=model,
+        method=method,
+        strategy=strategy,
     )

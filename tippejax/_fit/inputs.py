@@ -77,15 +77,16 @@ def check_options(free, model, method, strategy, max_steps, tol, sigma, strategi
     return free
 
 
-
 def as_1d_times(ts) -> np.ndarray:
     """`ts` as a 1-d float array of increasing finite times in seconds, checked."""
     arr = np.asarray(ts, dtype=float)
     if arr.ndim != 1 or arr.size < 2:
         raise ValueError(f"ts must be a 1-d array of at least 2 times, got shape {arr.shape}.")
     if not np.all(np.isfinite(arr)):
-        raise ValueError("ts must hold finite times (NaN or inf found); mark missing data with "
-                         "NaN in theta_obs instead.")
+        raise ValueError(
+            "ts must hold finite times (NaN or inf found); mark missing data with "
+            "NaN in theta_obs instead."
+        )
     if np.any(np.diff(arr) <= 0):
         raise ValueError("ts must be strictly increasing.")
     span = arr[-1] - arr[0]
@@ -143,8 +144,7 @@ def check_guess(top_guess, y0_guess, free, batch):
         if np.any(failed):
             raise ValueError(f"top_guess is not a valid top: {message}")
     try:  # the law's own rules, and those that involve the ball
-        checked_law = type(law)(**{f: fields[f] for f in law_fields(law)},
-                                **dict(law_options(law)))
+        checked_law = type(law)(**{f: fields[f] for f in law_fields(law)}, **dict(law_options(law)))
     except ValueError as err:
         raise ValueError(f"top_guess is not a valid top: {err}") from None
     for failed, message in checked_law.ball_rules(fields["R"], np):
@@ -153,8 +153,7 @@ def check_guess(top_guess, y0_guess, free, batch):
     for name in ("m", "R", "g", *law_fields(law)):
         if name in free and np.any(fields[name] == 0):
             raise ValueError(
-                f"{name!r} is free but its guess is 0 ({units(name, law)}); give a positive "
-                "guess."
+                f"{name!r} is free but its guess is 0 ({units(name, law)}); give a positive guess."
             )
     launch = {k: np.asarray(v, dtype=float) for k, v in launch_of(y0_guess).items()}
     for k, v in launch.items():
@@ -173,8 +172,10 @@ def check_guess(top_guess, y0_guess, free, batch):
             "model top never leaves; give the guess a non-zero tilt rate."
         )
     if "spin" in free and np.any(launch["spin"] == 0):
-        raise ValueError("'spin' is free but the guess has zero spin: give a non-zero guess "
-                         "(its sign is kept; theta alone cannot tell the spin's direction).")
+        raise ValueError(
+            "'spin' is free but the guess has zero spin: give a non-zero guess "
+            "(its sign is kept; theta alone cannot tell the spin's direction)."
+        )
     if "A" in free and np.any(fields["A"] / fields["C"] <= 0.5):
         raise ValueError("'A' is free but the guess has A/C = 1/2: give A/C > 1/2.")
     if "C" in free and "A" not in free and np.any(fields["C"] >= 2 * fields["A"]):
@@ -216,8 +217,11 @@ def check_model(model, law) -> None:
 
 def nutation_period(fields, launch) -> float:
     """The fast nutation's period of the guess, 2 pi A / (C |n|) (the fast-top limit)."""
-    period = 2 * np.pi * np.asarray(fields["A"]) / (
-        np.asarray(fields["C"]) * np.maximum(np.abs(np.asarray(launch["spin"])), 1e-6)
+    period = (
+        2
+        * np.pi
+        * np.asarray(fields["A"])
+        / (np.asarray(fields["C"]) * np.maximum(np.abs(np.asarray(launch["spin"])), 1e-6))
     )
     return float(np.max(period))
 
@@ -282,17 +286,40 @@ def check_records(ts, theta_obs, phi_obs, weights, t0, free) -> Records:
     return Records(ts=ts_np, theta=obs2, phi=phi2, weights=w2, mask=mask2, batch=batch, t0=t0)
 
 
-def build_setup(top_guess, y0_guess, records: Records, fields, launch, *, free, model, method,
-                max_steps, tol, rtol, atol, solver, sim_max_steps, learning_rate) -> Setup:
+def build_setup(
+    top_guess,
+    y0_guess,
+    records: Records,
+    fields,
+    launch,
+    *,
+    free,
+    model,
+    method,
+    max_steps,
+    tol,
+    rtol,
+    atol,
+    solver,
+    sim_max_steps,
+    learning_rate,
+) -> Setup:
     """The `Setup` of a fit: the records padded to a bucket length, their smoothed tilt and
     level ladder, and the guess, as the template of every stage's `Data`."""
-    ts_np, obs2, mask2, w2, phi2 = (records.ts, records.theta, records.mask, records.weights,
-                                    records.phi)
+    ts_np, obs2, mask2, w2, phi2 = (
+        records.ts,
+        records.theta,
+        records.mask,
+        records.weights,
+        records.phi,
+    )
     t0, batched = records.t0, records.batch is not None
     dtype = jnp.result_type(top_guess.m)
     bsize, n = obs2.shape
     band, grid = smoother(ts_np, nutation_period(fields, launch))
-    smooth_obs = np.stack([smooth_numpy(obs2[b], mask2[b].astype(float), band) for b in range(bsize)])
+    smooth_obs = np.stack(
+        [smooth_numpy(obs2[b], mask2[b].astype(float), band) for b in range(bsize)]
+    )
     ladders = [ladder(smooth_obs[b], grid) for b in range(bsize)]
     rises = np.array([lad[2] for lad in ladders])
 
@@ -300,15 +327,20 @@ def build_setup(top_guess, y0_guess, records: Records, fields, launch, *, free, 
         x = np.asarray(x, dtype=float)
         return to_device(np.broadcast_to(x, (bsize,)), dtype)
 
-    state = jax.tree_util.tree_map(
-        lambda x: to_device(np.broadcast_to(np.asarray(x), (bsize,) + np.shape(x)[-1:]), dtype),
-        y0_guess,
-    ) if batched else jax.tree_util.tree_map(lambda x: to_device(np.asarray(x, dtype)[None]), y0_guess)
+    state = (
+        jax.tree_util.tree_map(
+            lambda x: to_device(np.broadcast_to(np.asarray(x), (bsize,) + np.shape(x)[-1:]), dtype),
+            y0_guess,
+        )
+        if batched
+        else jax.tree_util.tree_map(lambda x: to_device(np.asarray(x, dtype)[None]), y0_guess)
+    )
     # the launch time's guess and its scale (params.py): the guess's distance to the first
     # frame, or a quarter of the guess's nutation period (a phase the windows can follow), or
     # one frame
-    t0_scale = max(ts_np[0] - t0, 0.25 * nutation_period(fields, launch),
-                   float(np.median(np.diff(ts_np))))
+    t0_scale = max(
+        ts_np[0] - t0, 0.25 * nutation_period(fields, launch), float(np.median(np.diff(ts_np)))
+    )
     law = top_guess.friction
     base = Base(
         top={f: per_rec(v) for f, v in fields.items()},
@@ -356,10 +388,24 @@ def build_setup(top_guess, y0_guess, records: Records, fields, launch, *, free, 
         # (indexed in numpy: a jax index is a small program to compile in each new process)
         template = jax.tree_util.tree_map(lambda x: to_device(np.asarray(x)[0], x.dtype), template)
     cfg = Config(
-        free=free, model=model, method=method, max_steps=int(max_steps),
-        sim_max_steps=int(sim_max_steps), has_phi=phi2 is not None, solver=solver,
+        free=free,
+        model=model,
+        method=method,
+        max_steps=int(max_steps),
+        sim_max_steps=int(sim_max_steps),
+        has_phi=phi2 is not None,
+        solver=solver,
         learning_rate=float(learning_rate),
     )
-    return Setup(ts=ts_np, mask=mask2, weights=w2, phi=phi2, rises=rises, template=template,
-                 cfg=cfg, batched=batched, tol=float(tol), rtol=float(rtol))
-
+    return Setup(
+        ts=ts_np,
+        mask=mask2,
+        weights=w2,
+        phi=phi2,
+        rises=rises,
+        template=template,
+        cfg=cfg,
+        batched=batched,
+        tol=float(tol),
+        rtol=float(rtol),
+    )

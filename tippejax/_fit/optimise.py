@@ -110,7 +110,8 @@ def least_squares(evaluate: Callable, u0, *, tol, steps, max_steps: int, damped:
             history[b, count[b]] = 0.5 * np.sum(r[b] ** 2)
             count[b] += 1
     codes = np.where(
-        done & ~failed, FIT_RESULTS.successful._value,
+        done & ~failed,
+        FIT_RESULTS.successful._value,
         np.where(done, FIT_RESULTS.optimiser_failed._value, FIT_RESULTS.max_steps_reached._value),
     ).astype(np.asarray(FIT_RESULTS.successful._value).dtype)
     return y, history, count, codes

@@ -57,9 +57,23 @@ FREE_NAMES = TOP_FIELDS + LAUNCH_FIELDS
 NAMES = BODY_FIELDS + LAW_FIELDS + LAUNCH_FIELDS + TIME_FIELDS
 """Every name `fit(free=...)` knows; which law fields a top has depends on its law."""
 
-FIELD_UNITS = dict(m="kg", R="m", eps="m", A="kg m^2", C="kg m^2", g="m/s^2",
-                   patch_radius="m", slip_scale="m/s", theta0="rad", spin="rad/s",
-                   theta_dot="rad/s", phi_dot="rad/s", vx="m/s", vy="m/s", t0="s")
+FIELD_UNITS = dict(
+    m="kg",
+    R="m",
+    eps="m",
+    A="kg m^2",
+    C="kg m^2",
+    g="m/s^2",
+    patch_radius="m",
+    slip_scale="m/s",
+    theta0="rad",
+    spin="rad/s",
+    theta_dot="rad/s",
+    phi_dot="rad/s",
+    vx="m/s",
+    vy="m/s",
+    t0="s",
+)
 """The units of every free name but `mu`, whose units are its law's (`mu_units`)."""
 _U_MAX = 30.0  # |u| bound: sigmoid(30) = 1 - 1e-13 < 1, exp(30) = 1e13
 _POLE_SIN = 1e-9  # a guess with sin(theta0) below this is launched at a pole
@@ -77,8 +91,11 @@ def law_fields(law: type[AbstractFriction] | AbstractFriction) -> tuple[str, ...
 
 def law_options(law: AbstractFriction) -> tuple[tuple[str, object], ...]:
     """The static fields of a friction law (e.g. `pressure`), as `(name, value)` pairs."""
-    return tuple((f.name, getattr(law, f.name)) for f in dataclasses.fields(type(law))
-                 if f.metadata.get("static"))
+    return tuple(
+        (f.name, getattr(law, f.name))
+        for f in dataclasses.fields(type(law))
+        if f.metadata.get("static")
+    )
 
 
 def identifiable(law: AbstractFriction) -> tuple[str, ...]:
@@ -125,8 +142,15 @@ def launch_of(y0: State) -> dict[str, Array]:
     theta, phi, psi = euler_angles(y0)
     theta_dot, phi_dot, _ = euler_rates(y0)
     return dict(
-        theta0=theta, spin=spin(y0), theta_dot=theta_dot, phi_dot=phi_dot, phi=phi, psi=psi,
-        vx=y0.velocity[..., 0], vy=y0.velocity[..., 1], x=y0.position[..., 0],
+        theta0=theta,
+        spin=spin(y0),
+        theta_dot=theta_dot,
+        phi_dot=phi_dot,
+        phi=phi,
+        psi=psi,
+        vx=y0.velocity[..., 0],
+        vy=y0.velocity[..., 1],
+        x=y0.position[..., 0],
         y=y0.position[..., 1],
     )
 
@@ -144,8 +168,13 @@ def physical(u: Float[Array, " p"], base: Base, free: tuple[str, ...]) -> dict[s
             out[name] = t[name] * jnp.exp(z[name])
     if "patch_radius" in z:
         R = out.get("R", t["R"])
-        out["patch_radius"] = PATCH_FRACTION * R * jax.nn.sigmoid(
-            z["patch_radius"] + _logit(t["patch_radius"] / (PATCH_FRACTION * t["R"])))
+        out["patch_radius"] = (
+            PATCH_FRACTION
+            * R
+            * jax.nn.sigmoid(
+                z["patch_radius"] + _logit(t["patch_radius"] / (PATCH_FRACTION * t["R"]))
+            )
+        )
     if "C" in z and "A" not in z:
         out["C"] = 2 * t["A"] * jax.nn.sigmoid(z["C"] + _logit(t["C"] / (2 * t["A"])))
     elif "C" in z:
@@ -197,14 +226,17 @@ def assemble(values: dict[str, Array], base: Base) -> tuple[TippeTop, State]:
     changed = [k for k in law_fields(base.law) if k in values]
     if changed:
         top = eqx.tree_at(
-            lambda tp: [getattr(tp.friction, k) for k in changed], top,
-            [values[k] for k in changed]
+            lambda tp: [getattr(tp.friction, k) for k in changed], top, [values[k] for k in changed]
         )
     if not any(k in LAUNCH_FIELDS for k in values):
         return top, base.state
     lau = {**base.launch, **{k: v for k, v in values.items() if k in LAUNCH_FIELDS}}
     y0 = state_from_euler(
-        lau["theta0"], lau["phi"], lau["psi"], lau["theta_dot"], lau["phi_dot"],
+        lau["theta0"],
+        lau["phi"],
+        lau["psi"],
+        lau["theta_dot"],
+        lau["phi_dot"],
         lau["spin"] - lau["phi_dot"] * jnp.cos(lau["theta0"]),
         position=jnp.stack([lau["x"], lau["y"]], -1),
         velocity=jnp.stack([lau["vx"], lau["vy"]], -1),
@@ -220,7 +252,21 @@ def coordinate_scale(free: tuple[str, ...]) -> dict[str, float]:
 
 
 __all__ = [
-    "BODY_FIELDS", "TOP_FIELDS", "LAW_FIELDS", "LAUNCH_FIELDS", "TIME_FIELDS", "FREE_NAMES",
-    "NAMES", "FIELD_UNITS", "Base", "launch_of", "physical", "assemble", "guess_top",
-    "law_fields", "law_options", "identifiable", "units",
+    "BODY_FIELDS",
+    "TOP_FIELDS",
+    "LAW_FIELDS",
+    "LAUNCH_FIELDS",
+    "TIME_FIELDS",
+    "FREE_NAMES",
+    "NAMES",
+    "FIELD_UNITS",
+    "Base",
+    "launch_of",
+    "physical",
+    "assemble",
+    "guess_top",
+    "law_fields",
+    "law_options",
+    "identifiable",
+    "units",
 ]

@@ -110,12 +110,24 @@ def simulated(values, data: Data, cfg: Config) -> TiltRun:
         t0 = jnp.minimum(safe["t0"], data.t_end - 1e-9 * jnp.abs(data.t_end))
         saves = jnp.maximum(saves, t0)
     out = simulate_tilt(
-        top, y0, saves, t0=t0, t1=data.t_end, model=cfg.model, rtol=data.rtol,
-        atol=data.atol, solver=cfg.solver, max_steps=cfg.sim_max_steps,
+        top,
+        y0,
+        saves,
+        t0=t0,
+        t1=data.t_end,
+        model=cfg.model,
+        rtol=data.rtol,
+        atol=data.atol,
+        solver=cfg.solver,
+        max_steps=cfg.sim_max_steps,
         adjoint=diffrax.ForwardMode(),
     )
-    return TiltRun(ts=out["ts"], theta=jnp.where(finite, out["theta"], jnp.nan),
-                   phi=out["phi"], t_contact_loss=out["t_contact_loss"])
+    return TiltRun(
+        ts=out["ts"],
+        theta=jnp.where(finite, out["theta"], jnp.nan),
+        phi=out["phi"],
+        t_contact_loss=out["t_contact_loss"],
+    )
 
 
 def first_crossings(smooth, grid, levels):

@@ -83,9 +83,8 @@ def phase_profile(u, setup, spin: int) -> Profile:
     centre = np.argmin(np.abs(unit))
     used = np.sum(setup.mask & setup.fitted, axis=-1)
     s2 = 2 * losses[:, centre] / np.maximum(used - u_np.shape[1], 1)
-    dchi2 = 2 * (losses - losses[:, centre:centre + 1]) / s2[:, None]
-    return Profile(offsets=offsets, dchi2=dchi2, points=points, direction=direction,
-                   cycles=cycles)
+    dchi2 = 2 * (losses - losses[:, centre : centre + 1]) / s2[:, None]
+    return Profile(offsets=offsets, dchi2=dchi2, points=points, direction=direction, cycles=cycles)
 
 
 def lower_points(profile: Profile) -> tuple[np.ndarray, np.ndarray]:

@@ -22,9 +22,7 @@ class FIT_RESULTS(eqxi.Enumeration):
         "The optimiser used max_steps without meeting its tolerance. The fit may still be "
         "usable (look at loss_history); raise max_steps or try another strategy."
     )
-    optimiser_failed = (
-        "The optimiser stopped on a non-finite loss or a singular linear system."
-    )
+    optimiser_failed = "The optimiser stopped on a non-finite loss or a singular linear system."
     simulation_failed = (
         "At the fitted parameters the simulation fails before the end of the record (contact "
         "lost, the R_n singularity or max steps): those save times carry the failure residual."

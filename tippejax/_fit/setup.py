@@ -45,8 +45,11 @@ def _committed(tree):
     with them many times (each optimiser step), and `cached_call` would otherwise commit
     every input of every call."""
     return jax.tree_util.tree_map(
-        lambda x: jax.device_put(x, next(iter(x.devices())))
-        if isinstance(x, jax.Array) and not x.committed else x,
+        lambda x: (
+            jax.device_put(x, next(iter(x.devices())))
+            if isinstance(x, jax.Array) and not x.committed
+            else x
+        ),
         tree,
     )
 
@@ -54,8 +57,20 @@ def _committed(tree):
 class Setup:
     """One fit's data in numpy (shape `(bsize, N)`) and the template of its `Data`."""
 
-    def __init__(self, *, ts, mask, weights, phi, rises, template: Data, cfg: Config,
-                 batched: bool, tol: float, rtol: float):
+    def __init__(
+        self,
+        *,
+        ts,
+        mask,
+        weights,
+        phi,
+        rises,
+        template: Data,
+        cfg: Config,
+        batched: bool,
+        tol: float,
+        rtol: float,
+    ):
         self.ts = ts
         self.n = ts.size
         self.mask = mask  # (bsize, N) bool: a usable sample
@@ -84,15 +99,25 @@ class Setup:
         record pays for the slowest one's search."""
         idx = np.asarray(idx, int)
         one = idx.size == 1
+
         def pick(x):  # the records' rows, shape (len(idx), ...)
             return np.asarray(x)[idx]
 
         template = jax.tree_util.tree_map(
-            lambda x: to_device(pick(x)[0] if one else pick(x), x.dtype), self.template)
-        sub = Setup(ts=self.ts, mask=pick(self.mask), weights=pick(self.w),
-                    phi=None if self.phi is None else pick(self.phi), rises=pick(self.rises),
-                    template=template, cfg=self.cfg, batched=not one, tol=self.tol,
-                    rtol=self.rtol)
+            lambda x: to_device(pick(x)[0] if one else pick(x), x.dtype), self.template
+        )
+        sub = Setup(
+            ts=self.ts,
+            mask=pick(self.mask),
+            weights=pick(self.w),
+            phi=None if self.phi is None else pick(self.phi),
+            rises=pick(self.rises),
+            template=template,
+            cfg=self.cfg,
+            batched=not one,
+            tol=self.tol,
+            rtol=self.rtol,
+        )
         sub.fitted = pick(self.fitted)
         return sub
 
@@ -101,9 +126,18 @@ class Setup:
         question about the fit, such as whether freeing the launch time would help
         (`launch.py`)."""
         cfg = eqx.tree_at(lambda c: c.free, self.cfg, tuple(free))
-        other = Setup(ts=self.ts, mask=self.mask, weights=self.w, phi=self.phi,
-                      rises=self.rises, template=self.template, cfg=cfg,
-                      batched=self.batched, tol=self.tol, rtol=self.rtol)
+        other = Setup(
+            ts=self.ts,
+            mask=self.mask,
+            weights=self.w,
+            phi=self.phi,
+            rises=self.rises,
+            template=self.template,
+            cfg=cfg,
+            batched=self.batched,
+            tol=self.tol,
+            rtol=self.rtol,
+        )
         other.fitted = self.fitted
         return other
 
@@ -113,14 +147,25 @@ class Setup:
         if self.sharding is None:
             return _committed(tree)
         return jax.tree_util.tree_map(
-            lambda x: jax.device_put(x, self.sharding) if isinstance(x, jax.Array) else x, tree)
+            lambda x: jax.device_put(x, self.sharding) if isinstance(x, jax.Array) else x, tree
+        )
 
     def pad(self, x: np.ndarray) -> np.ndarray:
         """`x` of shape (bsize, n) padded with zeros to the bucket length."""
         return np.concatenate([x, np.zeros(x.shape[:-1] + (self.padded - self.n,), x.dtype)], -1)
 
-    def data(self, *, window_end=None, theta=True, slow=0.0, tol=STAGE_TOL, rtol=None,
-             final=False, pin=(), steps=None) -> Data:
+    def data(
+        self,
+        *,
+        window_end=None,
+        theta=True,
+        slow=0.0,
+        tol=STAGE_TOL,
+        rtol=None,
+        final=False,
+        pin=(),
+        steps=None,
+    ) -> Data:
         """`Data` for one optimisation: tilt samples up to `window_end` (all if None; none if
         `theta` is False; a scalar or one per record) and the slow observables with weight
         `slow` (per record or scalar). Without slow observables the simulation stops at the
@@ -135,9 +180,16 @@ class Setup:
         if key not in self._data:
             if len(self._data) >= 8:  # (a Data holds the whole batch's arrays: keep a few)
                 del self._data[next(iter(self._data))]
-            self._data[key] = self._make_data(window_end=window_end, theta=theta, slow=slow,
-                                              tol=tol, rtol=rtol, final=final, pin=pin,
-                                              steps=steps)
+            self._data[key] = self._make_data(
+                window_end=window_end,
+                theta=theta,
+                slow=slow,
+                tol=tol,
+                rtol=rtol,
+                final=final,
+                pin=pin,
+                steps=steps,
+            )
         return self._data[key]
 
     def _make_data(self, *, window_end, theta, slow, tol, rtol, final, pin, steps) -> Data:
@@ -166,17 +218,23 @@ class Setup:
             tol=np.full(bsize, max(tol, self.tol)),
             rtol=np.full(bsize, rtol),
             t_end=t_end,
-            pinned=np.broadcast_to(np.array([n in pin for n in self.cfg.free], float),
-                                   (bsize, len(self.cfg.free))),
-            steps=np.full(bsize, float(self.cfg.max_steps if steps is None
-                                       else min(steps, self.cfg.max_steps))),
+            pinned=np.broadcast_to(
+                np.array([n in pin for n in self.cfg.free], float), (bsize, len(self.cfg.free))
+            ),
+            steps=np.full(
+                bsize,
+                float(self.cfg.max_steps if steps is None else min(steps, self.cfg.max_steps)),
+            ),
         )
         # (indexed in numpy: a jax index is a small program to compile in each new process)
         fields = {k: np.asarray(v) if self.batched else np.asarray(v)[0] for k, v in fields.items()}
         fields = self.place({k: to_device(v, dtype) for k, v in fields.items()})
         names = tuple(fields)
-        return eqx.tree_at(lambda d: tuple(getattr(d, k) for k in names), self.template,
-                           tuple(fields[k] for k in names))
+        return eqx.tree_at(
+            lambda d: tuple(getattr(d, k) for k in names),
+            self.template,
+            tuple(fields[k] for k in names),
+        )
 
     def evaluate(self, u, data: Data):
         """The residuals, their Jacobian (in `u`) and the simulated curves at `u`: one
@@ -187,8 +245,9 @@ class Setup:
         if key in self._evaluations:  # (the optimiser's last accepted point, then `finish`)
             return self._evaluations[key][1]
         # (the fit's programs go to the persistent cache too, `_cache.py`)
-        out = _own_call(_run_evaluate, to_device(u), data, cfg=self.cfg,
-                        batched=self.batched, mesh=self.mesh)
+        out = _own_call(
+            _run_evaluate, to_device(u), data, cfg=self.cfg, batched=self.batched, mesh=self.mesh
+        )
         if len(self._evaluations) >= 8:
             del self._evaluations[next(iter(self._evaluations))]
         self._evaluations[key] = (data, out)  # (holding `data` keeps its id unique)
@@ -199,8 +258,7 @@ class Setup:
         (see `optimise.py`)."""
         cfg = self.cfg
         if cfg.method == "adam":
-            return _own_call(_run_optimise, u, data, cfg=cfg, batched=self.batched,
-                             mesh=self.mesh)
+            return _own_call(_run_optimise, u, data, cfg=cfg, batched=self.batched, mesh=self.mesh)
         dtype = self.template.ts.dtype
 
         def evaluate(v):
@@ -212,7 +270,11 @@ class Setup:
         tol = np.asarray(data.tol).reshape(-1)
         steps = np.asarray(data.steps).reshape(-1)
         end, history, count, codes = least_squares(
-            evaluate, u0, tol=tol, steps=steps, max_steps=cfg.max_steps,
+            evaluate,
+            u0,
+            tol=tol,
+            steps=steps,
+            max_steps=cfg.max_steps,
             damped=cfg.method == "levenberg_marquardt",
         )
         if not self.batched:
@@ -244,11 +306,20 @@ class Setup:
         k = u.shape[0]
         out = []
         for lo in range(0, k, CHUNK):
-            part = u[lo: lo + CHUNK]
+            part = u[lo : lo + CHUNK]
             part = np.concatenate([part, np.repeat(part[-1:], CHUNK - part.shape[0], 0)])
-            out.append(np.asarray(_own_call(
-                _run_losses, to_device(part, self.template.ts.dtype), data,
-                cfg=self.cfg, batched=self.batched, mesh=self.mesh)))
+            out.append(
+                np.asarray(
+                    _own_call(
+                        _run_losses,
+                        to_device(part, self.template.ts.dtype),
+                        data,
+                        cfg=self.cfg,
+                        batched=self.batched,
+                        mesh=self.mesh,
+                    )
+                )
+            )
         losses = np.concatenate(out)[:k]
         return np.where(np.isfinite(losses), losses, np.inf)
 
@@ -258,8 +329,15 @@ class Setup:
         first fit about 1.2 s shorter in interleaved runs: XLA's compiler already uses most of
         both cores, so only the tracing overlaps)."""
         shape = (CHUNK,) + ((self.bsize,) if self.batched else ()) + (len(self.cfg.free),)
-        _own_call(_run_losses, to_device(np.zeros(shape), self.template.ts.dtype),
-                  self.data(), cfg=self.cfg, batched=self.batched, mesh=self.mesh, ahead=True)
+        _own_call(
+            _run_losses,
+            to_device(np.zeros(shape), self.template.ts.dtype),
+            self.data(),
+            cfg=self.cfg,
+            batched=self.batched,
+            mesh=self.mesh,
+            ahead=True,
+        )
 
     def nutation_cycles(self, spin_u):
         """Number of fast-nutation cycles, C|n|/(2 pi A) x the record, at spin coordinates
@@ -275,10 +353,21 @@ class Setup:
         inside = np.clip(np.asarray(u), -U_LIMIT, U_LIMIT)
         value, jac, run = self.evaluate(inside, data)
         if self.batched and np.ndim(code._value) == 0:  # one code for every record
-            code = eqx.tree_at(lambda c: c._value, code,
-                               to_device(np.full(self.bsize, np.asarray(code._value))))
-        return _own_call(_run_finish, u, code, data, value, jac, run, cfg=self.cfg,
-                         batched=self.batched, mesh=self.mesh)
+            code = eqx.tree_at(
+                lambda c: c._value, code, to_device(np.full(self.bsize, np.asarray(code._value)))
+            )
+        return _own_call(
+            _run_finish,
+            u,
+            code,
+            data,
+            value,
+            jac,
+            run,
+            cfg=self.cfg,
+            batched=self.batched,
+            mesh=self.mesh,
+        )
 
 
 def _own_call(fn, *args, ahead=False, **static):
@@ -323,8 +412,9 @@ def _run_losses(u, data, cfg, batched, mesh=None):
     if not batched:
         return jax.vmap(lambda v: loss(v, data))(u)
     # u: (starts, records, p); over the records on the outside, the starts inside
-    by_record = _over_records(lambda v, d: jax.vmap(lambda w: loss(w, d))(v), mesh,
-                              jnp.swapaxes(u, 0, 1), data)
+    by_record = _over_records(
+        lambda v, d: jax.vmap(lambda w: loss(w, d))(v), mesh, jnp.swapaxes(u, 0, 1), data
+    )
     return jnp.swapaxes(by_record, 0, 1)
 
 
@@ -335,7 +425,9 @@ def finish(u, code, data: Data, value, jac_u, sol, cfg: Config):
     at_edge = jnp.any(jnp.abs(u) >= U_LIMIT * (1 - 1e-6))
     u = jnp.clip(u, -U_LIMIT, U_LIMIT)
     values = physical(u, data.base, cfg.free)
-    dp_du = jax.jacfwd(lambda v: jnp.stack([physical(v, data.base, cfg.free)[n] for n in cfg.free]))(u)
+    dp_du = jax.jacfwd(
+        lambda v: jnp.stack([physical(v, data.base, cfg.free)[n] for n in cfg.free])
+    )(u)
     n_used = jnp.sum(data.weights > 0) + (jnp.sum(data.phi_weights > 0) if cfg.has_phi else 0)
     p = len(cfg.free)
     rss = jnp.sum(value**2)
@@ -359,12 +451,21 @@ def finish(u, code, data: Data, value, jac_u, sol, cfg: Config):
     vector = jnp.stack([values[n] for n in cfg.free])
     t0 = values["t0"] if "t0" in values else data.t0
     return dict(
-        top=top, y0=y0, t0=t0, values=vector, std_errors=std, covariance=cov, correlation=corr,
-        theta_fit=theta_fit, phi_fit=phi_fit, loss=0.5 * rss,
+        top=top,
+        y0=y0,
+        t0=t0,
+        values=vector,
+        std_errors=std,
+        covariance=cov,
+        correlation=corr,
+        theta_fit=theta_fit,
+        phi_fit=phi_fit,
+        loss=0.5 * rss,
         result=FIT_RESULTS.where(
             jnp.all(jnp.isfinite(u)),
             FIT_RESULTS.where(
-                failed, FIT_RESULTS.simulation_failed,
+                failed,
+                FIT_RESULTS.simulation_failed,
                 FIT_RESULTS.where(at_edge, FIT_RESULTS.outside_trust_region, code),
             ),
             FIT_RESULTS.optimiser_failed,  # (Gauss-Newton can accept a step to nan)

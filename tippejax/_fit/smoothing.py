@@ -35,8 +35,11 @@ def smoother(ts: np.ndarray, nutation_period: float):
     count = min(MAX_BINS, bucket(ts.size))
     bins = np.clip(np.floor((ts - ts[0]) / span * count).astype(int), 0, count - 1)
     filled = np.bincount(bins, minlength=count)
-    centres = np.where(filled > 0, np.bincount(bins, weights=ts, minlength=count)
-                       / np.maximum(filled, 1), ts[0] + (np.arange(count) + 0.5) * span / count)
+    centres = np.where(
+        filled > 0,
+        np.bincount(bins, weights=ts, minlength=count) / np.maximum(filled, 1),
+        ts[0] + (np.arange(count) + 0.5) * span / count,
+    )
     offset = (grid[:, None] - centres[None, :]) / width
     kernel = np.where(np.abs(offset) <= 4.0, np.exp(-0.5 * offset**2), 0.0)
     return (bins, kernel), grid
@@ -79,4 +82,3 @@ def first_crossings_numpy(smooth: np.ndarray, grid: np.ndarray, levels: np.ndarr
         t_miss = grid[-1] + (level - smooth.max()) * (grid[-1] - grid[0]) / np.pi
         out[i] = t_hit if above.any() else t_miss
     return out
-

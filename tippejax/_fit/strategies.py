@@ -33,8 +33,10 @@ from .stages import Final, GlobalSearch, Levels, PhaseScan, ValleyScan, Windows
 IF_NOISE = "if the guess's residuals are noise"  # a search: the guess, or no start at all
 _POLISH = (IF_NOISE, (Final(final=False), Final()))
 _WINDOWS = (None, (Windows(slow=False), Final(final=False), Final()))
-_SEARCH = (GlobalSearch(), ((PhaseScan(), Final(final=False), Final()),
-                            (ValleyScan(), Final(final=False), Final())))
+_SEARCH = (
+    GlobalSearch(),
+    ((PhaseScan(), Final(final=False), Final()), (ValleyScan(), Final(final=False), Final())),
+)
 
 STRATEGIES = {
     "global": (_POLISH, _WINDOWS, _SEARCH),

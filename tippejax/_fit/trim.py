@@ -73,16 +73,21 @@ def trim_records(setup, out, obs2, sigma):
     if np.any(trimmed & ~ok):  # the reach was too long: the last trusted window alone
         fit_ends = np.where(trimmed & ~ok, end_ok, fit_ends)
         u, cand, residuals, verdicts, hist2, cnt2 = fit_to(
-            per_record(trimmed & ~ok, u_ok, u), fit_ends, (Final(),))
+            per_record(trimmed & ~ok, u_ok, u), fit_ends, (Final(),)
+        )
         hist += hist2
         cnt += cnt2
     histories += hist
     counts += cnt
     steps = np.asarray(sum(np.asarray(c) for c in counts)).reshape(-1)
     new = dict(
-        out=cand, residuals=residuals, verdicts=verdicts, u=u,
+        out=cand,
+        residuals=residuals,
+        verdicts=verdicts,
+        u=u,
         history=pack(histories, counts, bsize, setup.cfg.max_steps),
-        loss=np.asarray(cand["loss"]).reshape(-1), starts=out["starts"],
+        loss=np.asarray(cand["loss"]).reshape(-1),
+        starts=out["starts"],
         num_steps=out["num_steps"] + steps,
         describes=np.array([v["describes_until"] for v in verdicts]),
     )

@@ -52,16 +52,20 @@ def describe_failure(failed, names, values, most: int = 3) -> str:
     def show(index) -> str:
         return ", ".join(
             f"{k}={float(np.broadcast_to(v, failed.shape)[index]):.6g}"
-            for k, v in zip(names, values))
+            for k, v in zip(names, values)
+        )
 
     if failed.ndim == 0:
         return f"Got {show(())}."
     where = np.argwhere(failed)
-    members = [f"[{', '.join(str(int(i)) for i in index)}]: {show(tuple(index))}"
-               for index in where[:most]]
+    members = [
+        f"[{', '.join(str(int(i)) for i in index)}]: {show(tuple(index))}" for index in where[:most]
+    ]
     more = f"; and {len(where) - most} more" if len(where) > most else ""
-    return (f"{len(where)} of the batch's {failed.size} (shape {failed.shape}) break it; at "
-            f"index {'; '.join(members)}{more}.")
+    return (
+        f"{len(where)} of the batch's {failed.size} (shape {failed.shape}) break it; at "
+        f"index {'; '.join(members)}{more}."
+    )
 
 
 def checked(owner: str, names, values, checks):
@@ -75,8 +79,9 @@ def checked(owner: str, names, values, checks):
         np_values = [np.asarray(v) for v in values]
         for failed, message in checks(*np_values):
             if np.any(failed):
-                failed = np.broadcast_to(failed, np.broadcast_shapes(
-                    np.shape(failed), *(np.shape(v) for v in np_values)))
+                failed = np.broadcast_to(
+                    failed, np.broadcast_shapes(np.shape(failed), *(np.shape(v) for v in np_values))
+                )
                 raise ValueError(f"{message} {describe_failure(failed, names, np_values)}")
         return list(values)
     rules = checks(*values)
@@ -88,8 +93,10 @@ def checked(owner: str, names, values, checks):
 
 def finite_rules(owner: str, names, values, xp):
     """One rule per field: finite."""
-    return [(~xp.isfinite(v), f"{owner}.{k} must be finite (got NaN or inf).")
-            for k, v in zip(names, values)]
+    return [
+        (~xp.isfinite(v), f"{owner}.{k} must be finite (got NaN or inf).")
+        for k, v in zip(names, values)
+    ]
 
 
 def array_module(*values):
@@ -173,8 +180,9 @@ class AbstractFriction(eqx.Module):
         r"""The friction force per unit normal force $f$ (horizontal 2-vector, last axis) and
         the drilling torque per unit normal force $m$ (m) at slip velocity $v$ (m/s, 2-vector)
         and drilling rate $\omega_n$ (rad/s); see `components`."""
-        fx, fy, torque = self.components(slip_velocity[..., 0], slip_velocity[..., 1],
-                                         drilling_rate)
+        fx, fy, torque = self.components(
+            slip_velocity[..., 0], slip_velocity[..., 1], drilling_rate
+        )
         return jnp.stack([fx, fy], axis=-1), torque
 
     # -- construction helpers -------------------------------------------------------------
@@ -194,9 +202,12 @@ class AbstractFriction(eqx.Module):
         names = self._array_field_names()
         arrays = broadcast_fields(owner, names, [as_float(values[k]) for k in names])
         arrays = checked(
-            owner, names, arrays,
-            lambda *v: finite_rules(owner, names, v, array_module(*v))
-            + self._rules(v, array_module(*v)),
+            owner,
+            names,
+            arrays,
+            lambda *v: (
+                finite_rules(owner, names, v, array_module(*v)) + self._rules(v, array_module(*v))
+            ),
         )
         for k, v in zip(names, arrays):
             setattr(self, k, v)

@@ -141,8 +141,13 @@ class CoulombContensou(AbstractFriction):
     mu_units: ClassVar[str] = "1"
     has_drilling_torque: ClassVar[bool] = True
 
-    def __init__(self, mu: ArrayLike, patch_radius: ArrayLike, slip_scale: ArrayLike,
-                 pressure: Literal["hertz", "ellipse"] = "hertz"):
+    def __init__(
+        self,
+        mu: ArrayLike,
+        patch_radius: ArrayLike,
+        slip_scale: ArrayLike,
+        pressure: Literal["hertz", "ellipse"] = "hertz",
+    ):
         if pressure not in PRESSURES:
             raise ValueError(
                 f"CoulombContensou.pressure must be one of {PRESSURES} (the exact law for a "
@@ -156,18 +161,22 @@ class CoulombContensou(AbstractFriction):
         owner = type(self).__name__
         return [
             coulomb_mu_rule(owner, mu),
-            (patch_radius <= 0,
-             f"{owner}.patch_radius (radius of the contact disc, m) must be > 0."),
+            (
+                patch_radius <= 0,
+                f"{owner}.patch_radius (radius of the contact disc, m) must be > 0.",
+            ),
             slip_scale_rule(owner, slip_scale),
         ]
 
     def ball_rules(self, R, xp):
-        return [(
-            self.patch_radius >= PATCH_FRACTION * R,
-            f"CoulombContensou.patch_radius (radius of the contact disc, m) must be well below "
-            f"the ball's radius R: patch_radius < {PATCH_FRACTION:g} R (the law is for a small "
-            "flat contact).",
-        )]
+        return [
+            (
+                self.patch_radius >= PATCH_FRACTION * R,
+                f"CoulombContensou.patch_radius (radius of the contact disc, m) must be well below "
+                f"the ball's radius R: patch_radius < {PATCH_FRACTION:g} R (the law is for a small "
+                "flat contact).",
+            )
+        ]
 
     @property
     def drilling_radius(self) -> Float[Array, "*batch"]:
@@ -185,8 +194,7 @@ class CoulombContensou(AbstractFriction):
         spin = jnp.sqrt((rho * drilling_rate) ** 2 + delta2)
         force, torque = hertz_profiles(slip / spin)
         scale = self.mu * force / slip
-        return (-scale * slip_x, -scale * slip_y,
-                -self.mu * rho**2 * torque * drilling_rate / spin)
+        return (-scale * slip_x, -scale * slip_y, -self.mu * rho**2 * torque * drilling_rate / spin)
 
     def _slope_at_zero_slip(self, drilling_rate):
         delta = self.slip_scale

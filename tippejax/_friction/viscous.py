@@ -30,8 +30,9 @@ class Viscous(AbstractFriction):
 
     def _rules(self, values, xp):
         (mu,) = values
-        return [(mu < 0, f"{type(self).__name__}.mu (viscous friction coefficient, s/m) "
-                 "must be >= 0.")]
+        return [
+            (mu < 0, f"{type(self).__name__}.mu (viscous friction coefficient, s/m) must be >= 0.")
+        ]
 
     def components(self, slip_x, slip_y, drilling_rate):
         return -self.mu * slip_x, -self.mu * slip_y, jnp.zeros_like(drilling_rate)

@@ -55,8 +55,9 @@ def _classify_all(top, J, theta_final, result, settle_tol):
     return jax.vmap(one)(J, theta_final, result)
 
 
-def staged_map(top: TippeTop, flat_theta, flat_spin, t1, *, rtol, atol, solver, max_steps,
-                settle_tol, devices):
+def staged_map(
+    top: TippeTop, flat_theta, flat_spin, t1, *, rtol, atol, solver, max_steps, settle_tol, devices
+):
     """`outcome_map(model="auto")` with `tolerance=None`: the stages of `_map_stages`.
 
     **Returns:** `(fields, routes, index)`: the per-launch fields of an `OutcomeMap`, the
@@ -67,19 +68,35 @@ def staged_map(top: TippeTop, flat_theta, flat_spin, t1, *, rtol, atol, solver, 
         solver, slow_solver = default_solver(top), default_solver(top, slow_flow=True)
     else:
         slow_solver = solver
-    run = staged_outcomes(top, y0, t1, rtol=rtol, atol=atol, solver=solver,
-                          slow_solver=slow_solver, max_steps=max_steps, devices=devices)
+    run = staged_outcomes(
+        top,
+        y0,
+        t1,
+        rtol=rtol,
+        atol=atol,
+        solver=solver,
+        slow_solver=slow_solver,
+        max_steps=max_steps,
+        devices=devices,
+    )
     J = np.asarray(jax.vmap(lambda y: jellet(top, y))(y0))
-    theta_final = np.asarray(jax.vmap(lambda y: euler_angles(y)[0])(
-        jax.tree_util.tree_map(jnp.asarray, run["state"])))
+    theta_final = np.asarray(
+        jax.vmap(lambda y: euler_angles(y)[0])(jax.tree_util.tree_map(jnp.asarray, run["state"]))
+    )
     outcome, settled, expected = _classify_all(
-        top, jnp.asarray(J), jnp.asarray(theta_final), jnp.asarray(run["result"]),
-        float(settle_tol))
+        top, jnp.asarray(J), jnp.asarray(theta_final), jnp.asarray(run["result"]), float(settle_tol)
+    )
     fields = dict(
-        outcome=np.asarray(outcome), settled=np.asarray(settled), theta_final=theta_final,
-        theta_expected=np.asarray(expected), t_invert=run["t_invert"],
-        t_contact_loss=run["t_contact_loss"], t_final=run["t_final"], jellet=J,
-        result=run["result"].astype(np.int8), num_steps=run["num_steps"].astype(np.int32),
+        outcome=np.asarray(outcome),
+        settled=np.asarray(settled),
+        theta_final=theta_final,
+        theta_expected=np.asarray(expected),
+        t_invert=run["t_invert"],
+        t_contact_loss=run["t_contact_loss"],
+        t_final=run["t_final"],
+        jellet=J,
+        result=run["result"].astype(np.int8),
+        num_steps=run["num_steps"].astype(np.int32),
     )
     routes, index = np.unique(run["route"], return_inverse=True)
     return fields, [str(r) for r in routes], index

@@ -22,8 +22,11 @@ _SAME_FIELD = (("A", "A_over_C"), ("eps", "eps_over_R"))
 def law_fields(top: TippeTop) -> tuple[str, ...]:
     """The array fields of the top's friction law other than `mu` (e.g. `slip_scale`,
     `patch_radius`): map axes too."""
-    return tuple(f.name for f in dataclasses.fields(top.friction)
-                 if not f.metadata.get("static") and f.name != "mu")
+    return tuple(
+        f.name
+        for f in dataclasses.fields(top.friction)
+        if not f.metadata.get("static") and f.name != "mu"
+    )
 
 
 def quantity_names(top: TippeTop) -> tuple[str, ...]:
@@ -74,8 +77,9 @@ class MapAxes(eqx.Module):
     def tops_at(self, top: TippeTop, first: np.ndarray, second: np.ndarray) -> TippeTop:
         """`tops` at any values `first`, `second` of the two axes."""
         first, second = np.broadcast_arrays(np.asarray(first, float), np.asarray(second, float))
-        changes = {name: v.ravel() for name, v in zip(self.names, (first, second))
-                   if name not in LAUNCH}
+        changes = {
+            name: v.ravel() for name, v in zip(self.names, (first, second)) if name not in LAUNCH
+        }
         return with_fields(top, changes) if changes else top
 
 
@@ -98,8 +102,7 @@ def _as_values(where: str, name: str, value) -> np.ndarray:
         ) from None
     if array.ndim > 1:
         raise ValueError(
-            f"{where}: {name} must be a number or a 1-d list (an axis), got shape "
-            f"{array.shape}."
+            f"{where}: {name} must be a number or a 1-d list (an axis), got shape {array.shape}."
         )
     if array.size == 0:
         raise ValueError(f"{where}: {name} is empty.")

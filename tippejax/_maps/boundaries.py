@@ -59,8 +59,11 @@ def _index_lines(z, level=0.0) -> list[np.ndarray]:
     if n1 < 2 or n2 < 2:
         return []
     gen = contourpy.contour_generator(
-        x=np.arange(n2, dtype=float), y=np.arange(n1, dtype=float), z=z,
-        line_type=contourpy.LineType.Separate)
+        x=np.arange(n2, dtype=float),
+        y=np.arange(n1, dtype=float),
+        z=z,
+        line_type=contourpy.LineType.Separate,
+    )
     return [line[:, ::-1].copy() for line in gen.lines(level) if len(line) >= 2]
 
 
@@ -76,6 +79,7 @@ def to_values(line: np.ndarray, values) -> np.ndarray:
 def pair_cells(outcome: np.ndarray, a: int, b: int) -> np.ndarray:
     """Which cells (2 x 2 neighbouring points, shape `(n1 - 1, n2 - 1)`) hold both `a` and
     `b`."""
+
     def any_in_cell(mask):
         return mask[:-1, :-1] | mask[1:, :-1] | mask[:-1, 1:] | mask[1:, 1:]
 
@@ -106,11 +110,14 @@ def box_counting_dimension(cells: np.ndarray) -> float:
 def _pole_curvatures(tops, launches):
     def one(top, launch):
         theta0, spin, theta_dot, phi_dot, phi, psi, vx, vy = launch
-        y0 = initial_state(top, theta0, spin, theta_dot=theta_dot, phi_dot=phi_dot, phi=phi,
-                           psi=psi, vx=vx, vy=vy)
+        y0 = initial_state(
+            top, theta0, spin, theta_dot=theta_dot, phi_dot=phi_dot, phi=phi, psi=psi, vx=vx, vy=vy
+        )
         J = jellet(top, y0)
-        return (effective_potential_d2_closed_form(top, 0.0, J),
-                effective_potential_d2_closed_form(top, jnp.pi, J))
+        return (
+            effective_potential_d2_closed_form(top, 0.0, J),
+            effective_potential_d2_closed_form(top, jnp.pi, J),
+        )
 
     axes = jax.tree_util.tree_map(lambda x: 0 if jnp.ndim(x) == 1 else None, tops)
     return jax.vmap(one, in_axes=(axes, 0))(tops, launches)
@@ -118,8 +125,11 @@ def _pole_curvatures(tops, launches):
 
 def map_axes_of(om) -> MapAxes:
     """The `MapAxes` of a finished map."""
-    return MapAxes(names=om.axes, values=tuple(np.asarray(v, float) for v in om.axis_values),
-                   fixed=dict(om.fixed))
+    return MapAxes(
+        names=om.axes,
+        values=tuple(np.asarray(v, float) for v in om.axis_values),
+        fixed=dict(om.fixed),
+    )
 
 
 def theory_fields(om) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -137,8 +147,12 @@ def theory_fields(om) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     tops = axes.tops(base_top(om.top, axes), i, j)
     up, down = _pole_curvatures(tops, jnp.asarray(axes.launches(i, j), dtype))
     shape = gi.shape
-    return (np.asarray(up, float).reshape(shape), np.asarray(down, float).reshape(shape),
-            picks[0], picks[1])
+    return (
+        np.asarray(up, float).reshape(shape),
+        np.asarray(down, float).reshape(shape),
+        picks[0],
+        picks[1],
+    )
 
 
 def theory_lines(om) -> dict[str, list[np.ndarray]]:
@@ -148,9 +162,16 @@ def theory_lines(om) -> dict[str, list[np.ndarray]]:
     out = {}
     for name, field in (("J1", up), ("J2", down)):
         lines = _index_lines(np.ma.masked_invalid(field))
-        out[name] = [np.stack([np.interp(line[:, 0], np.arange(pi.size), pi),
-                               np.interp(line[:, 1], np.arange(pj.size), pj)], axis=1)
-                     for line in lines]
+        out[name] = [
+            np.stack(
+                [
+                    np.interp(line[:, 0], np.arange(pi.size), pi),
+                    np.interp(line[:, 1], np.arange(pj.size), pj),
+                ],
+                axis=1,
+            )
+            for line in lines
+        ]
     return out
 
 
@@ -165,13 +186,16 @@ def _distances(om, axes: MapAxes, points: np.ndarray, which: int) -> np.ndarray:
     offsets = ((0.0, 0.0), (0.5, 0.0), (-0.5, 0.0), (0.0, 0.5), (0.0, -0.5))
     values = []
     for di, dj in offsets:
-        at = [np.interp(points[:, k] + d, np.arange(n[k]), axes.values[k])
-              for k, d in ((0, di), (1, dj))]
+        at = [
+            np.interp(points[:, k] + d, np.arange(n[k]), axes.values[k])
+            for k, d in ((0, di), (1, dj))
+        ]
         # (padded to a bucket of lengths: one compilation for boundaries of similar sizes)
         pad = bucket(len(points)) - len(points)
         at = [np.concatenate([a, np.repeat(a[-1:], pad)]) for a in at]
-        f = _pole_curvatures(axes.tops_at(base, *at),
-                             jnp.asarray(axes.launches_at(*at), dtype))[which]
+        f = _pole_curvatures(axes.tops_at(base, *at), jnp.asarray(axes.launches_at(*at), dtype))[
+            which
+        ]
         values.append(np.asarray(f, float)[: len(points)])
     f, up_i, down_i, up_j, down_j = values
     # (one-sided at the ends of an axis, where the half cell beyond is clipped)
@@ -190,7 +214,7 @@ def boundaries(om) -> tuple[MapBoundary, ...]:
     axes = map_axes_of(om)
     out = []
     for x, a in enumerate(present):
-        for b in present[x + 1:]:
+        for b in present[x + 1 :]:
             cells = pair_cells(outcome, a, b)
             if not cells.any():
                 continue
@@ -198,24 +222,30 @@ def boundaries(om) -> tuple[MapBoundary, ...]:
             lines = _index_lines(np.ma.masked_invalid(z))
             curve, distance, distance_max = None, math.nan, math.nan
             kinds = {a, b}
-            if lines and kinds & {UPRIGHT, INVERTED} and kinds <= {UPRIGHT, INVERTED,
-                                                                   INTERMEDIATE}:
+            if lines and kinds & {UPRIGHT, INVERTED} and kinds <= {UPRIGHT, INVERTED, INTERMEDIATE}:
                 points = np.concatenate(lines)
                 candidates = ([("J1", 0)] if UPRIGHT in kinds else []) + (
-                    [("J2", 1)] if INVERTED in kinds else [])
+                    [("J2", 1)] if INVERTED in kinds else []
+                )
                 best = None
                 for name, which in candidates:
                     d = _distances(om, axes, points, which)
-                    if np.any(np.isfinite(d)) and (best is None
-                                                   or np.nanmedian(d) < np.nanmedian(best[1])):
+                    if np.any(np.isfinite(d)) and (
+                        best is None or np.nanmedian(d) < np.nanmedian(best[1])
+                    ):
                         best = (name, d)
                 if best is not None:
                     curve, d = best
                     distance, distance_max = float(np.nanmedian(d)), float(np.nanmax(d))
-            out.append(MapBoundary(
-                outcomes=(OUTCOMES[a], OUTCOMES[b]),
-                lines=tuple(to_values(line, om.axis_values) for line in lines),
-                cells=int(cells.sum()), dimension=box_counting_dimension(cells),
-                theory=curve, distance=distance, distance_max=distance_max,
-            ))
+            out.append(
+                MapBoundary(
+                    outcomes=(OUTCOMES[a], OUTCOMES[b]),
+                    lines=tuple(to_values(line, om.axis_values) for line in lines),
+                    cells=int(cells.sum()),
+                    dimension=box_counting_dimension(cells),
+                    theory=curve,
+                    distance=distance,
+                    distance_max=distance_max,
+                )
+            )
     return tuple(out)

@@ -39,15 +39,22 @@ def _check_common(where, model, t1, rtol, atol, settle_tol, chunk_size):
     for name, value in (("rtol", rtol), ("atol", atol), ("settle_tol", settle_tol)):
         if not (isinstance(value, (int, float, np.number)) and value > 0):
             raise ValueError(f"{where}: {name} must be a positive number, got {value!r}.")
-    if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
+    if (
+        isinstance(chunk_size, bool)
+        or not isinstance(chunk_size, (int, np.integer))
+        or chunk_size < 1
+    ):
         raise ValueError(f"{where}: chunk_size must be a positive integer, got {chunk_size!r}.")
 
 
 def _check_refine(where, refine) -> int:
     if refine is None:
         return 0
-    if isinstance(refine, bool) or not isinstance(refine, (int, np.integer)) or not (
-            0 <= refine <= MAX_REFINE):
+    if (
+        isinstance(refine, bool)
+        or not isinstance(refine, (int, np.integer))
+        or not (0 <= refine <= MAX_REFINE)
+    ):
         raise ValueError(
             f"{where}: refine must be None (a dense map) or an integer from 0 to {MAX_REFINE} "
             f"(levels of refinement: the base grid is every 2**refine-th value of each axis), "
@@ -89,42 +96,81 @@ def _legacy(name, grid: MapAxes, top: TippeTop, dtype):
     return jnp.asarray(getattr(top, name), dtype)
 
 
-def _map(where: str, top: TippeTop, grid: MapAxes, *, t1, levels, model, tolerance, rtol, atol,
-         solver, max_steps, settle_tol, chunk_size, devices, progress) -> OutcomeMap:
+def _map(
+    where: str,
+    top: TippeTop,
+    grid: MapAxes,
+    *,
+    t1,
+    levels,
+    model,
+    tolerance,
+    rtol,
+    atol,
+    solver,
+    max_steps,
+    settle_tol,
+    chunk_size,
+    devices,
+    progress,
+) -> OutcomeMap:
     """The map of `grid` (see `outcome_map`)."""
     base = base_top(top, grid)
     devices = jax.devices() if devices is None else list(devices)
     dtype = jnp.result_type(top.m)
     shape = grid.shape
-    gi, gj = (x.ravel() for x in np.meshgrid(np.arange(shape[0]), np.arange(shape[1]),
-                                             indexing="ij"))
+    gi, gj = (
+        x.ravel() for x in np.meshgrid(np.arange(shape[0]), np.arange(shape[1]), indexing="ij")
+    )
     routes, model_index = [model], np.zeros(gi.size, int)
     launch_only = grid.names == ("theta0", "spin") and set(grid.fixed) <= {"theta0", "spin"}
     if model == "auto":
         if levels:
             raise ValueError(
                 f"{where}: refine runs one level of model; give model='full' (or another "
-                "level), not 'auto'.")
+                "level), not 'auto'."
+            )
         if not launch_only:
             raise ValueError(
                 f"{where}: model='auto' maps theta0 x spin only (the launch's other "
                 f"quantities 0, the top's own fields); got the axes {grid.names} and the fixed "
-                f"values {sorted(grid.fixed)}. Use model='full'.")
+                f"values {sorted(grid.fixed)}. Use model='full'."
+            )
         if tolerance is None:
             out, routes, index = staged_map(
-                base, grid.values[0][gi], grid.values[1][gj], t1, rtol=rtol, atol=atol,
-                solver=solver, max_steps=max_steps, settle_tol=settle_tol, devices=devices)
+                base,
+                grid.values[0][gi],
+                grid.values[1][gj],
+                t1,
+                rtol=rtol,
+                atol=atol,
+                solver=solver,
+                max_steps=max_steps,
+                settle_tol=settle_tol,
+                devices=devices,
+            )
             nan = np.full(gi.size, np.nan)
             out = dict(out, contact_margin=nan, theta_max=nan)
-            return _result(top, base, grid, out, routes, index, t1=t1, rtol=rtol,
-                           atol=atol, settle_tol=settle_tol, dtype=dtype)
-        routes, model_index = auto_models(base, grid.values[0][gi], grid.values[1][gj],
-                                          tolerance)
+            return _result(
+                top,
+                base,
+                grid,
+                out,
+                routes,
+                index,
+                t1=t1,
+                rtol=rtol,
+                atol=atol,
+                settle_tol=settle_tol,
+                dtype=dtype,
+            )
+        routes, model_index = auto_models(base, grid.values[0][gi], grid.values[1][gj], tolerance)
     for name in routes:
         check_friction(name, base)
     rtol, atol = tolerances_for(dtype, rtol, atol)
-    solvers = {name: _default_solver(base, grid, name) if solver is None else solver
-               for name in routes}
+    solvers = {
+        name: _default_solver(base, grid, name) if solver is None else solver for name in routes
+    }
     if levels:
         # every batched call of an adaptive map in one chunk shape: the base grid's size,
         # padded to its bucket (runs of no length), so that maps of similar sizes share it
@@ -139,16 +185,32 @@ def _map(where: str, top: TippeTop, grid: MapAxes, *, t1, levels, model, toleran
         # steps follow the nutation, whose frequency grows with it)
         order = np.abs(launches[:, 1]) if hint is None else hint
         return run_launches(
-            grid.tops(base, i, j), launches, t1, batched_top=grid.top_varies, model=model,
-            rtol=rtol, atol=atol, solver=solvers[model], max_steps=max_steps,
-            settle_tol=settle_tol, chunk=chunk, block=block, devices=devices, order=order,
-            progress=tick)
+            grid.tops(base, i, j),
+            launches,
+            t1,
+            batched_top=grid.top_varies,
+            model=model,
+            rtol=rtol,
+            atol=atol,
+            solver=solvers[model],
+            max_steps=max_steps,
+            settle_tol=settle_tol,
+            chunk=chunk,
+            block=block,
+            devices=devices,
+            order=order,
+            progress=tick,
+        )
 
-    bar = tqdm(total=levels + 2 if levels else -(-gi.size // chunk), disable=not progress,
-               desc=f"outcome map {shape[0]} x {shape[1]}",
-               unit="level" if levels else "chunk")
+    bar = tqdm(
+        total=levels + 2 if levels else -(-gi.size // chunk),
+        disable=not progress,
+        desc=f"outcome map {shape[0]} x {shape[1]}",
+        unit="level" if levels else "chunk",
+    )
     with bar:
         if levels:
+
             def step(points, split):
                 bar.update(1)
                 bar.set_postfix(launches=points, split=split)
@@ -157,46 +219,90 @@ def _map(where: str, top: TippeTop, grid: MapAxes, *, t1, levels, model, toleran
             fields = refined.fields
             out = {k: v.ravel() for k, v in fields.items()}
             extra = dict(
-                simulated=refined.simulated, resolved=refined.resolved, refine=levels,
+                simulated=refined.simulated,
+                resolved=refined.resolved,
+                refine=levels,
                 levels=tuple(refined.history),
                 unresolved=tuple(
-                    (*(float(v) for v in grid.values[0][[i0, i1]]),
-                     *(float(v) for v in grid.values[1][[j0, j1]]), dim)
-                    for i0, i1, j0, j1, dim in refined.stopped),
+                    (
+                        *(float(v) for v in grid.values[0][[i0, i1]]),
+                        *(float(v) for v in grid.values[1][[j0, j1]]),
+                        dim,
+                    )
+                    for i0, i1, j0, j1, dim in refined.stopped
+                ),
             )
         else:
             out = None
             for k, name in enumerate(routes):
                 members = np.flatnonzero(model_index == k)
-                part = evaluate(gi[members], gj[members], None, model=name,
-                                tick=lambda n: bar.update(1))
+                part = evaluate(
+                    gi[members], gj[members], None, model=name, tick=lambda n: bar.update(1)
+                )
                 if out is None:
-                    out = {key: np.empty((gi.size,) + v.shape[1:], v.dtype)
-                           for key, v in part.items()}
+                    out = {
+                        key: np.empty((gi.size,) + v.shape[1:], v.dtype) for key, v in part.items()
+                    }
                 for key, v in part.items():
                     out[key][members] = v
             extra = {}
     out.pop("decision_margin")
-    return _result(top, base, grid, out, routes, model_index, t1=t1, rtol=rtol,
-                   atol=atol, settle_tol=settle_tol, dtype=dtype, **extra)
+    return _result(
+        top,
+        base,
+        grid,
+        out,
+        routes,
+        model_index,
+        t1=t1,
+        rtol=rtol,
+        atol=atol,
+        settle_tol=settle_tol,
+        dtype=dtype,
+        **extra,
+    )
 
 
-def _result(top, base, grid: MapAxes, out, models, index, *, t1, rtol, atol, settle_tol,
-            dtype, simulated=None, resolved=None, **extra) -> OutcomeMap:
+def _result(
+    top,
+    base,
+    grid: MapAxes,
+    out,
+    models,
+    index,
+    *,
+    t1,
+    rtol,
+    atol,
+    settle_tol,
+    dtype,
+    simulated=None,
+    resolved=None,
+    **extra,
+) -> OutcomeMap:
     shape = grid.shape
     if simulated is None:
         simulated = resolved = np.ones(shape, bool)
     fields = {key: jnp.asarray(np.reshape(v, shape)) for key, v in out.items()}
     return OutcomeMap(
-        top=top, axes=grid.names,
+        top=top,
+        axes=grid.names,
         axis_values=tuple(jnp.asarray(v, dtype) for v in grid.values),
         fixed=tuple(sorted(grid.fixed.items())),
-        theta0=_legacy("theta0", grid, base, dtype), spin=_legacy("spin", grid, base, dtype),
+        theta0=_legacy("theta0", grid, base, dtype),
+        spin=_legacy("spin", grid, base, dtype),
         A_over_C=_legacy("A_over_C", grid, base, dtype),
         eps_over_R=_legacy("eps_over_R", grid, base, dtype),
-        model_index=jnp.asarray(np.reshape(index, shape), jnp.int8), models=tuple(models),
-        simulated=jnp.asarray(simulated), resolved=jnp.asarray(resolved), t1=float(t1),
-        rtol=float(rtol), atol=float(atol), settle_tol=float(settle_tol), **fields, **extra,
+        model_index=jnp.asarray(np.reshape(index, shape), jnp.int8),
+        models=tuple(models),
+        simulated=jnp.asarray(simulated),
+        resolved=jnp.asarray(resolved),
+        t1=float(t1),
+        rtol=float(rtol),
+        atol=float(atol),
+        settle_tol=float(settle_tol),
+        **fields,
+        **extra,
     )
 
 
@@ -356,22 +462,38 @@ def outcome_map(
     _check_one_top("outcome_map", top)
     levels = _check_refine("outcome_map", refine)
     grid = map_axes("outcome_map", top, dict(theta0=theta0, spin=spin, **quantities), axes)
-    return _map("outcome_map", top, grid, t1=t1, levels=levels, model=model,
-                tolerance=tolerance, rtol=rtol, atol=atol, solver=solver,
-                max_steps=max_steps, settle_tol=settle_tol, chunk_size=chunk_size,
-                devices=devices, progress=progress)
+    return _map(
+        "outcome_map",
+        top,
+        grid,
+        t1=t1,
+        levels=levels,
+        model=model,
+        tolerance=tolerance,
+        rtol=rtol,
+        atol=atol,
+        solver=solver,
+        max_steps=max_steps,
+        settle_tol=settle_tol,
+        chunk_size=chunk_size,
+        devices=devices,
+        progress=progress,
+    )
 
 
 def _ratio_axis(name, values, *, low, high, what):
     values = np.atleast_1d(np.asarray(values, dtype=float))
     if values.ndim != 1 or values.size == 0:
-        raise ValueError(f"outcome_map_tops: {name} must be a non-empty 1-d list, got shape "
-                         f"{values.shape}.")
+        raise ValueError(
+            f"outcome_map_tops: {name} must be a non-empty 1-d list, got shape {values.shape}."
+        )
     if not np.all(np.isfinite(values)):
         raise ValueError(f"outcome_map_tops: {name} must be finite (got NaN or inf).")
     if np.any(values < low) or np.any(values > high):
-        raise ValueError(f"outcome_map_tops: {name} must lie in [{low}, {high}]{what}; got "
-                         f"{values.min():g} to {values.max():g}.")
+        raise ValueError(
+            f"outcome_map_tops: {name} must lie in [{low}, {high}]{what}; got "
+            f"{values.min():g} to {values.max():g}."
+        )
     return values
 
 
@@ -424,19 +546,37 @@ def outcome_map_tops(
                 f"{np.shape(value)}. For a map over a launch quantity and a field of the top "
                 f"use tj.outcome_map(top, {name}=[...], A_over_C=[...], ...)."
             )
-    a = _ratio_axis("A_over_C", A_over_C, low=0.5, high=np.inf,
-                    what=" (no rigid body has A/C < 1/2)")
+    a = _ratio_axis(
+        "A_over_C", A_over_C, low=0.5, high=np.inf, what=" (no rigid body has A/C < 1/2)"
+    )
     e = _ratio_axis("eps_over_R", eps_over_R, low=0.0, high=1.0, what=" (0 < eps < R)")
     if np.any(e <= 0) or np.any(e >= 1):
         raise ValueError(f"{where}: eps_over_R must lie strictly between 0 and 1.")
     if not (0.0 <= float(theta0) <= math.pi) or not math.isfinite(float(spin)):
         raise ValueError(f"{where}: theta0 must lie in [0, pi] and spin be finite.")
-    grid = map_axes(where, top, dict(A_over_C=a, eps_over_R=e, theta0=theta0, spin=spin),
-                    ("A_over_C", "eps_over_R"))
-    return _map(where, top, grid, t1=t1, levels=levels, model=model, tolerance=None, rtol=rtol,
-                atol=atol, solver=default_solver(top) if solver is None else solver,
-                max_steps=max_steps, settle_tol=settle_tol, chunk_size=chunk_size,
-                devices=devices, progress=progress)
+    grid = map_axes(
+        where,
+        top,
+        dict(A_over_C=a, eps_over_R=e, theta0=theta0, spin=spin),
+        ("A_over_C", "eps_over_R"),
+    )
+    return _map(
+        where,
+        top,
+        grid,
+        t1=t1,
+        levels=levels,
+        model=model,
+        tolerance=None,
+        rtol=rtol,
+        atol=atol,
+        solver=default_solver(top) if solver is None else solver,
+        max_steps=max_steps,
+        settle_tol=settle_tol,
+        chunk_size=chunk_size,
+        devices=devices,
+        progress=progress,
+    )
 
 
 __all__ = ["OUTCOMES", "OutcomeMap", "outcome_map", "outcome_map_tops"]

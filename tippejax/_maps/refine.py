@@ -53,10 +53,12 @@ class _Known:
         n1, n2 = self.shape
         for code in (int(c) for c in np.unique(outcome)):
             sel = outcome == code
-            r = np.concatenate([self.rows.get(code, np.zeros(0, np.int64)),
-                                i[sel].astype(np.int64) * n2 + j[sel]])
-            c = np.concatenate([self.cols.get(code, np.zeros(0, np.int64)),
-                                j[sel].astype(np.int64) * n1 + i[sel]])
+            r = np.concatenate(
+                [self.rows.get(code, np.zeros(0, np.int64)), i[sel].astype(np.int64) * n2 + j[sel]]
+            )
+            c = np.concatenate(
+                [self.cols.get(code, np.zeros(0, np.int64)), j[sel].astype(np.int64) * n1 + i[sel]]
+            )
             self.rows[code], self.cols[code] = np.sort(r), np.sort(c)
 
     def outcomes_on_edges(self, i0, i1, j0, j1) -> np.ndarray:
@@ -125,11 +127,16 @@ def _children(i0, i1, j0, j1):
     im, jm = (i0 + i1) // 2, (j0 + j1) // 2
     first_i, second_i = (i0, np.where(wide_i, im, i1)), (im, i1)
     first_j, second_j = (j0, np.where(wide_j, jm, j1)), (jm, j1)
-    parts = [(first_i, first_j, np.ones_like(wide_i)), (first_i, second_j, wide_j),
-             (second_i, first_j, wide_i), (second_i, second_j, wide_i & wide_j)]
+    parts = [
+        (first_i, first_j, np.ones_like(wide_i)),
+        (first_i, second_j, wide_j),
+        (second_i, first_j, wide_i),
+        (second_i, second_j, wide_i & wide_j),
+    ]
     return tuple(
         np.concatenate([(a[0], a[1], b[0], b[1])[k][keep] for a, b, keep in parts])
-        for k in range(4))
+        for k in range(4)
+    )
 
 
 def size_level(levels: int, i0, i1, j0, j1) -> np.ndarray:
@@ -187,12 +194,23 @@ class _Store:
         self.simulated[i, j] = True
 
     def result(self) -> Refinement:
-        return Refinement(fields=self.fields, simulated=self.simulated, resolved=self.resolved,
-                          history=tuple(self.history), stopped=tuple(self.stopped))
+        return Refinement(
+            fields=self.fields,
+            simulated=self.simulated,
+            resolved=self.resolved,
+            history=tuple(self.history),
+            stopped=tuple(self.stopped),
+        )
 
 
-def refine(shape: tuple[int, int], levels: int, evaluate: Callable, *, t1: float,
-           progress: Callable | None = None) -> Refinement:
+def refine(
+    shape: tuple[int, int],
+    levels: int,
+    evaluate: Callable,
+    *,
+    t1: float,
+    progress: Callable | None = None,
+) -> Refinement:
     """Refine a map of `shape` points from the base grid of every `2**levels`-th point.
 
     `evaluate(i, j, hint)` simulates the points `(i, j)` (index arrays) in one batched call,
@@ -225,8 +243,12 @@ def refine(shape: tuple[int, int], levels: int, evaluate: Callable, *, t1: float
     ci, cj = ci.ravel(), cj.ravel()
     frontier = (a0[ci], a1[ci], b0[cj], b1[cj])
     n_patch_j = max(jb.size - 1, 1)
-    patch_of = lambda i0, j0: (np.searchsorted(ib, i0, "right") - 1) * n_patch_j + (  # noqa: E731
-        np.searchsorted(jb, j0, "right") - 1)
+
+    def patch_of(i0, j0):
+        return (np.searchsorted(ib, i0, "right") - 1) * n_patch_j + (
+            np.searchsorted(jb, j0, "right") - 1
+        )
+
     n_patches = max(ib.size - 1, 1) * n_patch_j
     counts = np.zeros((n_patches, levels + 1), int)
     stopped = np.zeros(n_patches, bool)
@@ -238,15 +260,20 @@ def refine(shape: tuple[int, int], levels: int, evaluate: Callable, *, t1: float
         patch = patch_of(i0, j0)
         smallest = (i1 - i0 <= 1) & (j1 - j0 <= 1)
         disagree = known.outcomes_on_edges(i0, i1, j0, j1) > 1
-        np.add.at(counts, (patch[disagree & ~smallest],
-                           size_level(levels, i0, i1, j0, j1)[disagree & ~smallest]), 1)
+        np.add.at(
+            counts,
+            (patch[disagree & ~smallest], size_level(levels, i0, i1, j0, j1)[disagree & ~smallest]),
+            1,
+        )
         _stop_patches(counts, stopped, out, ib, jb, n_patch_j)
-        split = ~smallest & ~stopped[patch] & (
-            disagree | indicator_split(out.fields, t1, i0, i1, j0, j1))
+        split = (
+            ~smallest
+            & ~stopped[patch]
+            & (disagree | indicator_split(out.fields, t1, i0, i1, j0, j1))
+        )
         hold = stopped[patch] & ~smallest
         unresolved = tuple(np.concatenate([u, f[hold]]) for u, f in zip(unresolved, frontier))
-        leaves = tuple(np.concatenate([lv, f[~split & ~hold]])
-                       for lv, f in zip(leaves, frontier))
+        leaves = tuple(np.concatenate([lv, f[~split & ~hold]]) for lv, f in zip(leaves, frontier))
         parents = tuple(f[split] for f in frontier)
         children = _children(*parents)
         # the new points of the parents: their edge midpoints and centres; the cells two
@@ -256,8 +283,9 @@ def refine(shape: tuple[int, int], levels: int, evaluate: Callable, *, t1: float
         ei, ej, ecost, centres = _last_split(out, tuple(p[last] for p in parents))
         ci_, cj_, ccost = _centres(out, pending)
         pending = centres
-        pi, pj, cost = (np.concatenate(x) for x in ((pi, ei, ci_), (pj, ej, cj_),
-                                                     (cost, ecost, ccost)))
+        pi, pj, cost = (
+            np.concatenate(x) for x in ((pi, ei, ci_), (pj, ej, cj_), (cost, ecost, ccost))
+        )
         flat, first = np.unique(pi.astype(np.int64) * n2 + pj, return_index=True)
         pi, pj, cost = flat // n2, flat % n2, cost[first]
         new = ~out.simulated[pi, pj]
@@ -266,8 +294,11 @@ def refine(shape: tuple[int, int], levels: int, evaluate: Callable, *, t1: float
         _infer_edges(out, tuple(p[last] for p in parents))
         # reopen the cells kept whole whose edges now hold another outcome
         li0, li1, lj0, lj1 = leaves
-        reopen = ((known.outcomes_on_edges(li0, li1, lj0, lj1) > 1)
-                  & ~stopped[patch_of(li0, lj0)] & ((li1 - li0 > 1) | (lj1 - lj0 > 1)))
+        reopen = (
+            (known.outcomes_on_edges(li0, li1, lj0, lj1) > 1)
+            & ~stopped[patch_of(li0, lj0)]
+            & ((li1 - li0 > 1) | (lj1 - lj0 > 1))
+        )
         frontier = tuple(np.concatenate([c, lv[reopen]]) for c, lv in zip(children, leaves))
         leaves = tuple(lv[~reopen] for lv in leaves)
     ci_, cj_, ccost = _centres(out, pending)
@@ -287,8 +318,11 @@ def _new_points(out, parents):
     """The edge midpoints and centres of `parents`, each with its parent's cost."""
     i0, i1, j0, j1 = parents
     im, jm = (i0 + i1) // 2, (j0 + j1) // 2
-    return (np.concatenate([i0, i1, im, im, im]), np.concatenate([jm, jm, j0, j1, jm]),
-            np.tile(_cost(out, parents), 5))
+    return (
+        np.concatenate([i0, i1, im, im, im]),
+        np.concatenate([jm, jm, j0, j1, jm]),
+        np.tile(_cost(out, parents), 5),
+    )
 
 
 def _edges(parents):
@@ -297,8 +331,12 @@ def _edges(parents):
     i0, i1, j0, j1 = parents
     im, jm = (i0 + i1) // 2, (j0 + j1) // 2
     wide_i, wide_j = i1 - i0 == 2, j1 - j0 == 2
-    return [(i0, jm, (i0, j0), (i0, j1), wide_j), (i1, jm, (i1, j0), (i1, j1), wide_j),
-            (im, j0, (i0, j0), (i1, j0), wide_i), (im, j1, (i0, j1), (i1, j1), wide_i)]
+    return [
+        (i0, jm, (i0, j0), (i0, j1), wide_j),
+        (i1, jm, (i1, j0), (i1, j1), wide_j),
+        (im, j0, (i0, j0), (i1, j0), wide_i),
+        (im, j1, (i0, j1), (i1, j1), wide_i),
+    ]
 
 
 def _last_split(out, parents):
@@ -360,8 +398,9 @@ def _stop_patches(counts, stopped, out, ib, jb, n_patch_j):
         if math.log2(row[last] / row[last - 2]) / 2 >= DIMENSION_STOP:
             stopped[patch] = True
             a, b = divmod(int(patch), n_patch_j)
-            out.stopped.append((int(ib[a]), int(ib[a + 1]), int(jb[b]), int(jb[b + 1]),
-                                box_dimension(row)))
+            out.stopped.append(
+                (int(ib[a]), int(ib[a + 1]), int(jb[b]), int(jb[b + 1]), box_dimension(row))
+            )
 
 
 def _fill(out: _Store, leaves, unresolved):
@@ -369,16 +408,15 @@ def _fill(out: _Store, leaves, unresolved):
     cell of a base cell that stopped refining, the nearest corner's (`resolved` False)."""
     f = out.fields
     outcome, settled, result = f["outcome"], f["settled"], f["result"]
-    for (i0, i1, j0, j1) in zip(*leaves):
+    for i0, i1, j0, j1 in zip(*leaves):
         if i1 - i0 <= 1 and j1 - j0 <= 1:
             continue
         block = (slice(i0, i1 + 1), slice(j0, j1 + 1))
         todo = ~out.simulated[block]
         outcome[block][todo] = outcome[i0, j0]
         result[block][todo] = result[i0, j0]
-        settled[block][todo] = (settled[i0, j0] & settled[i0, j1] & settled[i1, j0]
-                                & settled[i1, j1])
-    for (i0, i1, j0, j1) in zip(*unresolved):
+        settled[block][todo] = settled[i0, j0] & settled[i0, j1] & settled[i1, j0] & settled[i1, j1]
+    for i0, i1, j0, j1 in zip(*unresolved):
         block = (slice(i0, i1 + 1), slice(j0, j1 + 1))
         todo = ~out.simulated[block]
         ii, jj = np.meshgrid(np.arange(i0, i1 + 1), np.arange(j0, j1 + 1), indexing="ij")

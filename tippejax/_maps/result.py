@@ -91,7 +91,8 @@ class OutcomeMap(eqx.Module):
     refine: int = eqx.field(static=True, default=0)
     levels: tuple[tuple[int, int], ...] = eqx.field(static=True, default=())
     unresolved: tuple[tuple[float, float, float, float, float], ...] = eqx.field(
-        static=True, default=())
+        static=True, default=()
+    )
 
     @property
     def share_simulated(self) -> float:
@@ -128,8 +129,10 @@ class OutcomeMap(eqx.Module):
         r"""The linear theory's curves in the map's coordinates: `"J1"`, the polylines
         where $W''(0; J) = 0$ for the launches' $J$, and `"J2"`, where $W''(\pi; J) = 0$
         (empty where the map does not cross them)."""
-        return {name: [to_values(line, self.axis_values) for line in lines]
-                for name, lines in theory_lines(self).items()}
+        return {
+            name: [to_values(line, self.axis_values) for line in lines]
+            for name, lines in theory_lines(self).items()
+        }
 
     def summary(self) -> str:
         """A few lines: the grid, the levels used, the simulated share, and the counts."""
@@ -138,7 +141,8 @@ class OutcomeMap(eqx.Module):
         lines = [
             f"outcome map over {self.axes[0]} x {self.axes[1]}: {np.shape(self.outcome)} = {n} "
             f"launches, t1 = {self.t1:g} s, rtol = {self.rtol:g}",
-            "levels: " + ", ".join(
+            "levels: "
+            + ", ".join(
                 f"{name} ({int(np.sum(np.asarray(self.model_index) == k))})"
                 for k, name in enumerate(self.models)
             ),
@@ -148,8 +152,14 @@ class OutcomeMap(eqx.Module):
                 f"adaptive, refine = {self.refine}: {int(np.sum(np.asarray(self.simulated)))} "
                 f"launches simulated ({100 * self.share_simulated:.2f}%) in "
                 f"{len(self.levels)} batched calls"
-                + (f"; refinement stopped in {len(self.unresolved)} region(s)"
-                   if self.unresolved else ""))
-        lines += [f"  {name:>13}: {counts[name]:7d} ({100 * counts[name] / n:5.1f}%)"
-                  for name in (*OUTCOMES, "unsettled")]
+                + (
+                    f"; refinement stopped in {len(self.unresolved)} region(s)"
+                    if self.unresolved
+                    else ""
+                )
+            )
+        lines += [
+            f"  {name:>13}: {counts[name]:7d} ({100 * counts[name] / n:5.1f}%)"
+            for name in (*OUTCOMES, "unsettled")
+        ]
         return "\n".join(lines)

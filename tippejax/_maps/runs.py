@@ -55,29 +55,48 @@ def _classified_runs(top_static, options, top_fields, launches, t1):
     def one(fields, launch, t1):
         top = eqx.combine(fields, top_static)
         theta0, spin, theta_dot, phi_dot, phi, psi, vx, vy = launch
-        y0 = initial_state(top, theta0, spin, theta_dot=theta_dot, phi_dot=phi_dot, phi=phi,
-                           psi=psi, vx=vx, vy=vy)
+        y0 = initial_state(
+            top, theta0, spin, theta_dot=theta_dot, phi_dot=phi_dot, phi=phi, psi=psi, vx=vx, vy=vy
+        )
         # What `simulate(..., summary=True, throw=False)` runs in a batch, with the lowest
         # contact condition and tilt cosine kept.
         out = run_chain(
-            level, top, y0, jnp.zeros((), t1.dtype), t1, None, stop_on_contact=True,
-            solver=solver, rtol=rtol, atol=atol, max_steps=max_steps,
-            adjoint=diffrax.ForwardMode(), progress_meter=diffrax.NoProgressMeter(),
-            pieces=EVENT_PIECES, pack_width=PACK_WIDTH, lowest=("contact", "upright"),
+            level,
+            top,
+            y0,
+            jnp.zeros((), t1.dtype),
+            t1,
+            None,
+            stop_on_contact=True,
+            solver=solver,
+            rtol=rtol,
+            atol=atol,
+            max_steps=max_steps,
+            adjoint=diffrax.ForwardMode(),
+            progress_meter=diffrax.NoProgressMeter(),
+            pieces=EVENT_PIECES,
+            pack_width=PACK_WIDTH,
+            lowest=("contact", "upright"),
         )
         J = jellet(top, y0)
         theta_f = euler_angles(out.state_end)[0]
         result = out.result
         # (as `simulate`: a non-finite end is a failure)
         nonfinite = ~jnp.isfinite(theta_f) | ~jnp.isfinite(jellet(top, out.state_end))
-        result = RESULTS.where((result == RESULTS.successful) & nonfinite, RESULTS.nonfinite,
-                               result)
-        outcome, settled, expected = classify_end(top, J, theta_f, result,
-                                                  settle_tol=settle_tol)
+        result = RESULTS.where(
+            (result == RESULTS.successful) & nonfinite, RESULTS.nonfinite, result
+        )
+        outcome, settled, expected = classify_end(top, J, theta_f, result, settle_tol=settle_tol)
         return dict(
-            outcome=outcome, settled=settled, theta_final=theta_f, theta_expected=expected,
-            t_invert=out.t_invert, t_contact_loss=out.t_contact_loss, t_final=out.t_final,
-            jellet=J, result=result._value.astype(jnp.int8),
+            outcome=outcome,
+            settled=settled,
+            theta_final=theta_f,
+            theta_expected=expected,
+            t_invert=out.t_invert,
+            t_contact_loss=out.t_contact_loss,
+            t_final=out.t_final,
+            jellet=J,
+            result=result._value.astype(jnp.int8),
             num_steps=out.num_steps.astype(jnp.int32),
             **_indicators(top, J, theta_f, out.lowest),
         )
@@ -89,9 +108,13 @@ def _classified_runs(top_static, options, top_fields, launches, t1):
 def _run_chunk_impl(top_fields, top_static, launches, t1, options, mesh, block=None):
     """One sharded chunk of launches, each device its own shard (`shard_over`), on CPU devices
     in blocks of `block` members (`run_in_blocks`, see `simulate_batch`)."""
+
     def local(top_fields, launches, t1):
-        return run_in_blocks(functools.partial(_classified_runs, top_static, options), block,
-                             (top_fields, launches, t1))
+        return run_in_blocks(
+            functools.partial(_classified_runs, top_static, options),
+            block,
+            (top_fields, launches, t1),
+        )
 
     return shard_over(local, mesh, "launch", (top_fields, launches, t1), (True, True, True))
 
@@ -118,9 +141,24 @@ def chunk_layout(size: int, chunk_size: int, devices) -> tuple[int, int | None]:
     return chunk, block
 
 
-def run_launches(tops, launches: np.ndarray, t1, *, batched_top: bool, model: str, rtol, atol,
-                 solver, max_steps, settle_tol, chunk: int, block, devices,
-                 order: np.ndarray | None = None, progress=None) -> dict[str, np.ndarray]:
+def run_launches(
+    tops,
+    launches: np.ndarray,
+    t1,
+    *,
+    batched_top: bool,
+    model: str,
+    rtol,
+    atol,
+    solver,
+    max_steps,
+    settle_tol,
+    chunk: int,
+    block,
+    devices,
+    order: np.ndarray | None = None,
+    progress=None,
+) -> dict[str, np.ndarray]:
     """Run and classify the launches (rows of `launches`, shape `(N, 8)`) in chunks of
     `chunk` sharded over `devices` (see `chunk_layout`); `tops` one top, or one per launch
     (`batched_top`).
@@ -152,9 +190,9 @@ def run_launches(tops, launches: np.ndarray, t1, *, batched_top: bool, model: st
     fields = jax.tree_util.tree_map(lambda x: np.asarray(x, dtype=dtype), fields)
     out = None
     for start in range(0, size, chunk):
-        index = perm[start:start + chunk]
+        index = perm[start : start + chunk]
         real = np.ones(chunk, bool)
-        real[index.size:] = False
+        real[index.size :] = False
         index = np.concatenate([index, np.repeat(index[-1:], chunk - index.size)])
         if order is not None:  # device d takes every n_dev-th launch
             deal = np.arange(chunk).reshape(chunk // n_dev, n_dev).T.ravel()
@@ -164,8 +202,9 @@ def run_launches(tops, launches: np.ndarray, t1, *, batched_top: bool, model: st
         else:  # replicated scalars
             chunk_fields = fields
         ends = np.where(real, float(t1), 0.0)
-        part = run_chunk(chunk_fields, static, put(launches[index]), put(ends), options,
-                         mesh, block)
+        part = run_chunk(
+            chunk_fields, static, put(launches[index]), put(ends), options, mesh, block
+        )
         part = {k: gather(v)[real] for k, v in part.items()}
         if out is None:
             out = {k: np.empty((size,) + v.shape[1:], v.dtype) for k, v in part.items()}

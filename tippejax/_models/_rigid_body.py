@@ -143,8 +143,9 @@ def rigid_body_dynamics_by_components(top: TippeTop, axis, omega, velocity):
     h_ddot_1 = -eps * (o10 * a1 - o11 * a0)
     denominator = 1.0 / top.m - h_ddot_1
     normal_force = (top.g + h_ddot_0) / denominator
-    omega_dot = jnp.stack([o00 + normal_force * o10, o01 + normal_force * o11,
-                           o02 + normal_force * o12], axis=-1)
+    omega_dot = jnp.stack(
+        [o00 + normal_force * o10, o01 + normal_force * o11, o02 + normal_force * o12], axis=-1
+    )
     slip_velocity = jnp.stack([vx, vy, jnp.zeros_like(vx)], axis=-1)
     return normal_force, omega_dot, slip_velocity, denominator
 

@@ -67,8 +67,9 @@ def full_vector_field(t, y: State, top: TippeTop) -> State:
     return fn(top, y)
 
 
-def vector_conditions(top: TippeTop, axis, omega, velocity, *, by_components: bool = False
-                      ) -> Conditions:
+def vector_conditions(
+    top: TippeTop, axis, omega, velocity, *, by_components: bool = False
+) -> Conditions:
     """Event conditions of the vector form (full and SO(3) levels); `by_components`: see
     `AbstractLevel.by_components`."""
     dynamics, _ = rigid_body_algebra(by_components)
@@ -111,8 +112,9 @@ def pole_linearisation(top: TippeTop, J, *, north: bool = True) -> Array:
         normal_force, omega_dot, v_q, _ = rigid_body_dynamics(top, axis, omega, velocity)
         velocity_dot = translation_rate(top, normal_force, omega, v_q)
         axis_dot = jnp.cross(omega, axis)
-        return jnp.stack([velocity_dot[0], axis_dot[0], omega_dot[0],
-                          velocity_dot[1], axis_dot[1], omega_dot[1]])
+        return jnp.stack(
+            [velocity_dot[0], axis_dot[0], omega_dot[0], velocity_dot[1], axis_dot[1], omega_dot[1]]
+        )
 
     jac = jax.jacfwd(field)(jnp.zeros(6, dtype))
     return jac[:3, :3] + 1j * jac[3:, :3]
@@ -178,16 +180,24 @@ class FullLevel(AbstractLevel):
 
     def from_state(self, top, state):
         if not self.body:
-            return FullLevelState(position=state.position, velocity=state.velocity,
-                                  axis=state.axis, omega=state.omega)
+            return FullLevelState(
+                position=state.position, velocity=state.velocity, axis=state.axis, omega=state.omega
+            )
         return FullLevelState(
-            position=state.position, velocity=state.velocity, axis=state.axis,
-            omega=state.omega, frame=state.body, angle=jnp.zeros((), state.axis.dtype),
+            position=state.position,
+            velocity=state.velocity,
+            axis=state.axis,
+            omega=state.omega,
+            frame=state.body,
+            angle=jnp.zeros((), state.axis.dtype),
         )
 
     def to_state(self, top, y):
         state = State(
-            position=y.position, velocity=y.velocity, axis=y.axis, omega=y.omega,
+            position=y.position,
+            velocity=y.velocity,
+            axis=y.axis,
+            omega=y.omega,
             body=body_of(y.axis, y.frame, y.angle),
         )
         return self.common_state(top, state)
@@ -206,8 +216,9 @@ class FullLevel(AbstractLevel):
         )
 
     def conditions(self, top, y):
-        conditions = vector_conditions(top, y.axis, y.omega, y.velocity,
-                                       by_components=self.by_components)
+        conditions = vector_conditions(
+            top, y.axis, y.omega, y.velocity, by_components=self.by_components
+        )
         if self.stem:
             # The chart also ends where the ball would leave the table (R_n falling through
             # 0): the stem level's compliant contacts carry the flight, so the run hands over
@@ -215,5 +226,6 @@ class FullLevel(AbstractLevel):
             lift = conditions.contact / (top.m * top.g)
             gap = self._stem_chart(top, y.axis) / top.R
             conditions = dataclasses.replace(
-                conditions, chart=jnp.minimum(gap, lift), contact=jnp.ones_like(lift))
+                conditions, chart=jnp.minimum(gap, lift), contact=jnp.ones_like(lift)
+            )
         return conditions

@@ -76,14 +76,21 @@ class SO3Level(AbstractLevel):
         if not self.body:
             return RigidState(axis=state.axis, omega=state.omega)
         return RigidState(
-            axis=state.axis, omega=state.omega, frame=state.body,
+            axis=state.axis,
+            omega=state.omega,
+            frame=state.body,
             angle=jnp.zeros((), state.axis.dtype),
         )
 
     def to_state(self, top, y):
         zero = jnp.zeros(2, y.axis.dtype)
-        return State(position=zero, velocity=zero, axis=y.axis, omega=y.omega,
-                     body=body_of(y.axis, y.frame, y.angle))
+        return State(
+            position=zero,
+            velocity=zero,
+            axis=y.axis,
+            omega=y.omega,
+            body=body_of(y.axis, y.frame, y.angle),
+        )
 
     def vector_field(self, t, y, top):
         zero = jnp.zeros(2, y.axis.dtype)
@@ -98,5 +105,6 @@ class SO3Level(AbstractLevel):
         )
 
     def conditions(self, top, y):
-        return vector_conditions(top, y.axis, y.omega, jnp.zeros(2, y.axis.dtype),
-                                 by_components=self.by_components)
+        return vector_conditions(
+            top, y.axis, y.omega, jnp.zeros(2, y.axis.dtype), by_components=self.by_components
+        )

@@ -44,8 +44,10 @@ contact, rigid until there, is the same to its deflection."""
 def _spheres(top: TippeTop):
     """(radius, offset along the axis, Hertz stiffness) of the ball and of the stem's tip."""
     stem = top.stem
-    return ((top.R, top.eps, hertz_stiffness(stem, top.R)),
-            (stem.radius, stem.offset, hertz_stiffness(stem, stem.radius)))
+    return (
+        (top.R, top.eps, hertz_stiffness(stem, top.R)),
+        (stem.radius, stem.offset, hertz_stiffness(stem, stem.radius)),
+    )
 
 
 def static_deflection(top: TippeTop):
@@ -76,8 +78,9 @@ class Contact(eqx.Module):
     power: Float[Array, ""]  # friction power F . s + M w_Z (W), <= 0
 
 
-def sphere_contact(top: TippeTop, radius, offset, stiffness, height, height_rate, axis, omega,
-                   velocity) -> Contact:
+def sphere_contact(
+    top: TippeTop, radius, offset, stiffness, height, height_rate, axis, omega, velocity
+) -> Contact:
     r"""The Hunt-Crossley contact of the sphere of `radius` centred at $O + $ `offset` $a$, for
     one state: $\delta = r - z_O - d\,a_Z$, $R_n = \max(0, k\delta^{3/2}(1 + \tfrac32 c
     \dot\delta))$ where $\delta > 0$, and the friction law at the lowest point (`tj.Stem`)."""
@@ -96,15 +99,17 @@ def sphere_contact(top: TippeTop, radius, offset, stiffness, height, height_rate
     if top.friction.has_drilling_torque:
         torque = torque.at[2].add(normal * drilling)
         power = power + normal * drilling * omega[2]
-    return Contact(depth=depth, normal_force=normal, force=force, torque=torque, slip=slip,
-                   power=power)
+    return Contact(
+        depth=depth, normal_force=normal, force=force, torque=torque, slip=slip, power=power
+    )
 
 
 def contacts(top: TippeTop, state: State) -> tuple[Contact, Contact]:
     """The ball's and the stem's contacts at one common `State` with a height (unbatched)."""
     return tuple(
-        sphere_contact(top, r, d, k, state.height, state.height_rate, state.axis, state.omega,
-                       state.velocity)
+        sphere_contact(
+            top, r, d, k, state.height, state.height_rate, state.axis, state.omega, state.velocity
+        )
         for r, d, k in _spheres(top)
     )
 
@@ -126,8 +131,11 @@ def stem_observables(top: TippeTop, states: State) -> dict:
 
     def one(state):
         ball, stem = contacts(top, state)
-        slip = jnp.where(stem.normal_force > ball.normal_force, jnp.linalg.norm(stem.slip),
-                         jnp.linalg.norm(ball.slip))
+        slip = jnp.where(
+            stem.normal_force > ball.normal_force,
+            jnp.linalg.norm(stem.slip),
+            jnp.linalg.norm(ball.slip),
+        )
         return ball.normal_force + stem.normal_force, slip
 
     fn = one
@@ -180,25 +188,47 @@ class StemLevel(AbstractLevel):
         frame = angle = None
         if self.body:
             frame, angle = state.body, jnp.zeros((), state.axis.dtype)
-        return StemLevelState(position=state.position, velocity=state.velocity,
-                              height=height - depth, height_rate=height_rate, axis=state.axis,
-                              omega=state.omega, frame=frame, angle=angle)
+        return StemLevelState(
+            position=state.position,
+            velocity=state.velocity,
+            height=height - depth,
+            height_rate=height_rate,
+            axis=state.axis,
+            omega=state.omega,
+            frame=frame,
+            angle=angle,
+        )
 
     def to_state(self, top, y):
-        return State(position=y.position, velocity=y.velocity, axis=y.axis, omega=y.omega,
-                     body=body_of(y.axis, y.frame, y.angle), height=y.height,
-                     height_rate=y.height_rate)
+        return State(
+            position=y.position,
+            velocity=y.velocity,
+            axis=y.axis,
+            omega=y.omega,
+            body=body_of(y.axis, y.frame, y.angle),
+            height=y.height,
+            height_rate=y.height_rate,
+        )
 
     def vector_field(self, t, y, top):
         del t
-        state = State(position=y.position, velocity=y.velocity, axis=y.axis, omega=y.omega,
-                      body=y.axis, height=y.height, height_rate=y.height_rate)
+        state = State(
+            position=y.position,
+            velocity=y.velocity,
+            axis=y.axis,
+            omega=y.omega,
+            body=y.axis,
+            height=y.height,
+            height_rate=y.height_rate,
+        )
         ball, stem = contacts(top, state)
         force = ball.force + stem.force
         n = jnp.dot(y.omega, y.axis)
         axis_dot = jnp.cross(y.omega, y.axis)
-        omega_dot = (inverse_inertia(top, y.axis, ball.torque + stem.torque)
-                     - (top.C - top.A) / top.A * n * axis_dot)
+        omega_dot = (
+            inverse_inertia(top, y.axis, ball.torque + stem.torque)
+            - (top.C - top.A) / top.A * n * axis_dot
+        )
         frame_dot, angle_dot = spin_frame_rates(y.axis, y.omega, y.frame)
         return StemLevelState(
             position=y.velocity,
@@ -215,6 +245,9 @@ class StemLevel(AbstractLevel):
         one = jnp.ones_like(y.height)
         ball_gap = y.height + top.eps * y.axis[2] - top.R
         return Conditions(
-            contact=one, singular=one, upright=y.axis[2] * one, chart=one,
+            contact=one,
+            singular=one,
+            upright=y.axis[2] * one,
+            chart=one,
             events=dict(stem_touch=stem_gap(top, y.axis, y.height), ball_return=ball_gap),
         )

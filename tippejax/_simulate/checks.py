@@ -103,9 +103,7 @@ def _state_defect(y0: State, xp=jnp):
     a, b = y0.axis, y0.body
     defect = xp.maximum(xp.abs(xp.sum(a * a) - 1), xp.abs(xp.sum(b * b) - 1))
     defect = xp.maximum(defect, xp.abs(xp.sum(a * b)))
-    finite = xp.all(
-        xp.stack([xp.all(xp.isfinite(x)) for x in jax.tree_util.tree_leaves(y0)])
-    )
+    finite = xp.all(xp.stack([xp.all(xp.isfinite(x)) for x in jax.tree_util.tree_leaves(y0)]))
     return xp.where(finite, defect, xp.inf)
 
 

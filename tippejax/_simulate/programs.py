@@ -21,8 +21,21 @@ from .._outcome import classify
 from .._solution import RESULTS
 from .._state import State, euler_angles, euler_rates, spin
 
-OBSERVED = ("theta", "phi", "psi", "theta_dot", "phi_dot", "psi_dot", "spin", "position",
-            "velocity", "jellet", "energy", "normal_force", "slip_speed")
+OBSERVED = (
+    "theta",
+    "phi",
+    "psi",
+    "theta_dot",
+    "phi_dot",
+    "psi_dot",
+    "spin",
+    "position",
+    "velocity",
+    "jellet",
+    "energy",
+    "normal_force",
+    "slip_speed",
+)
 """The `Solution` fields computed from the states at the save times."""
 
 
@@ -62,9 +75,30 @@ def _observe(top, states: State, friction_model: str, valid, names=OBSERVED):
 
 
 @eqx.filter_jit
-def _run(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_on_contact,
-         max_steps, adjoint, progress, pieces, names=OBSERVED, inversion=True, locate=True,
-         pack_width=PACK_WIDTH, jacobian_pack_width=FORWARD_MODE_PACK_WIDTH, outcome=False):
+def _run(
+    top,
+    y0,
+    ts,
+    t0,
+    t1,
+    rtol,
+    atol,
+    *,
+    level,
+    solver,
+    guard_stiff,
+    stop_on_contact,
+    max_steps,
+    adjoint,
+    progress,
+    pieces,
+    names=OBSERVED,
+    inversion=True,
+    locate=True,
+    pack_width=PACK_WIDTH,
+    jacobian_pack_width=FORWARD_MODE_PACK_WIDTH,
+    outcome=False,
+):
     """The run of one top (`run_chain`) and its observed fields (`outputs`); with
     `outcome=True` also `sol.outcome` and `sol.settled` (`classify`), in the same program.
 
@@ -72,10 +106,26 @@ def _run(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_on
     fields, simple functions of its states, are differentiated by JAX's own rules after it.
     (An eager `jax.grad` of `simulate` does not come here: see `run_traced`.)"""
     chain, result = _chain(
-        top, y0, ts, t0, t1, rtol, atol, level=level, solver=solver, guard_stiff=guard_stiff,
-        stop_on_contact=stop_on_contact, max_steps=max_steps, adjoint=adjoint,
-        progress=progress, pieces=pieces, inversion=inversion, locate=locate,
-        pack_width=pack_width, jacobian_pack_width=jacobian_pack_width)
+        top,
+        y0,
+        ts,
+        t0,
+        t1,
+        rtol,
+        atol,
+        level=level,
+        solver=solver,
+        guard_stiff=guard_stiff,
+        stop_on_contact=stop_on_contact,
+        max_steps=max_steps,
+        adjoint=adjoint,
+        progress=progress,
+        pieces=pieces,
+        inversion=inversion,
+        locate=locate,
+        pack_width=pack_width,
+        jacobian_pack_width=jacobian_pack_width,
+    )
     out = outputs(top, y0, ts, chain, result, level=level, names=names)
     if outcome:
         out["outcome"], out["settled"] = outcome_of(top, out, classify)
@@ -87,8 +137,9 @@ run = _run
 show)."""
 
 
-def run_traced(top, y0, ts, t0, t1, rtol, atol, *, names=OBSERVED, inversion=True,
-               locate=True, **options):
+def run_traced(
+    top, y0, ts, t0, t1, rtol, atol, *, names=OBSERVED, inversion=True, locate=True, **options
+):
     """`run` (without the outcome) for an eager `jax.grad`, `jax.jvp` or `jax.jacfwd` of
     `simulate` (`_differentiated_eagerly`): its segment chain and its observed fields as two
     programs, with the chain's derivative rule outside both.
@@ -103,23 +154,63 @@ def run_traced(top, y0, ts, t0, t1, rtol, atol, *, names=OBSERVED, inversion=Tru
     core.update(pack_width=options["jacobian_pack_width"], inversion=inversion, locate=locate)
 
     def jacobian(args, live):
-        return cached_call(_run_jacobian, *args, compiler_options=own_compiler_options(),
-                           live=live, **core)
+        return cached_call(
+            _run_jacobian, *args, compiler_options=own_compiler_options(), live=live, **core
+        )
 
-    chain, result = _chain(top, y0, ts, t0, t1, rtol, atol, **options, inversion=inversion,
-                           locate=locate, jacobian=jacobian)
+    chain, result = _chain(
+        top,
+        y0,
+        ts,
+        t0,
+        t1,
+        rtol,
+        atol,
+        **options,
+        inversion=inversion,
+        locate=locate,
+        jacobian=jacobian,
+    )
     return _outputs_program(top, y0, ts, chain, result, level=options["level"], names=names)
 
 
-def _chain(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_on_contact,
-           max_steps, adjoint, progress, pieces, inversion, locate, pack_width,
-           jacobian_pack_width, jacobian=None):
+def _chain(
+    top,
+    y0,
+    ts,
+    t0,
+    t1,
+    rtol,
+    atol,
+    *,
+    level,
+    solver,
+    guard_stiff,
+    stop_on_contact,
+    max_steps,
+    adjoint,
+    progress,
+    pieces,
+    inversion,
+    locate,
+    pack_width,
+    jacobian_pack_width,
+    jacobian=None,
+):
     """`_run_core` with the derivatives `adjoint` asks for: the default
     (`ForwardSensitivities`) from its forward-mode Jacobian (`sensitivity.py`), with
     `jacobian` for concrete inputs (see `forward_sensitivities`)."""
-    options = dict(level=level, solver=solver, guard_stiff=guard_stiff,
-                   stop_on_contact=stop_on_contact, max_steps=max_steps, progress=progress,
-                   pieces=pieces, inversion=inversion, locate=locate)
+    options = dict(
+        level=level,
+        solver=solver,
+        guard_stiff=guard_stiff,
+        stop_on_contact=stop_on_contact,
+        max_steps=max_steps,
+        progress=progress,
+        pieces=pieces,
+        inversion=inversion,
+        locate=locate,
+    )
     run = functools.partial(_run_core, **options)
     if isinstance(adjoint, ForwardSensitivities) and pack_width == jacobian_pack_width:
         # (the default: derivatives from the forward-mode Jacobian, `sensitivity.py`; the
@@ -127,17 +218,19 @@ def _chain(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_
         # widths of `segment.py`.) The value and the Jacobian are one staged solve, so that
         # `jax.grad` and `jax.jacfwd` trace it once: JAX traces a `custom_jvp`'s value
         # under `jit` eagerly, and the Jacobian's rule transforms the same cached jaxpr.
-        run = functools.partial(_run_core_staged, **options, adjoint=diffrax.ForwardMode(),
-                                pack_width=pack_width)
+        run = functools.partial(
+            _run_core_staged, **options, adjoint=diffrax.ForwardMode(), pack_width=pack_width
+        )
         run = forward_sensitivities(run, run, jacobian=jacobian)
     elif isinstance(adjoint, ForwardSensitivities):
         # (layouts that differ between the value and the Jacobian: two programs)
         run = forward_sensitivities(
-            functools.partial(run, adjoint=diffrax.RecursiveCheckpointAdjoint(),
-                              pack_width=pack_width),
-            functools.partial(run, adjoint=diffrax.ForwardMode(),
-                              pack_width=jacobian_pack_width),
-            jacobian=jacobian)
+            functools.partial(
+                run, adjoint=diffrax.RecursiveCheckpointAdjoint(), pack_width=pack_width
+            ),
+            functools.partial(run, adjoint=diffrax.ForwardMode(), pack_width=jacobian_pack_width),
+            jacobian=jacobian,
+        )
     else:
         run = functools.partial(run, adjoint=adjoint, pack_width=pack_width)
     # (JAX keys its cache of traced programs on the context's abstract mesh: unset here at
@@ -155,8 +248,27 @@ def _run_jacobian(top, y0, ts, t0, t1, rtol, atol, *, live, **options):
     return jacobian_of(run, (top, y0, ts, t0, t1, rtol, atol), live)
 
 
-def _run_core(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, stop_on_contact,
-              max_steps, adjoint, progress, pieces, inversion, locate, pack_width):
+def _run_core(
+    top,
+    y0,
+    ts,
+    t0,
+    t1,
+    rtol,
+    atol,
+    *,
+    level,
+    solver,
+    guard_stiff,
+    stop_on_contact,
+    max_steps,
+    adjoint,
+    progress,
+    pieces,
+    inversion,
+    locate,
+    pack_width,
+):
     too_stiff = jnp.array(False)
     if guard_stiff:
         # Traced top with the default (explicit) solver: a very stiff member would run into
@@ -165,9 +277,23 @@ def _run_core(top, y0, ts, t0, t1, rtol, atol, *, level, solver, guard_stiff, st
         t1 = jnp.where(too_stiff, t0, t1)
     meter = diffrax.TqdmProgressMeter() if progress else diffrax.NoProgressMeter()
     out = run_chain(
-        level, top, y0, t0, t1, ts, stop_on_contact=stop_on_contact, solver=solver,
-        rtol=rtol, atol=atol, max_steps=max_steps, adjoint=adjoint, progress_meter=meter,
-        pieces=pieces, inversion=inversion, locate=locate, pack_width=pack_width,
+        level,
+        top,
+        y0,
+        t0,
+        t1,
+        ts,
+        stop_on_contact=stop_on_contact,
+        solver=solver,
+        rtol=rtol,
+        atol=atol,
+        max_steps=max_steps,
+        adjoint=adjoint,
+        progress_meter=meter,
+        pieces=pieces,
+        inversion=inversion,
+        locate=locate,
+        pack_width=pack_width,
     )
     result = RESULTS.where(too_stiff, RESULTS.stiff_under_trace, out.result)
     return out, result
@@ -195,8 +321,9 @@ def outputs(top, y0, ts, out, result, *, level, names=OBSERVED):
         states = out.states
         valid = (ts <= out.t_final) & jnp.all(jnp.isfinite(states.axis), axis=-1)
         # (the normal force is needed for the safety net below; it is dropped after)
-        fields = _observe(top, states, friction_model, valid,
-                          tuple(dict.fromkeys(names + ("normal_force",))))
+        fields = _observe(
+            top, states, friction_model, valid, tuple(dict.fromkeys(names + ("normal_force",)))
+        )
         fields = _stem_phase(top, times, states, out, fields)
         # Safety net: R_n < 0 at a save time before any located contact loss means a dip
         # shorter than the event watch's resolution went unseen. Report it; return nothing
@@ -213,7 +340,8 @@ def outputs(top, y0, ts, out, result, *, level, names=OBSERVED):
         valid = valid & (ts < t_missed)
         fields = {
             k: jnp.where(valid.reshape(valid.shape + (1,) * (v.ndim - 1)), v, jnp.nan)
-            for k, v in fields.items() if k in names
+            for k, v in fields.items()
+            if k in names
         }
         states = jax.tree_util.tree_map(
             lambda x: jnp.where(valid.reshape(valid.shape + (1,) * (x.ndim - 1)), x, jnp.nan),
@@ -221,16 +349,25 @@ def outputs(top, y0, ts, out, result, *, level, names=OBSERVED):
         )
     fields = _mask_unmodelled(fields, level, times, out.t_chart_switch)
     nonfinite = jnp.any(
-        jnp.stack([jnp.any(valid & ~jnp.isfinite(fields[k])) for k in ("theta", "jellet")
-                   if k in fields])
+        jnp.stack(
+            [jnp.any(valid & ~jnp.isfinite(fields[k])) for k in ("theta", "jellet") if k in fields]
+        )
     )
     result = RESULTS.where((result == RESULTS.successful) & nonfinite, RESULTS.nonfinite, result)
     return dict(
-        theta_end=euler_angles(out.state_end)[0], jellet_launch=jellet(top, y0),
-        ts=times.astype(dtype), states=states, result=result, t_invert=out.t_invert,
-        t_contact_loss=t_contact_loss, t_chart_switch=out.t_chart_switch,
-        t_final=out.t_final, num_steps=out.num_steps,
-        num_rejected_steps=out.num_rejected_steps, **_stem_events(top, out), **fields,
+        theta_end=euler_angles(out.state_end)[0],
+        jellet_launch=jellet(top, y0),
+        ts=times.astype(dtype),
+        states=states,
+        result=result,
+        t_invert=out.t_invert,
+        t_contact_loss=t_contact_loss,
+        t_chart_switch=out.t_chart_switch,
+        t_final=out.t_final,
+        num_steps=out.num_steps,
+        num_rejected_steps=out.num_rejected_steps,
+        **_stem_events(top, out),
+        **fields,
     )
 
 
@@ -258,8 +395,10 @@ def _stem_phase(top, times, states, out, fields):
         return fields
     on_stem_level = times >= out.t_chart_switch  # (False where it is nan)
     stem_fields = stem_observables(top, states)
-    return {k: jnp.where(on_stem_level, stem_fields[k], v) if k in stem_fields else v
-            for k, v in fields.items()}
+    return {
+        k: jnp.where(on_stem_level, stem_fields[k], v) if k in stem_fields else v
+        for k, v in fields.items()
+    }
 
 
 def _stem_events(top, out) -> dict:
@@ -274,8 +413,23 @@ _outputs_program = eqx.filter_jit(outputs)
 """`outputs` as a program of its own, for `run_traced`."""
 
 
-SAVED = ("ts", "states", "theta", "phi", "psi", "theta_dot", "phi_dot", "psi_dot", "spin",
-         "position", "velocity", "jellet", "energy", "normal_force", "slip_speed")
+SAVED = (
+    "ts",
+    "states",
+    "theta",
+    "phi",
+    "psi",
+    "theta_dot",
+    "phi_dot",
+    "psi_dot",
+    "spin",
+    "position",
+    "velocity",
+    "jellet",
+    "energy",
+    "normal_force",
+    "slip_speed",
+)
 """The outputs with a save-time axis."""
 
 
@@ -283,8 +437,9 @@ def outcome_of(top, out, classify):
     """`sol.outcome`, `sol.settled` of `run`'s outputs `out` by `classify` (or
     `classify_program` for a traced call); integer outputs, so their inputs' derivatives are
     not traced."""
-    return classify(*jax.lax.stop_gradient((top, out["jellet_launch"], out["theta_end"])),
-                    out["result"])
+    return classify(
+        *jax.lax.stop_gradient((top, out["jellet_launch"], out["theta_end"])), out["result"]
+    )
 
 
 def trim_saves(out: dict, n_save: int | None, axis: int = 0) -> dict:

@@ -190,12 +190,18 @@ def simulate(
         adjoint = ForwardSensitivities()
     level = dataclasses.replace(LEVELS[model], body=not summary if body is None else bool(body))
     options = dict(
-        level=level, solver=solver, guard_stiff=guard_stiff,
-        stop_on_contact=on_contact_loss == "stop", max_steps=int(max_steps),
-        adjoint=adjoint, progress=progress, pieces=int(event_pieces),
+        level=level,
+        solver=solver,
+        guard_stiff=guard_stiff,
+        stop_on_contact=on_contact_loss == "stop",
+        max_steps=int(max_steps),
+        adjoint=adjoint,
+        progress=progress,
+        pieces=int(event_pieces),
         pack_width=pack_width_for(top, y0, t0, t1, rtol, atol, ts, adjoint=adjoint),
-        jacobian_pack_width=pack_width_for(top, y0, t0, t1, rtol, atol, ts,
-                                           adjoint=diffrax.ForwardMode()),
+        jacobian_pack_width=pack_width_for(
+            top, y0, t0, t1, rtol, atol, ts, adjoint=diffrax.ForwardMode()
+        ),
     )
     args = (top, y0, ts, *(as_dtype(x, dtype) for x in (t0, t1, rtol, atol)))
     with cacheable():
@@ -203,17 +209,20 @@ def simulate(
             # (concrete inputs, or an eager `jax.vmap`, whose batched `run` JAX runs as a
             # program of its own: compiled with tippejax's options, as a concrete call is.
             # Inside a caller's `jit` the same call is traced into the caller's program.)
-            out = cached_call(run, *args, compiler_options=own_compiler_options(), **options,
-                              outcome=True)
+            out = cached_call(
+                run, *args, compiler_options=own_compiler_options(), **options, outcome=True
+            )
         else:
             # (a traced call. An eager `jax.grad` or `jax.jacfwd` runs the Jacobian as a
             # program of its own, `run_traced`; a caller's `jit` traces `run`, one
             # program. The classification is a program of its own, which an eager
             # `jax.grad` compiles apart from the differentiated solve, and a caller's `jit`
             # inlines.)
-            own_jacobian = (isinstance(adjoint, ForwardSensitivities)
-                            and options["pack_width"] == options["jacobian_pack_width"]
-                            and _differentiated_eagerly(args))
+            own_jacobian = (
+                isinstance(adjoint, ForwardSensitivities)
+                and options["pack_width"] == options["jacobian_pack_width"]
+                and _differentiated_eagerly(args)
+            )
             program = run_traced if own_jacobian else run
             out = program(*args, **options)
             out["outcome"], out["settled"] = outcome_of(top, out, classify_program)
@@ -235,8 +244,21 @@ def simulate(
     return sol
 
 
-def simulate_tilt(top: TippeTop, y0: State, ts, *, t0, t1, model: str, rtol, atol,
-                  solver=None, max_steps: int, adjoint, event_pieces: int = EVENT_PIECES) -> dict:
+def simulate_tilt(
+    top: TippeTop,
+    y0: State,
+    ts,
+    *,
+    t0,
+    t1,
+    model: str,
+    rtol,
+    atol,
+    solver=None,
+    max_steps: int,
+    adjoint,
+    event_pieces: int = EVENT_PIECES,
+) -> dict:
     """The tilt and precession angle at the save times `ts`, and the contact-loss time, of the
     run `simulate(..., saveat=ts, on_contact_loss="continue", throw=False)` would make.
 
@@ -255,12 +277,24 @@ def simulate_tilt(top: TippeTop, y0: State, ts, *, t0, t1, model: str, rtol, ato
     if solver is None:
         solver = default_solvers(top, LEVELS[model])
     out = run(
-        top, y0, jnp.asarray(ts, dtype), jnp.asarray(t0, dtype), jnp.asarray(t1, dtype),
-        jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype),
-        level=dataclasses.replace(LEVELS[model], body=False), solver=solver,
-        guard_stiff=guard_stiff, stop_on_contact=False, max_steps=int(max_steps),
-        adjoint=adjoint, progress=False, pieces=int(event_pieces), names=("theta", "phi"),
-        inversion=False, locate=False,
+        top,
+        y0,
+        jnp.asarray(ts, dtype),
+        jnp.asarray(t0, dtype),
+        jnp.asarray(t1, dtype),
+        jnp.asarray(rtol, dtype),
+        jnp.asarray(atol, dtype),
+        level=dataclasses.replace(LEVELS[model], body=False),
+        solver=solver,
+        guard_stiff=guard_stiff,
+        stop_on_contact=False,
+        max_steps=int(max_steps),
+        adjoint=adjoint,
+        progress=False,
+        pieces=int(event_pieces),
+        names=("theta", "phi"),
+        inversion=False,
+        locate=False,
     )
     return {k: out[k] for k in ("ts", "theta", "phi", "t_contact_loss", "result")}
 

@@ -35,13 +35,11 @@ class AbstractStage(eqx.Module):
     """Refines coordinates `u` (shape `(*batch, p)`)."""
 
     @abc.abstractmethod
-    def run(self, u, setup) -> StageRun:
-        ...
+    def run(self, u, setup) -> StageRun: ...
 
 
 class AbstractSearch(eqx.Module):
     """Ranks starting points around the guess (`u = 0`); returns shape `(S, *batch, p)`."""
 
     @abc.abstractmethod
-    def starts(self, u, setup) -> Float[Array, "S *batch p"]:
-        ...
+    def starts(self, u, setup) -> Float[Array, "S *batch p"]: ...

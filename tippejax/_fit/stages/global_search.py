@@ -40,10 +40,15 @@ class GlobalSearch(AbstractSearch):
         points = self.box * low_discrepancy(self.candidates, p)
         points = np.concatenate([np.zeros((1, p)), points])  # the guess itself first
         shape = (points.shape[0],) + u.shape
-        starts = jnp.asarray(
-            np.broadcast_to(points.reshape((points.shape[0],) + (1,) * (u.ndim - 1) + (p,)), shape),
-            u.dtype,
-        ) + u[None]
+        starts = (
+            jnp.asarray(
+                np.broadcast_to(
+                    points.reshape((points.shape[0],) + (1,) * (u.ndim - 1) + (p,)), shape
+                ),
+                u.dtype,
+            )
+            + u[None]
+        )
         losses = setup.losses(starts, setup.data(theta=False, slow=1.0, rtol=SEARCH_RTOL))
         order = np.argsort(losses, axis=0)[: self.keep]  # (keep, *batch)
         starts_np = np.asarray(starts)

@@ -101,7 +101,9 @@ class PhaseScan(AbstractStage):
         first = ts[min(self.min_samples, ts.size) - 1]
         window = np.clip(start + self.first_cycles / rate, first, end)  # (bsize,)
         # the early part: until the data's smoothed tilt has moved by `rise`
-        grid = np.broadcast_to(np.asarray(setup.template.grid), (bsize, setup.template.grid.shape[-1]))
+        grid = np.broadcast_to(
+            np.asarray(setup.template.grid), (bsize, setup.template.grid.shape[-1])
+        )
         smooth = np.asarray(setup.template.smooth_obs).reshape(bsize, -1)
         moved = np.abs(smooth - smooth[:, :1]) > self.rise
         early = np.where(moved.any(1), grid[np.arange(bsize), np.argmax(moved, 1)], end)
@@ -111,10 +113,23 @@ class PhaseScan(AbstractStage):
         along_spin = np.zeros((bsize, p))
         along_spin[:, s] = 1.0
         if "theta_dot" in free:  # a launch at a pole: the early tilt's size is ~ theta_dot / n
-            at_pole = np.sin(np.asarray(setup.template.base.launch["theta0"])).reshape(-1) < _POLE_SIN
-            along_spin[:, free.index("theta_dot")] = np.broadcast_to(at_pole, (bsize,)).astype(float)
-        centre, window, _ = self._scan(u_np, along_spin, setup, rate, window,
-                                    np.full(bsize, self.span), early, batched, u.dtype)
+            at_pole = (
+                np.sin(np.asarray(setup.template.base.launch["theta0"])).reshape(-1) < _POLE_SIN
+            )
+            along_spin[:, free.index("theta_dot")] = np.broadcast_to(at_pole, (bsize,)).astype(
+                float
+            )
+        centre, window, _ = self._scan(
+            u_np,
+            along_spin,
+            setup,
+            rate,
+            window,
+            np.full(bsize, self.span),
+            early,
+            batched,
+            u.dtype,
+        )
         u_np = u_np + centre[:, None] * along_spin
         # 2. the others from the slow observables, the spin held
         histories, counts, code = [], [], None
@@ -124,13 +139,16 @@ class PhaseScan(AbstractStage):
             offsets[1:, others] = self.search_box * low_discrepancy(self.search_points, p - 1)
             points = np.repeat(u_np[None], offsets.shape[0], 0)  # (K, bsize, p)
             points[1:, :, others] = offsets[1:, None, others]  # around the guess (u = 0)
-            losses = setup.losses(points if batched else points[:, 0],
-                                  setup.data(theta=False, slow=1.0, rtol=SEARCH_RTOL))
+            losses = setup.losses(
+                points if batched else points[:, 0],
+                setup.data(theta=False, slow=1.0, rtol=SEARCH_RTOL),
+            )
             order = np.argsort(losses.reshape(points.shape[0], -1), axis=0)[: self.refine]
             starts = points[order, np.arange(bsize)[None, :]]  # (refine, bsize, p)
             slow = setup.data(theta=False, slow=1.0, pin=("spin",), steps=self.refine_steps)
             ends, _ = setup.optimise_many(
-                jnp.asarray(starts if batched else starts[:, 0], u.dtype), slow)
+                jnp.asarray(starts if batched else starts[:, 0], u.dtype), slow
+            )
             ends = np.asarray(ends, float).reshape(self.refine, bsize, p)
             end_losses = setup.losses(ends if batched else ends[:, 0], slow)
             best = np.argmin(end_losses.reshape(self.refine, -1), axis=0)
@@ -141,13 +159,15 @@ class PhaseScan(AbstractStage):
             cycles = np.maximum((window - start) * rate, 1.0)
             half = np.minimum(self.lobe / cycles, self.span)
             nxt = np.minimum(start + self.growth * (window - start), end)
-            _, _, minima = self._scan(u_np, directions, setup, rate, nxt, half,
-                                      np.full(bsize, end), batched, u.dtype)
+            _, _, minima = self._scan(
+                u_np, directions, setup, rate, nxt, half, np.full(bsize, end), batched, u.dtype
+            )
             # 4. the best few cycles of the last scan, each refined on the whole record; the
             # lowest end wins (the valley is only straight to first order, so the
             # scan's best point can be a neighbouring cycle's)
-            u_np = refine_candidates(u_np, minima, directions, setup, batched, u.dtype,
-                                     self.candidate_steps)
+            u_np = refine_candidates(
+                u_np, minima, directions, setup, batched, u.dtype, self.candidate_steps
+            )
         new = u_np if batched else u_np[0]
         return StageRun(u=jnp.asarray(new, u.dtype), histories=histories, counts=counts, code=code)
 
@@ -230,8 +250,12 @@ def _hessians(u_np, setup, batched, h):
         offsets += [2 * h * eye[i], -2 * h * eye[i]]
     pairs = [(i, j) for i in range(p) for j in range(i + 1, p)]
     for i, j in pairs:
-        offsets += [h * (eye[i] + eye[j]), h * (eye[i] - eye[j]),
-                    h * (-eye[i] + eye[j]), -h * (eye[i] + eye[j])]
+        offsets += [
+            h * (eye[i] + eye[j]),
+            h * (eye[i] - eye[j]),
+            h * (-eye[i] + eye[j]),
+            -h * (eye[i] + eye[j]),
+        ]
     offsets = np.array(offsets)
     count = offsets.shape[0]
     points = u_np[None] + offsets[:, None, :]
@@ -243,7 +267,7 @@ def _hessians(u_np, setup, batched, h):
         out[:, i, i] = (loss[1 + 2 * i] - 2 * loss[0] + loss[2 + 2 * i]) / (4 * h * h)
     base = 1 + 2 * p
     for k, (i, j) in enumerate(pairs):
-        pp, pm, mp, mm = loss[base + 4 * k: base + 4 * k + 4]
+        pp, pm, mp, mm = loss[base + 4 * k : base + 4 * k + 4]
         out[:, i, j] = out[:, j, i] = (pp - pm - mp + mm) / (4 * h * h)
     return out
 

@@ -119,8 +119,7 @@ class ValleyScan(AbstractStage):
             moved = clear & (np.abs(centre) > self.recentre)
             if moved.any():
                 shifted = u_np + np.where(moved, centre, 0.0)[:, None] * directions
-                held = setup.data(theta=False, slow=1.0, pin=("spin",),
-                                  steps=self.recentre_steps)
+                held = setup.data(theta=False, slow=1.0, pin=("spin",), steps=self.recentre_steps)
                 new, history, k, _ = setup.optimise(as_u(shifted), held)
                 histories.append(history)
                 counts.append(k)
@@ -131,7 +130,7 @@ class ValleyScan(AbstractStage):
             window = np.minimum(start + self.growth * (window - start), end)
         # 4. the best few cycles, each refined on the whole record; the lowest end wins
         minima = _local_minima(losses, deltas, self.candidates)
-        new = refine_candidates(u_np, minima, directions, setup, batched, dtype,
-                                self.candidate_steps)
+        new = refine_candidates(
+            u_np, minima, directions, setup, batched, dtype, self.candidate_steps
+        )
         return StageRun(u=as_u(new), histories=histories, counts=counts, code=None)
-

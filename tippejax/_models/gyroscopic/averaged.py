@@ -42,8 +42,9 @@ class LaunchTransient(eqx.Module):
     valid: Array
 
 
-def launch_transient(top: TippeTop, shed, J, *, north=True,
-                     nodes: int = AVERAGING_NODES) -> LaunchTransient:
+def launch_transient(
+    top: TippeTop, shed, J, *, north=True, nodes: int = AVERAGING_NODES
+) -> LaunchTransient:
     r"""The integrals $I$, $\Phi$, $\Psi$ over the decay of the other root's mode from a tilt
     `shed` $= \vartheta_f$ (from the pole: $\theta = \vartheta$ at the north pole,
     $\pi - \vartheta$ at the south pole) to the pole, at Jellet `J`:
@@ -84,9 +85,11 @@ def launch_transient(top: TippeTop, shed, J, *, north=True,
 
     sign = sign_of(J)
     gain = integral(nutation.damping - nutation_pole.damping)
-    turn = integral(sign * (safe_sqrt(nutation.frequency_squared)
-                            - safe_sqrt(nutation_pole.frequency_squared))
-                    + other.precession - at_pole.precession)
+    turn = integral(
+        sign * (safe_sqrt(nutation.frequency_squared) - safe_sqrt(nutation_pole.frequency_squared))
+        + other.precession
+        - at_pole.precession
+    )
     spin_turn = integral(other.precession * (1 - side * x) + side * (other.spin - at_pole.spin))
     valid = jnp.all((decays | ~moving) & (other.discriminant > 0), axis=-1)
     valid = valid & jnp.isfinite(gain) & jnp.isfinite(turn) & jnp.isfinite(spin_turn)
@@ -144,15 +147,24 @@ def averaged_projection(top: TippeTop, state: State, nodes: int = AVERAGING_NODE
     log_reduced = safe_log(amplitude, -2 * POLE)
     log_gain = jnp.where(kept2 > 0, weight * (log_reduced + transient.gain - log_split), 0.0)
     side = jnp.where(north, 1.0, -1.0).astype(c_re.dtype)
-    averaged = slow_state(state, north, c_re, c_im, log_gain, weight * transient.turn,
-                          weight * transient.spin_turn, side)
+    averaged = slow_state(
+        state,
+        north,
+        c_re,
+        c_im,
+        log_gain,
+        weight * transient.turn,
+        weight * transient.spin_turn,
+        side,
+    )
     linear = linear_projection(top, state)[:4]
     use = transient.valid & jnp.isfinite(c_re) & jnp.isfinite(c_im) & jnp.isfinite(log_gain)
     return (*(jnp.where(use, p, q) for p, q in zip(averaged, linear)), J)
 
 
-def average_launch(top: TippeTop, state: State, *,
-                   nodes: int = AVERAGING_NODES) -> GyroscopicLevelState:
+def average_launch(
+    top: TippeTop, state: State, *, nodes: int = AVERAGING_NODES
+) -> GyroscopicLevelState:
     """The averaged projection of a (single) state (see `AveragedProjection`)."""
     u, phi, psi, log_amplitude, J = averaged_projection(top, state, nodes)
     return GyroscopicLevelState(
@@ -189,8 +201,9 @@ class AveragedProjection(AbstractProjection):
 
     def __check_init__(self):
         if not (isinstance(self.nodes, (int, np.integer)) and self.nodes >= 1):
-            raise ValueError(f"AveragedProjection: nodes must be a positive integer, got "
-                             f"{self.nodes!r}.")
+            raise ValueError(
+                f"AveragedProjection: nodes must be a positive integer, got {self.nodes!r}."
+            )
 
     def project(self, top, state):
         return average_launch(top, state, nodes=self.nodes)

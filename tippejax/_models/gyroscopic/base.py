@@ -56,8 +56,10 @@ def projection_of(projection: AbstractProjection | str) -> AbstractProjection:
             if cls.name == projection:
                 return cls()
         if projection in PROJECTIONS:  # (defined above this layer, imported with tippejax)
-            raise ValueError(f"GyroscopicLevel: the projection {projection!r} is not loaded; "
-                             "import tippejax first.")
+            raise ValueError(
+                f"GyroscopicLevel: the projection {projection!r} is not loaded; "
+                "import tippejax first."
+            )
     raise ValueError(
         f"GyroscopicLevel: projection must be a projection object (AveragedProjection(), "
         f"FibreProjection() or LinearProjection()) or one of the names {PROJECTIONS}, got "

@@ -32,9 +32,18 @@ def contact_proximity(top: TippeTop, s, log_amplitude, nutation: Nutation, fract
     return jnp.log(fraction * top.g) - safe_log(lift, -2 * POLE) - log_amplitude
 
 
-def chart_condition(top: TippeTop, x, J, log_amplitude, nutation: Nutation, *,
-                    hand_over: bool = False, margin: float = HAND_OVER_MARGIN, sin_theta=None,
-                    contact_margin: float | None = None) -> Array:
+def chart_condition(
+    top: TippeTop,
+    x,
+    J,
+    log_amplitude,
+    nutation: Nutation,
+    *,
+    hand_over: bool = False,
+    margin: float = HAND_OVER_MARGIN,
+    sin_theta=None,
+    contact_margin: float | None = None,
+) -> Array:
     r"""`Conditions.chart` at $x = \cos\theta$ (see `validity`; with `hand_over`, the level's
     options of `GyroscopicLevel`)."""
     h = top.R - top.eps * x
@@ -50,8 +59,7 @@ def chart_condition(top: TippeTop, x, J, log_amplitude, nutation: Nutation, *,
         # grows its own nutation (and finds its own contact loss) from the slow state
         chart = jnp.minimum(jnp.minimum(balance, decaying - margin), projectable)
         if contact_margin is not None:
-            proximity = contact_proximity(top, sin_theta, log_amplitude, nutation,
-                                          contact_margin)
+            proximity = contact_proximity(top, sin_theta, log_amplitude, nutation, contact_margin)
             chart = jnp.minimum(chart, proximity)
         return chart
     return jnp.minimum(jnp.minimum(balance, jnp.maximum(small, decaying)), projectable)
@@ -71,8 +79,9 @@ def validity(top: TippeTop, theta, J, log_amplitude) -> Array:
     return chart_condition(top, x, J, log_amplitude, nutation)
 
 
-def entry_margin(top: TippeTop, theta, J, log_amplitude, *, nutation_max, decay_min,
-                 balance_min, contact_max) -> Array:
+def entry_margin(
+    top: TippeTop, theta, J, log_amplitude, *, nutation_max, decay_min, balance_min, contact_max
+) -> Array:
     r"""How far inside the level's chart the slow state at `theta` (Jellet `J`) with a
     nutation of amplitude $e^{\ln a}$ (`log_amplitude`) is, with margins:
     $\min(\Delta_{\rm rel} -$ `BALANCE_MARGIN` $-$ `balance_min`, $-\sigma/\nu -$

@@ -107,8 +107,10 @@ class GyroscopicLevel(AbstractLevel):
         # R'_n of eq. reactie (as `routhian_normal_force`) on the slow manifold
         eps_s = top.eps * s
         h = top.R - top.eps * x
-        numerator = top.g + sm.theta_dot**2 * top.eps * x + eps_s * s * sm.precession * (
-            sm.precession * x - top.C * sm.spin / top.A
+        numerator = (
+            top.g
+            + sm.theta_dot**2 * top.eps * x
+            + eps_s * s * sm.precession * (sm.precession * x - top.C * sm.spin / top.A)
         )
         denominator = 1.0 / top.m + eps_s * (eps_s + top.mu * h**2 * sm.theta_dot) / top.A
         nutation = nutation_at(top, x, s, y.jellet, sm)
@@ -116,9 +118,17 @@ class GyroscopicLevel(AbstractLevel):
             contact=numerator,  # R_n D
             singular=denominator,
             upright=x,
-            chart=chart_condition(top, x, y.jellet, y.nutation, nutation,
-                                  hand_over=self.hand_over, margin=self.hand_over_margin,
-                                  sin_theta=s, contact_margin=self.contact_margin),
+            chart=chart_condition(
+                top,
+                x,
+                y.jellet,
+                y.nutation,
+                nutation,
+                hand_over=self.hand_over,
+                margin=self.hand_over_margin,
+                sin_theta=s,
+                contact_margin=self.contact_margin,
+            ),
         )
 
     def in_chart(self, top, state):

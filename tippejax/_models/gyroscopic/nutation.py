@@ -49,8 +49,9 @@ def nutation_at(top: TippeTop, x, s, J, sm: SlowManifold) -> Nutation:
     c_x = -(kappa_x * p + c_dot * d_x) / d
     w_x = R * c_x / big_s
     n_x = -eps * c_x / big_s + w_x * x + omega
-    numerator_x = eps * (-2 * x * omega * gyro
-                         + s2 * (w_x * gyro + omega * (w_x * x + omega - C * n_x / A)))
+    numerator_x = eps * (
+        -2 * x * omega * gyro + s2 * (w_x * gyro + omega * (w_x * x + omega - C * n_x / A))
+    )
     q_x = -2 * x * m * eps**2 / A
     rn_x = m * (numerator_x * q - numerator * q_x) / q**2
     # M_phibar / sin^2 = A C / D, and B_p / sin(theta) = -(dM_phibar/dx p + dbeta/dx)
@@ -69,8 +70,9 @@ def nutation_at(top: TippeTop, x, s, J, sm: SlowManifold) -> Nutation:
     nu2 = big_p / (A * inertia)
     inertia_x = -2 * x * m * eps**2
     log_m_nu_x = 0.5 * (inertia_x / inertia + big_p_x / big_p)  # d ln(M_theta nu)/dx
-    drive = (mu * (rn + p * rn_p) * coupling / inertia_phibar + mu * s2 * p * rn_x
-             - 2 * mu * p * rn * x)  # alpha / sin(theta)
+    drive = (
+        mu * (rn + p * rn_p) * coupling / inertia_phibar + mu * s2 * p * rn_x - 2 * mu * p * rn * x
+    )  # alpha / sin(theta)
     friction = -(mu * rn * h**2 + coupling * drive / (inertia_phibar * nu2)) / (2 * inertia)
     adiabatic = 0.5 * sm.rate * s2 * log_m_nu_x  # -(1/2) d ln(M_theta nu)/dt
     return Nutation(frequency_squared=nu2, damping=friction + adiabatic)
@@ -118,5 +120,3 @@ def nutation_damping(top: TippeTop, theta, J, *, branch: int = 1) -> Array:
     theta = jnp.asarray(theta, dtype=jnp.result_type(theta, top.m))
     x, s = jnp.cos(theta), jnp.sin(theta)
     return nutation_at(top, x, s, J, slow_manifold_at(top, x, s, J, branch)).damping
-
-

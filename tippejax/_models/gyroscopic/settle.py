@@ -18,8 +18,13 @@ SETTLE_TIME_MAX = 1.0
 r"""The longest the fibre projection follows a launch in the SO(3) model (s)."""
 
 
-def settle_time(top: TippeTop, state: State, *, amplitude: float = SETTLE_AMPLITUDE,
-                time_max: float = SETTLE_TIME_MAX) -> Array:
+def settle_time(
+    top: TippeTop,
+    state: State,
+    *,
+    amplitude: float = SETTLE_AMPLITUDE,
+    time_max: float = SETTLE_TIME_MAX,
+) -> Array:
     r"""How long the fibre projection follows a launch in the SO(3) model: the time its nutation
     (the other root's mode, amplitude $a_0$ of the linear projection, decaying at the rate
     $-\mathrm{Im}\,r_-$ of that mode at the nearer pole) takes to fall to `amplitude`; 0 for a

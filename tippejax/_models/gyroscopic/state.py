@@ -37,6 +37,10 @@ class GyroscopicLevelState(eqx.Module):
     @classmethod
     def from_theta(cls, theta, phi, psi, nutation, jellet) -> GyroscopicLevelState:
         """The state at tilt `theta` (the other fields as given)."""
-        return cls(log_tan_half_theta=log_tan_half(theta), phi=jnp.asarray(phi),
-                   psi=jnp.asarray(psi), nutation=jnp.asarray(nutation),
-                   jellet=jnp.asarray(jellet))
+        return cls(
+            log_tan_half_theta=log_tan_half(theta),
+            phi=jnp.asarray(phi),
+            psi=jnp.asarray(psi),
+            nutation=jnp.asarray(nutation),
+            jellet=jnp.asarray(jellet),
+        )
