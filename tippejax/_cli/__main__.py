@@ -2,4 +2,5 @@
 
 from .parser import main
 
-raise SystemExit(main())
+if __name__ == "__main__":  # (not on import: the docs build imports every module)
+    raise SystemExit(main())
