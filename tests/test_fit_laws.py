@@ -75,6 +75,7 @@ def _check_fit(res, truth):
     assert np.all(np.abs(values - truth) < 3 * errors), (values - truth) / errors
 
 
+@pytest.mark.slow  # (two full law comparisons: minutes on 2 cores)
 def test_viscous_record_keeps_the_viscous_law(viscous_record):
     """The record of the viscous law does not rule it out; the fit (launched at t = 0, a
     sample before the first frame) recovers its mu and spin."""
@@ -92,6 +93,7 @@ def test_viscous_record_keeps_the_viscous_law(viscous_record):
     assert int(cmp.dof[0]) == ts.size - 2
 
 
+@pytest.mark.slow  # (two full law comparisons: minutes on 2 cores)
 def test_contensou_record_rules_out_the_viscous_law(contensou_record):
     """A Coulomb-Contensou record, whose best viscous fit is much further than the noise from
     it, rules out the viscous law and prefers Coulomb-Contensou, whose mu (dimensionless) and

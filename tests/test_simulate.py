@@ -722,7 +722,12 @@ def test_successful_runs_are_finite(full_ref, full_default, so3_routhian_pairs, 
     for sol in sols:
         assert is_ok(sol)
         for name in FIELDS:
-            assert np.all(np.isfinite(_np(getattr(sol, name)))), (sol.model, name)
+            value = _np(getattr(sol, name))
+            if name in ("position", "velocity") and not sol.model.startswith("full"):
+                # (the SO(3) and Routhian levels drop the translation: not computed, nan)
+                assert np.all(np.isnan(value)), (sol.model, name)
+            else:
+                assert np.all(np.isfinite(value)), (sol.model, name)
         assert float(sol.t_final) == pytest.approx(float(sol.ts[-1]))
 
 
