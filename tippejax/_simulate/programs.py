@@ -18,24 +18,10 @@ from .._engine.solver_choice import IMPLICIT_RATE, friction_rate
 from .._invariants import energy, jellet, normal_force, slip_velocity
 from .._models.stem import stem_observables
 from .._outcome import classify
-from .._solution import RESULTS
+from .._solution import RESULTS, SAVED_FIELDS
 from .._state import State, euler_angles, euler_rates, spin
 
-OBSERVED = (
-    "theta",
-    "phi",
-    "psi",
-    "theta_dot",
-    "phi_dot",
-    "psi_dot",
-    "spin",
-    "position",
-    "velocity",
-    "jellet",
-    "energy",
-    "normal_force",
-    "slip_speed",
-)
+OBSERVED = SAVED_FIELDS[1:]
 """The `Solution` fields computed from the states at the save times."""
 
 
