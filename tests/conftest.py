@@ -41,6 +41,10 @@ there an implicit promotion (a float32 array meeting a float64 one, an int meeti
 an error, not a silent widening. The physics (the models, the invariants, the friction laws and
 the states) holds to it; the rest of the suite runs JAX's standard promotion."""
 
+# Implicit rank promotion (an array of shape (3,) broadcast against one of shape (n, 3)) is an
+# error in every test: a batch dimension is added by `vmap` or written out, never guessed.
+jax.config.update("jax_numpy_rank_promotion", "raise")
+
 
 @pytest.fixture(autouse=True)
 def _strict_promotion(request):

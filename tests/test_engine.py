@@ -31,6 +31,7 @@ def inverting(top):
     return y0, fine
 
 
+@pytest.mark.slow
 def test_inversion_time_does_not_depend_on_the_save_grid(top, inverting):
     y0, fine = inverting
     coarse = tj.simulate(top, y0, 20.0, saveat=COARSE)
@@ -59,6 +60,7 @@ def test_inversion_time_does_not_depend_on_the_save_grid(top, inverting):
     assert np.all(np.asarray(fine.theta)[before] < np.pi / 2)
 
 
+@pytest.mark.slow
 def test_inversion_time_agrees_across_solvers_and_tolerances(top, inverting):
     y0, fine = inverting
     ref = tj.simulate(top, y0, 20.0, summary=True, rtol=1e-12, atol=1e-14)
@@ -89,7 +91,7 @@ def test_summary_mode_is_the_end_of_the_trajectory(top, inverting):
     assert int(summary.num_steps) == int(fine.num_steps)
 
 
-@pytest.mark.parametrize("model", ["so3", "full"])
+@pytest.mark.parametrize("model", [pytest.param("so3", marks=pytest.mark.slow), "full"])
 def test_a_run_without_the_body_vector(top, inverting, model):
     """`body=False` (summary mode's default) drops the 4 body components: psi and the body
     vector are nan, nothing else depends on them, and the motion agrees with the run that
@@ -381,6 +383,7 @@ def test_ravel_state_round_trip_and_leaves():
         assert np.array_equal(getattr(back, leaf), getattr(z, leaf))
 
 
+@pytest.mark.slow
 def test_one_top_is_packed_in_one_vector_and_a_batch_in_narrow_ones(top):
     """A run of one top carries its state in one vector, a vmapped batch in vectors of at most
     `PACK_WIDTH`, one top differentiated in forward mode in vectors of at most
@@ -439,6 +442,7 @@ def test_one_top_is_packed_in_one_vector_and_a_batch_in_narrow_ones(top):
     )
 
 
+@pytest.mark.slow
 def test_batches_compiled_with_the_cpu_options_match_a_users_vmap(top):
     """tippejax's own CPU batch programs (`CpuProgram`: its compile options, blocks under
     `lax.map`, sharding) change the speed only: `simulate_batch` and the user's `vmap` of
@@ -584,6 +588,7 @@ def test_every_core_is_a_device_by_default():
     assert default["devices"] == (os.cpu_count() or 1)
 
 
+@pytest.mark.slow
 def test_sequential_cpu_scheduler_by_default_and_its_opt_outs():
     """XLA:CPU's concurrency-optimised scheduler is turned off where this jaxlib knows the
     flag (`_devices.use_sequential_scheduler`); TIPPEJAX_CPU_SCHEDULER=concurrent and a flag

@@ -259,7 +259,7 @@ def test_3_footnote_n2_over_n1_and_jellet_thresholds():
     assert np.all(J2[iic] < J1[iic])
     assert np.all(n2[iic] < n1[iic])  # the IIc half of the footnote holds
     # J1, J2 are the branch ends, independently of the threshold formulas.
-    ends = np.asarray(ti.branch_jellet(tops, jnp.asarray([[[1e-8]], [[np.pi - 1e-8]]])))
+    ends = [np.asarray(ti.branch_jellet(tops, jnp.full(A.shape, t))) for t in (1e-8, np.pi - 1e-8)]
     ii = iib | iic
     np.testing.assert_allclose(ends[0][ii], J1[ii], rtol=1e-10)
     np.testing.assert_allclose(ends[1][ii], J2[ii], rtol=1e-10)

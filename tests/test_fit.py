@@ -72,7 +72,7 @@ def fast_record():
     return obs, spin
 
 
-@pytest.mark.parametrize("strategy", ["global", "search"])
+@pytest.mark.parametrize("strategy", ["global", pytest.param("search", marks=pytest.mark.slow)])
 def test_recovers_from_30_percent_off_at_240_hz(fast_record, strategy):
     """The default, and the search alone (global search, spin from the early nutation, the
     others from the slow loss with the spin held, the phase along the valley)."""
@@ -151,6 +151,7 @@ def test_misfit_record_is_flagged(fast_record):
     assert float(whole.rms) > 3 * NOISE
 
 
+@pytest.mark.slow
 def test_trim_recovers_a_record_whose_end_is_not_described(fast_record):
     """With trim=True the landed record is fitted on the part the model describes: windows
     grow from the start while they pass, and the last one's prediction says where to stop."""
@@ -229,6 +230,7 @@ def _slow_riser(monkeypatch):
     return guess, y0, ts, obs, truth
 
 
+@pytest.mark.slow
 def test_valley_scan_finds_the_spin_of_a_slow_riser(monkeypatch):
     """`ValleyScan` goes onto the slow loss's valley first and scans the phase along it: from
     the start of `_slow_riser` it ends within 2% and 3 SE of the truth."""
@@ -258,6 +260,7 @@ def test_recovers_from_30_percent_off_at_30_hz_group_III():
     _check_success(res, np.array([float(TOP_III.mu), float(TOP_III.eps), spin]))
 
 
+@pytest.mark.slow
 def test_upright_launch_with_a_tilt_rate():
     """theta0 = 0 with theta_dot = 0.5 rad/s (a top dropped upright): accepted, theta_dot free."""
     spin = 3.0 * float(tj.thresholds(TOP_IIB).n1)
@@ -269,6 +272,7 @@ def test_upright_launch_with_a_tilt_rate():
     _check_success(res, np.array([float(TOP_IIB.mu), float(TOP_IIB.eps), spin, 0.5]))
 
 
+@pytest.mark.slow
 def test_upright_guess_is_accepted_and_fitted_near_the_truth():
     """A top dropped upright (theta0 = 0, theta_dot = 0.5 rad/s), data from the reference: the
     guess at the pole is accepted with theta_dot free, and a fit from 5% off (whole record,
@@ -286,6 +290,7 @@ def test_upright_guess_is_accepted_and_fitted_near_the_truth():
     assert np.all(np.abs(values - truth) < 3 * errors), (values - truth) / errors
 
 
+@pytest.mark.slow
 def test_standard_errors_cover_the_scatter_of_repeated_noise():
     """Eight noisy copies of one record fitted at once (vmapped) with the default strategy, as
     a user fits a batch: the scatter of the estimates agrees with the reported standard
@@ -309,6 +314,7 @@ def test_standard_errors_cover_the_scatter_of_repeated_noise():
     assert np.all(scatter / reported < 2.0) and np.all(scatter / reported > 0.5)
 
 
+@pytest.mark.slow
 def test_a_batch_fits_each_record_as_it_would_be_fitted_alone(monkeypatch):
     """A batch of two records with one guess: the guess describes the first (it is only
     polished) and not the second (mu 30% and eps 20% off: it needs the windows). Each record's

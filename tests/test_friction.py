@@ -382,38 +382,48 @@ def test_levels_that_do_not_take_a_law_refuse_it():
 
 T1 = 0.3
 SAVES = np.linspace(0.0, T1, 601)
+RUNS = [
+    *[(name, "full") for name in ("coulomb", "hertz", "ellipse")],
+    ("hertz", "so3"),
+    *[pytest.param(name, "so3", marks=pytest.mark.slow) for name in ("coulomb", "ellipse")],
+]
+"""The (law, level) pairs the invariant tests run: every law at the full level, and the SO(3)
+level with the Hertz law (the other laws there under `-m slow`)."""
+
+
+class _Runs(dict):
+    """One short run per law and level, made when a test first asks for it (LG's top,
+    theta0 = 0.1, 180 rad/s; the launch's slipping transient), with a fine save grid."""
+
+    def __missing__(self, key):
+        name, model = key
+        top = lg_top(laws(1e-4)[name])
+        y0 = tj.initial_state(top, theta=0.1, spin=180.0)
+        with warnings.catch_warnings():  # (pure Coulomb's caveat: tested below)
+            warnings.simplefilter("ignore", UserWarning)
+            sol = tj.simulate(
+                top,
+                y0,
+                t1=T1,
+                model=model,
+                saveat=SAVES,
+                rtol=1e-9,
+                atol=1e-12,
+                solver=diffrax.Tsit5(),
+                max_steps=100_000,
+            )
+        self[key] = (top, sol)
+        return self[key]
 
 
 @pytest.fixture(scope="module")
 def runs():
-    """One short run per law and level (LG's top, theta0 = 0.1, 180 rad/s; the launch's
-    slipping transient), with a fine save grid."""
-    out = {}
-    for name, law in laws(1e-4).items():
-        if name == "viscous":  # (tests/test_models.py and test_simulate.py check it)
-            continue
-        top = lg_top(law)
-        y0 = tj.initial_state(top, theta=0.1, spin=180.0)
-        for model in ("full", "so3"):
-            with warnings.catch_warnings():  # (pure Coulomb's caveat: tested below)
-                warnings.simplefilter("ignore", UserWarning)
-                sol = tj.simulate(
-                    top,
-                    y0,
-                    t1=T1,
-                    model=model,
-                    saveat=SAVES,
-                    rtol=1e-9,
-                    atol=1e-12,
-                    solver=diffrax.Tsit5(),
-                    max_steps=100_000,
-                )
-            out[name, model] = (top, sol)
-    return out
+    """The runs of every law (not the viscous one: tests/test_models.py and test_simulate.py
+    check it) at the full and SO(3) levels, by `(law, level)`."""
+    return _Runs()
 
 
-@pytest.mark.parametrize("model", ["full", "so3"])
-@pytest.mark.parametrize("name", ["coulomb", "hertz", "ellipse"])
+@pytest.mark.parametrize("name, model", RUNS)
 def test_energy_never_increases(runs, name, model):
     _, sol = runs[name, model]
     energy = np.asarray(sol.energy)
@@ -421,8 +431,7 @@ def test_energy_never_increases(runs, name, model):
     assert np.max(np.diff(energy)) <= 1e-10 * abs(energy[0]), np.max(np.diff(energy)) / energy[0]
 
 
-@pytest.mark.parametrize("model", ["full", "so3"])
-@pytest.mark.parametrize("name", ["coulomb", "hertz", "ellipse"])
+@pytest.mark.parametrize("name, model", RUNS)
 def test_jellet_balance(runs, name, model):
     """J is conserved under a friction force alone; under a drilling torque it follows
     J(t) - J(0) = int M (R - eps cos theta) dt (trapezoids on the fine save grid)."""
@@ -543,6 +552,7 @@ def test_float32_run_agrees_with_float64(runs):
     assert np.max(np.diff(np.asarray(sol.energy, dtype=float))) <= 1e-6 * float(ref.energy[0])
 
 
+@pytest.mark.slow
 def test_vmap_over_a_batch_of_one_law(runs):
     """A batch of tops with one law and batched parameters runs under jax.vmap; the member
     with the fixture's parameters gives its run."""

@@ -269,18 +269,24 @@ def test_simulate_values_for_gradients(finite_differences):
     assert values[1] > np.pi / 2  # ... and is still inverted at t1
 
 
-def test_grad_simulate_reverse_matches_forward(reverse, reverse_through_solve, forward):
+def test_grad_simulate_reverse_matches_forward(reverse, forward):
     _check_complete(reverse)
-    _check_complete(reverse_through_solve)
     _check_complete(forward)
     assert _report("jax.jacrev vs jax.jacfwd", reverse, forward) < MODES_RTOL
-    # the default's reverse mode against reverse mode through the solve's steps
+
+
+@pytest.mark.slow
+def test_grad_simulate_reverse_matches_reverse_through_the_steps(reverse, reverse_through_solve):
+    """The default's reverse mode against reverse mode through the solve's steps (a route
+    that does not go through forward mode; central differences check both by default)."""
+    _check_complete(reverse_through_solve)
     assert (
         _report("jax.jacrev: default vs RecursiveCheckpointAdjoint", reverse, reverse_through_solve)
         < MODES_RTOL
     )
 
 
+@pytest.mark.slow
 def test_default_adjoint_takes_forward_mode_too(problem, forward):
     """`jax.jacfwd` with the default adjoint (diffrax's checkpointed adjoint refuses it)."""
     top, launch = problem

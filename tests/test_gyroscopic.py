@@ -627,6 +627,7 @@ def test_fibre_projection_of_a_spun_launch(top):
     assert float(settle_time(top, on_manifold(top, 0.3, 150.0))) == 0.0
 
 
+@pytest.mark.slow
 def test_stop_at_hand_over_and_the_carried_nutation(top):
     """`stop_at_hand_over` ends the slow flow where `hand_over=True` hands over to the full model,
     with `RESULTS.no_gyroscopic_balance`. With `contact_margin` it ends earlier, where the

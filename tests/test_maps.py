@@ -135,6 +135,7 @@ def test_tops_map_classifies_each_top_against_its_own_states():
     assert int(om.outcome[1, 0]) in (UPRIGHT, INTERMEDIATE)
 
 
+@pytest.mark.slow
 def test_map_in_blocks_is_each_launchs_single_run(monkeypatch):
     """On CPU devices a map's launches run in blocks (`run_in_blocks`, as in simulate_batch):
     with blocks of 2, a map of 3 x 2 tops (their fields split into the blocks) holds each
@@ -191,6 +192,7 @@ def test_tops_map_refuses_impossible_bodies():
         tj.outcome_map_tops(tj.default_top(), [0.9], [1.0], theta0=0.1, spin=50.0, t1=1.0)
 
 
+@pytest.mark.slow
 def test_two_processes_with_jax_distributed_give_the_single_process_map(tmp_path):
     """Two CPU processes (two devices each: four shards) with jax.distributed."""
     script = os.path.join(ROOT, "examples", "distributed_map.py")
@@ -244,6 +246,7 @@ def test_two_processes_with_jax_distributed_give_the_single_process_map(tmp_path
     np.testing.assert_array_equal(got["num_steps"], np.asarray(om.num_steps))
 
 
+@pytest.mark.slow
 def test_map_command_writes_both_maps(tmp_path, capsys):
     from tippejax._cli import main
 
@@ -315,6 +318,7 @@ def auto_map():
     return tj.outcome_map(tj.default_top(), THETA0, SPIN, t1=T1, model="auto")
 
 
+@pytest.mark.slow
 def test_auto_map_gives_the_full_models_outcomes(standard_map, auto_map):
     """The staged auto map ends every launch where the full model does, on a grid with contact
     losses, launches the gyroscopic level refuses (tilted 0.6 and 1.2 rad) and runs it hands
@@ -347,6 +351,7 @@ def test_auto_map_gives_the_full_models_outcomes(standard_map, auto_map):
     assert np.sum(np.asarray(auto.num_steps)) < np.sum(np.asarray(full.num_steps))
 
 
+@pytest.mark.slow
 def test_auto_map_stages_are_organised_as_claimed():
     """Each stage is a batch of its own: the slow stages take few steps; the first full stage
     holds exactly the launches the gyroscopic level refuses; a launch is in a full stage after

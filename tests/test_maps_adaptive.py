@@ -248,6 +248,7 @@ print(json.dumps(dict(dtype=str(om.theta_final.dtype), outcome=np.asarray(om.out
 """
 
 
+@pytest.mark.slow
 def test_float32_adaptive_map_differs_from_float64_only_next_to_a_boundary(adaptive):
     """The same adaptive map in a float32 process (TIPPEJAX_ENABLE_X64=0): it runs in float32
     and its outcomes differ from the float64 map's only beside a boundary of that map."""

@@ -82,7 +82,7 @@ FIELDS = {"full": ti.full_vector_field, "so3": ti.so3_vector_field}
 def test_jellet_conserved(top, model):
     y = _random_state(10, translation=(model == "full"))
     rate = np.asarray(_jellet_rate(FIELDS[model], top, y))
-    q = y.axis * top.eps - jnp.array([0.0, 0.0, 1.0]) * top.R
+    q = y.axis * top.eps - jnp.array([[0.0, 0.0, 1.0]]) * top.R
     rn = jnp.abs(tj.normal_force(top, y, model=model))
     # |J| <= |L||q|; dJ/dt = -dL/dt.q - L.dq/dt with |dL/dt| <= |q| R_n (1 + mu |v_Q|).
     v_q = _norm(tj.slip_velocity(top, y, model=model))
@@ -101,10 +101,12 @@ def test_jellet_is_not_conserved_by_a_wrong_field(top):
 
     def broken(t, s, top):
         dy = ti.full_vector_field(t, s, top)
-        return eqx.tree_at(lambda d: d.omega, dy, dy.omega + jnp.array([1.0, 0.0, 0.0]))
+        return eqx.tree_at(
+            lambda d: d.omega, dy, dy.omega + jnp.zeros_like(dy.omega).at[..., 0].set(1.0)
+        )
 
     rate = np.asarray(_jellet_rate(broken, top, y))
-    q = y.axis * top.eps - jnp.array([0.0, 0.0, 1.0]) * top.R
+    q = y.axis * top.eps - jnp.array([[0.0, 0.0, 1.0]]) * top.R
     scale = _norm(_angular_momentum(top, y)) * _norm(q) * _norm(y.omega)
     assert np.median(np.abs(rate) / np.asarray(scale)) > 1e-8
 

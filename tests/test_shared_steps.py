@@ -78,6 +78,7 @@ def _inversion_times_converge(per, shared, reference):
     _close_times(per_t[GRAZING], ref[GRAZING], 1e-4)
 
 
+@pytest.mark.slow
 def test_shared_summary_agrees_with_per_member(so3_summary, so3_reference):
     per, shared = so3_summary
     assert shared.theta.shape == per.theta.shape == (SPINS.size,)  # no save axis
@@ -144,6 +145,7 @@ def test_shared_continue_past_contact_loss():
     _close_times(shared.t_contact_loss, per.t_contact_loss, 1e-3)
 
 
+@pytest.mark.slow
 def test_shared_member_dead_at_launch():
     """A member with R_n < 0 at launch is not integrated (t_final = t0, contact lost at t0) and
     the others run as usual."""
@@ -179,6 +181,7 @@ def test_shared_invariants_so3():
     assert np.all(np.diff(E, axis=-1) < 1e-8 * np.abs(E[:, :1]))
 
 
+@pytest.mark.slow
 def test_shared_float32():
     """In float32 the shared path is as accurate as the per-member path, both measured
     against the float64 run: the member at 400 rad/s is mid-inversion at t1, where float32
@@ -224,6 +227,7 @@ print(json.dumps(dict(devices=jax.device_count(), shape=list(sharded.theta.shape
 """
 
 
+@pytest.mark.slow
 def test_shared_steps_sharded_over_two_host_devices():
     env = host_devices_env(2)
     out = subprocess.run(
@@ -235,6 +239,7 @@ def test_shared_steps_sharded_over_two_host_devices():
     assert r["diff"] < 1e-5  # each device shares steps over its own shard only
 
 
+@pytest.mark.slow
 def test_shared_large_batch_is_split_into_blocks(so3_summary, so3_reference, monkeypatch):
     """A batch of more than `SHARED_BLOCK` members per device runs as several shared solves
     (buckets by spin, put back in order): with a block of 2, the six members of

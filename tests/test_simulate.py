@@ -428,6 +428,7 @@ def test_stiff_friction_default_solver():
 SPINS = np.linspace(20.0, 200.0, 32)
 
 
+@pytest.mark.slow
 def test_vmap_over_spins_matches_loop(top):
     ts = grid(3.0)
 
@@ -511,6 +512,7 @@ def _stack(tops):
     return jax.tree_util.tree_map(lambda *x: jnp.stack(x), *tops)
 
 
+@pytest.mark.slow
 def test_vmap_over_tops_explicit_solver():
     tops = _four_tops()
     ts = grid(3.0)

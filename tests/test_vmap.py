@@ -130,6 +130,7 @@ def test_vmap_over_tops_jellet(tops, states):
     _assert_trees_close(jax.vmap(tj.jellet)(batch, ys), looped)
 
 
+@pytest.mark.slow
 def test_steady_states_vmap_over_J(top):
     """vmap (under jit: one compilation) over three Jellet values equals a loop."""
     J_values = jnp.array([0.5, 1.5, 3.0]) * float(tj.thresholds(top).J1)

@@ -227,11 +227,22 @@ _VERSIONS: str | None = None
 _STATIC_TEXT: dict = {}  # id(option) -> (option, its repr): a loop calls with the same options
 
 
+def _by_value(x):
+    """`x` with its dicts as sorted tuples (hashable where their values are)."""
+    if isinstance(x, dict):
+        return ("dict", tuple((k, _by_value(v)) for k, v in sorted(x.items())))
+    return x
+
+
 def _static_text(static: dict) -> str | None:
     """The options' repr, or None if it would not be stable; remembered by the options'
     identity (an equinox Module's repr costs milliseconds, and a fit calls its programs
     hundreds of times with the same options)."""
-    ident = tuple((k, id(v)) for k, v in sorted(static.items()))
+    try:  # options equal by value (a new `Dopri5()` per call) share their text
+        ident = tuple((k, type(v).__name__, _by_value(v)) for k, v in sorted(static.items()))
+        hash(ident)
+    except TypeError:
+        ident = tuple((k, id(v)) for k, v in sorted(static.items()))
     hit = _STATIC_TEXT.get(ident)
     if hit is not None:
         return hit[1]
@@ -247,7 +258,28 @@ def _static_text(static: dict) -> str | None:
     return text
 
 
+_KEYS: dict = {}  # the inputs of `_key` -> its value: an eager loop calls with the same ones
+
+
 def _key(name: str, in_tree, leaves, static: dict, fixed: dict) -> str | None:
+    text = _static_text(static)
+    if text is None:
+        return None
+    avals = tuple((x.dtype, x.shape, bool(x.weak_type)) for x in leaves)
+    try:
+        flags = (jax.config.jax_enable_x64, jax.default_backend(), unroll_stages())
+        ident = (name, text, in_tree, avals, tuple(sorted(fixed.items())), flags)
+        hash(ident)
+    except TypeError:
+        return _key_text(name, in_tree, leaves, static, fixed)
+    if ident not in _KEYS:
+        if len(_KEYS) > 10_000:
+            _KEYS.clear()
+        _KEYS[ident] = _key_text(name, in_tree, leaves, static, fixed)
+    return _KEYS[ident]
+
+
+def _key_text(name: str, in_tree, leaves, static: dict, fixed: dict) -> str | None:
     global _VERSIONS
     text = _static_text(static)
     fixed_text = repr(sorted(fixed.items()))
@@ -377,10 +409,16 @@ def _entry(fn, args, static, compiler_options=None):
 
     # Committed and uncommitted arrays are different signatures to `jit`, and an exported
     # program is compiled again for each: every input is committed to its device.
-    inputs = [
-        x if getattr(x, "committed", True) else jax.device_put(x, next(iter(x.devices())))
-        for x in inputs
-    ]
+    loose = [i for i, x in enumerate(inputs) if not getattr(x, "committed", True)]
+    if loose:  # (one transfer call for all of them: each call has a fixed cost)
+        device = next(iter(inputs[loose[0]].devices()))
+        if all(inputs[i].devices() == {device} for i in loose):
+            committed = jax.device_put([inputs[i] for i in loose], device)
+        else:
+            committed = [jax.device_put(inputs[i], next(iter(inputs[i].devices()))) for i in loose]
+        inputs = list(inputs)
+        for i, x in zip(loose, committed):
+            inputs[i] = x
     return key, inputs, rebuild
 
 

@@ -388,7 +388,7 @@ def _steady_states(top: TippeTop, J) -> SteadyStates:
     valid = jnp.stack(valids)
     safe = jnp.where(valid, theta_i, 1.0)
     drifts = top.friction.has_drilling_torque
-    complex_dtype = jnp.result_type(J.dtype, jnp.complex64)
+    complex_dtype = jnp.complex128 if jnp.dtype(J.dtype).itemsize == 8 else jnp.complex64
 
     def eigenvalues(th, count, fn, **kw):  # nan under a drilling torque (no fixed point)
         if drifts:

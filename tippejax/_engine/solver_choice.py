@@ -47,11 +47,24 @@ def default_solver(top: TippeTop, *, slow_flow: bool = False) -> diffrax.Abstrac
     friction is too stiff for an explicit solver (`RESULTS.stiff_under_trace`) at once instead
     of running them into `max_steps`.
     """
-    explicit = diffrax.Dopri5() if slow_flow else diffrax.Dopri8()
-    if any(is_traced(x) for x in jax.tree_util.tree_leaves(top)):
-        return explicit
+    return solver_for_rate(host_friction_rate(top), slow_flow=slow_flow)
+
+
+def host_friction_rate(top: TippeTop) -> float | None:
+    """The largest `friction_rate` of a concrete `top` (over its batch), read on the host;
+    None for a traced top."""
+    leaves = jax.tree_util.tree_leaves(top)
+    if any(is_traced(x) for x in leaves):
+        return None
     numpy_top = jax.tree_util.tree_map(lambda x: np.asarray(x, dtype=float), top)
-    rate = float(np.max(friction_rate(numpy_top)))
+    return float(np.max(friction_rate(numpy_top)))
+
+
+def solver_for_rate(rate: float | None, *, slow_flow: bool = False) -> diffrax.AbstractSolver:
+    """`default_solver` of a top whose `host_friction_rate` is `rate` (None: traced)."""
+    explicit = diffrax.Dopri5() if slow_flow else diffrax.Dopri8()
+    if rate is None:
+        return explicit
     if rate > IMPLICIT_RATE:
         return diffrax.Kvaerno5()
     return diffrax.Tsit5() if rate > STIFF_RATE else explicit

@@ -17,7 +17,13 @@ from .._engine.chain import level_chain
 from .._engine.cpu import own_compiler_options
 from .._engine.segment import pack_width_for
 from .._engine.sensitivity import ForwardSensitivities
-from .._engine.solver_choice import IMPLICIT_RATE, STIFF_RATE, default_solver, friction_rate
+from .._engine.solver_choice import (
+    IMPLICIT_RATE,
+    STIFF_RATE,
+    friction_rate,
+    host_friction_rate,
+    solver_for_rate,
+)
 from .._engine.watch import EVENT_PIECES
 from .._errors import result_error_if
 from .._models.levels import LEVELS, check_friction
@@ -46,7 +52,8 @@ def default_solvers(top: TippeTop, level):
     """`default_solver` of every level of `level`'s chain (`level_chain`): one solver where
     they agree, else a tuple of one per level (the gyroscopic level's slow flow runs Dopri5,
     and the full model it hands over to runs its own default, Dopri8 for moderate friction)."""
-    solvers = tuple(default_solver(top, slow_flow=lvl.slow_flow) for lvl in level_chain(level))
+    rate = host_friction_rate(top)  # (read once: a host read per level costs a sync each)
+    solvers = tuple(solver_for_rate(rate, slow_flow=lvl.slow_flow) for lvl in level_chain(level))
     return solvers[0] if all(s == solvers[0] for s in solvers) else solvers
 
 
