@@ -1,5 +1,5 @@
 """fitting: `tj.fit` and `tj.compare_laws` on seeded random records from independent integrators
-(`fit_records.py`): success from the truth and from 30% off, honest error bars, cost, the law.
+(`tests/fit_records.py`): success from the truth and from 30% off, honest error bars, cost, the law.
 
 A fit succeeds when every free parameter is within 2% of the truth and 3 standard errors; one that
 does not must be flagged (`converged=False`). Rows are cached beside the records (`--resume`).
@@ -15,14 +15,17 @@ from __future__ import annotations
 import gc
 import json
 import pathlib
+import sys
 import time
 
 import _harness as h
-import fit_records as fr
 import jax
 import numpy as np
 
-import tippejax as tj
+sys.path.insert(0, str(h.HERE.parent / "tests"))
+import fit_records as fr  # noqa: E402
+
+import tippejax as tj  # noqa: E402
 
 RATE_BINS = ((20, 60), (60, 150), (150, 500.1))
 ROWS = fr.CACHE_ROOT / "fitting_rows.json"

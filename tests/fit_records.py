@@ -1,4 +1,4 @@
-r"""Seeded random records of the tilt for `fitting.py`, from integrators with no tippejax physics.
+r"""Seeded random records of the tilt for `benchmarks/fitting.py`, from the reference integrators.
 
 `draw_records(n, seed)` (`--table`, `--coverage`): viscous tops of the groups IIa, IIb, IIc, III
 in turn, clean tilt from `tests/vector_reference.py`, each with the Cramer-Rao bound (CRB) of its
@@ -6,8 +6,9 @@ free parameters; a draw whose bound on mu, eps or spin exceeds `MAX_CRB_REL` of 
 loses contact before 3 s, is redrawn. `law_record(seed, i, attempt)` (`--laws`): the friction laws
 `LAWS[i % 3]` over the groups, from `tests/real_top_reference.py` (ball on the table, no stem).
 tippejax is used only for `classify` and `thresholds`, each checked against the paper's closed
-forms. The ranges drawn are in `benchmarks/README.md`. Records are cached per record under
-`CACHE_ROOT` (keyed by a hash of this file and of the integrators), never in the repository.
+forms. The ranges drawn are in `benchmarks/README.md` (`tests/test_vector_reference.py` checks
+them). Records are cached per record under `CACHE_ROOT` (keyed by a hash of this file and of the
+integrators), never in the repository.
 """
 
 from __future__ import annotations
@@ -22,8 +23,7 @@ import time
 
 import numpy as np
 
-HERE = pathlib.Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE.parent / "tests"))
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
 import real_top_reference as rr  # noqa: E402
 import vector_reference as vr  # noqa: E402
 
@@ -306,7 +306,7 @@ def draw_records(n: int, seed: int, *, max_crb_rel=MAX_CRB_REL, cache=True, verb
             rec = dict(_load(path), from_cache=True)
         else:
             if not (vr.HAVE_NUMBA or records or index):
-                print("fit_records: without numba the reference is ~100x slower", file=sys.stderr)
+                print("fit_records: without numba the reference runs far slower", file=sys.stderr)
             t0 = time.perf_counter()
             rec = dict(_draw_one(seed, index, max_crb_rel), seconds=time.perf_counter() - t0)
             if cache:
