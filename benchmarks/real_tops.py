@@ -499,6 +499,8 @@ Their figure 15: theta at 0.5 s against the contact radius (Tsit5, rtol 1e-9).
 
 def _touch_angle(top, t_stem, t1):
     """theta at the located touch: a run whose saves include it (same save count)."""
+    if not np.isfinite(t_stem):  # no touch in this run (a smoke run's short one)
+        return math.nan
     saves = np.linspace(0.0, t1, int(round(t1 / 0.01)) + 1)
     saves = np.sort(np.append(saves[:-1], t_stem))
     return float(lg_run(top, t1, saves=saves).theta[int(np.searchsorted(saves, t_stem))])
