@@ -232,12 +232,8 @@ def time_batch(n, eq, n_devices, args) -> dict:
         fns = {k: fns[k] for k in (PLAIN, "tj.simulate_batch so3")}
     for name, (t, (_, steps)) in h.interleaved(fns, rounds(args, 5)).items():
         steps = np.asarray(steps if steps is not None else np.zeros(n))
-        out[name] = dict(
-            walls=t.walls or [t.first_wall],
-            wall=t.wall,
-            steps_sum=int(steps.sum()),
-            steps_median=float(np.median(steps)),
-        )
+        out[name] = dict(walls=t.walls or [t.first_wall], wall=t.wall, steps_sum=int(steps.sum()))
+        out[name]["steps_median"] = float(np.median(steps))
     return out
 
 
@@ -408,13 +404,8 @@ def numba_goal(args):
     """`simulate_batch` against numba per core and on every core, per member and with shared
     steps, and the plain shared-step script; every run's error measured."""
     n, (eq, target) = batch_size(args), equal_error(("so3",), args)
-    s, nb, cores, r3, rn = (
-        p.spins(n),
-        p.numba_batch(),
-        len(jax.devices()),
-        eq["tippejax so3"],
-        eq[NUMBA],
-    )
+    s, nb, cores = p.spins(n), p.numba_batch(), len(jax.devices())
+    r3, rn = eq["tippejax so3"], eq[NUMBA]
     fns = {
         "numba, 1 thread": lambda: nb(s, rn, rn / 100, threads=1),
         "simulate_batch, 1 device": functools.partial(tj_batch("so3", shard=False), s, r3),
@@ -434,9 +425,8 @@ def numba_goal(args):
     timed = h.interleaved(fns, rounds(args, 9))
     rows = []
     for k, (t, out) in timed.items():
-        base = timed["numba, 1 thread" if "1 device" in k else f"numba, {cores} threads (prange)"][
-            0
-        ]
+        base = timed["numba, 1 thread" if "1 device" in k else f"numba, {cores} threads (prange)"]
+        base = base[0]
         med, lo, hi = h.paired(t, base)
         goal = (
             f"{med:.3f} ({lo:.3f}-{hi:.3f}) {h.verdict(med <= 1)}"
@@ -553,9 +543,8 @@ def stiff(args):
             tj.initial_state(top, 0.1, 100.0),
             dict(saveat=ts, throw=False, max_steps=2_000_000),
         )
-        ref = np.asarray(
-            tj.simulate(top, y0, 0.5, rtol=1e-11, atol=1e-13, solver=diffrax.Kvaerno5(), **kw).theta
-        )
+        ref = tj.simulate(top, y0, 0.5, rtol=1e-11, atol=1e-13, solver=diffrax.Kvaerno5(), **kw)
+        ref = np.asarray(ref.theta)
         fns = {
             n: functools.partial(tj.simulate, top, y0, 0.5, rtol=1e-8, atol=1e-10, solver=s, **kw)
             for n, s in solvers.items()
