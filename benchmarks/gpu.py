@@ -62,7 +62,8 @@ def runs():
             def run(s, model=model, steps=steps):
                 kw = dict(model=model, summary=True, rtol=RTOL, atol=ATOL, steps=steps)
                 sol = tj.simulate_batch(p.TOP, p.THETA0, s, p.T1, grid=("spin",), **kw)
-                axis, omega = sol.states.axis[:, -1], sol.states.omega[:, -1]
+                axis, omega = sol.states.axis, sol.states.omega  # summary: (N, 3), or (N, 1, 3)
+                axis, omega = (x[:, -1] if x.ndim == 3 else x for x in (axis, omega))
                 return jnp.concatenate([axis, omega], axis=1), sol.num_steps, sol
 
             out[f"tippejax {model}, {steps.replace('_', ' ')}"] = run
