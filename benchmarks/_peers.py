@@ -179,8 +179,9 @@ else:
             y0 = np.empty(6)
             y0[0], y0[1], y0[2] = 0.0, -np.sin(theta0), np.cos(theta0)
             y0[3:] = spins_[i] * y0[:3]
-            kw = dict(args=(p,), rtol=rtol, atol=atol, rk_method=2, t_eval=ts, warnings=False)
-            res = nbsolve_ivp(_numba_rhs, (0.0, t1), y0, **kw)
+            res = nbsolve_ivp(  # (numba: no ** unpacking in a jitted function)
+                _numba_rhs, (0.0, t1), y0, (p,), rtol, atol, rk_method=2, t_eval=ts, warnings=False
+            )
             finals[i], steps[i] = res.y[:, -1], res.size - 1
         return finals, steps
 
