@@ -130,6 +130,11 @@ def paired(a: Timing, b: Timing, what: str = "walls") -> tuple[float, float, flo
     return float(np.median(r)), float(np.quantile(r, 0.25)), float(np.quantile(r, 0.75))
 
 
+def rounds(args, default: int) -> int:
+    """Interleaved rounds: 1 in a smoke run, else `--rounds` or the mode's default."""
+    return 1 if getattr(args, "smoke", False) else (args.rounds or default)
+
+
 def interp_loglog(x, xs, ys) -> float:
     """y at x, linear in log-log through the points (xs, ys); beyond them from the nearest two."""
     xs, ys = np.asarray(xs, float), np.asarray(ys, float)
@@ -211,13 +216,17 @@ def command(args) -> str:
 
 def write(key: str, title: str, body: str, args, header: str | None = None) -> None:
     """Print a block and put it in RESULTS.md between `<!-- key -->` and `<!-- /key -->`, under
-    its suite's `## ` heading, after the command and the machine (not in a smoke run)."""
-    header = header or f"`{command(args)}` ({machine_line()})"
+    its suite's `## ` heading, after the command and the machine (not in a smoke run): by the
+    name the file's list of machines gives it (`- machine B: ...`), else in full."""
+    text = RESULTS.read_text() if RESULTS.exists() else "# Benchmark results\n"
+    if header is None:  # a machine the file's list names goes by its name
+        line = machine_line()
+        named = re.search(rf"^- (machine \w+): {re.escape(line)}$", text, flags=re.M)
+        header = f"`{command(args)}` ({named[1] if named else line})"
     block = f"<!-- {key} -->\n### {title}\n\n{header}\n\n{body.strip()}\n<!-- /{key} -->"
     print(block, flush=True)
     if getattr(args, "smoke", False):
         return
-    text = RESULTS.read_text() if RESULTS.exists() else "# Benchmark results\n"
     pattern = rf"<!-- {re.escape(key)} -->.*?<!-- /{re.escape(key)} -->"
     if re.search(pattern, text, flags=re.S):
         text = re.sub(pattern, lambda _: block, text, flags=re.S)

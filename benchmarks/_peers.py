@@ -32,15 +32,10 @@ def spins(n: int) -> np.ndarray:
 def state_error(final, ref) -> float:
     """max(|a - a_ref|, |omega - omega_ref| / |omega_ref|) of final states (..., 6)."""
     final, ref = np.asarray(final, float), np.asarray(ref, float)
-    return float(
-        max(
-            np.max(np.abs(final[..., :3] - ref[..., :3])),
-            np.max(
-                np.abs(final[..., 3:] - ref[..., 3:])
-                / np.linalg.norm(ref[..., 3:], axis=-1, keepdims=True)
-            ),
-        )
+    d_omega = (
+        np.abs(final[..., 3:] - ref[..., 3:]) / np.linalg.norm(ref[..., 3:], axis=-1)[..., None]
     )
+    return float(max(np.max(np.abs(final[..., :3] - ref[..., :3])), np.max(d_omega)))
 
 
 # --- the plain diffrax script ------------------------------------------------------------------
@@ -68,17 +63,12 @@ def launch(spin):
 
 def plain_solve(spin, rtol, atol, ts=None, *, controller=None, solver=None):
     """One top: Dopri8, PIDController, no events. Returns (final state, steps)."""
+    saveat = diffrax.SaveAt(t1=True) if ts is None else diffrax.SaveAt(ts=ts)
+    pid = diffrax.PIDController(rtol=rtol, atol=atol, **(controller or {}))
+    kw = dict(saveat=saveat, stepsize_controller=pid, max_steps=100_000)
+    term, y0 = diffrax.ODETerm(so3_field), launch(spin)
     sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(so3_field),
-        solver or diffrax.Dopri8(),
-        0.0,
-        T1,
-        None,
-        launch(spin),
-        tuple(PARAMS),
-        saveat=diffrax.SaveAt(t1=True) if ts is None else diffrax.SaveAt(ts=ts),
-        stepsize_controller=diffrax.PIDController(rtol=rtol, atol=atol, **(controller or {})),
-        max_steps=100_000,
+        term, solver or diffrax.Dopri8(), 0.0, T1, None, y0, tuple(PARAMS), **kw
     )
     return sol.ys[-1], sol.stats["num_steps"]
 
@@ -86,20 +76,13 @@ def plain_solve(spin, rtol, atol, ts=None, *, controller=None, solver=None):
 def plain_shared(spins_, rtol, atol, *, solver=None):
     """The batch as ONE solve whose state is (N, 6): every member takes the same steps, each
     member's error controlled (the norm is the largest member's RMS norm)."""
-    field = jax.vmap(so3_field, in_axes=(None, 0, None))
+    term = diffrax.ODETerm(jax.vmap(so3_field, in_axes=(None, 0, None)))
+    norm = lambda x: jnp.max(jnp.sqrt(jnp.mean(x**2, axis=1)))  # noqa: E731
+    pid = diffrax.PIDController(rtol=rtol, atol=atol, norm=norm)
+    kw = dict(saveat=diffrax.SaveAt(t1=True), stepsize_controller=pid, max_steps=100_000)
+    y0 = jax.vmap(launch)(spins_)
     sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(field),
-        solver or diffrax.Dopri8(),
-        0.0,
-        T1,
-        None,
-        jax.vmap(launch)(spins_),
-        tuple(PARAMS),
-        saveat=diffrax.SaveAt(t1=True),
-        stepsize_controller=diffrax.PIDController(
-            rtol=rtol, atol=atol, norm=lambda x: jnp.max(jnp.sqrt(jnp.mean(x**2, axis=1)))
-        ),
-        max_steps=100_000,
+        term, solver or diffrax.Dopri8(), 0.0, T1, None, y0, tuple(PARAMS), **kw
     )
     return sol.ys[-1], jnp.full(spins_.shape, sol.stats["num_steps"])
 
@@ -122,13 +105,8 @@ def over_devices(fn, n_args: int, devices=None, compiler_options=None):
     devices = jax.devices() if devices is None else devices
     if len(devices) > 1:
         mesh = Mesh(np.array(devices), ("batch",))
-        fn = jax.shard_map(
-            fn,
-            mesh=mesh,
-            in_specs=(PartitionSpec("batch"),) + (PartitionSpec(),) * (n_args - 1),
-            out_specs=PartitionSpec("batch"),
-            check_vma=False,
-        )
+        specs = (PartitionSpec("batch"),) + (PartitionSpec(),) * (n_args - 1)
+        fn = jax.shard_map(fn, mesh=mesh, in_specs=specs, out_specs=specs[0], check_vma=False)
     return jax.jit(fn, compiler_options=compiler_options)
 
 
@@ -159,12 +137,8 @@ def flops_per_member_step() -> float:
     """A lower bound on one Dopri8 step of the plain script per member: XLA's cost analysis of
     its vmapped field x 13 evaluations, plus the Runge-Kutta combinations (controller left out)."""
     y = jax.vmap(launch)(jnp.asarray(spins(1000)))
-    cost = (
-        jax.jit(jax.vmap(lambda z: so3_field(0.0, z, tuple(PARAMS))))
-        .lower(y)
-        .compile()
-        .cost_analysis()
-    )
+    field = jax.jit(jax.vmap(lambda z: so3_field(0.0, z, tuple(PARAMS))))
+    cost = field.lower(y).compile().cost_analysis()
     return 13 * float(cost.get("flops", math.nan)) / 1000 + 2 * sum(range(14)) * 6
 
 
@@ -205,16 +179,8 @@ else:
             y0 = np.empty(6)
             y0[0], y0[1], y0[2] = 0.0, -np.sin(theta0), np.cos(theta0)
             y0[3:] = spins_[i] * y0[:3]
-            res = nbsolve_ivp(
-                _numba_rhs,
-                (0.0, t1),
-                y0,
-                args=(p,),
-                rtol=rtol,
-                atol=atol,
-                rk_method=2,
-                t_eval=ts,
-                warnings=False,
+            res = nbsolve_ivp(  # (numba: no ** unpacking in a jitted function)
+                _numba_rhs, (0.0, t1), y0, (p,), rtol, atol, rk_method=2, t_eval=ts, warnings=False
             )
             finals[i], steps[i] = res.y[:, -1], res.size - 1
         return finals, steps
@@ -230,15 +196,9 @@ def numba_batch():
     def run(spins_, rtol, atol, threads=None, ts=None):
         # set before every call: a prange loop that ran between JAX's calls keeps no count
         numba.set_num_threads(threads or numba.config.NUMBA_NUM_THREADS)
-        finals, steps = _numba_loop(
-            np.asarray(spins_, float),
-            THETA0,
-            T1,
-            float(rtol),
-            float(atol),
-            PARAMS,
-            np.empty(0) if ts is None else np.asarray(ts, float),
-        )
+        ts_ = np.empty(0) if ts is None else np.asarray(ts, float)
+        spins_ = np.asarray(spins_, float)
+        finals, steps = _numba_loop(spins_, THETA0, T1, float(rtol), float(atol), PARAMS, ts_)
         return finals, (steps if ts is None else None)  # with ts CyRK reports len(ts)
 
     return run
@@ -272,12 +232,8 @@ class VectorModel:
         h0 = -eps * (k0 * (dx * ay - dy * ax) + (wx * dy - wy * dx))
         den = 1.0 / m + eps * (o1[0] * ay - o1[1] * ax)
         rn = (g + h0) / den
-        return (
-            rn,
-            (k0 * dx + rn * o1[0], k0 * dy + rn * o1[1], k0 * dz + rn * o1[2]),
-            (vqx, vqy),
-            den,
-        )
+        wdot = (k0 * dx + rn * o1[0], k0 * dy + rn * o1[1], k0 * dz + rn * o1[2])
+        return rn, wdot, (vqx, vqy), den
 
     def split(self, y):
         y = y.tolist()
@@ -315,16 +271,9 @@ class VectorModel:
 
         upright.direction = contact.direction = -1
         contact.terminal = True
-        sol = solve_ivp(
-            self.rhs,
-            (0.0, t1),
-            y0,
-            method="DOP853",
-            rtol=rtol,
-            atol=atol,
-            t_eval=t_eval,
-            events=(upright, contact) if stop_at_contact else upright,
-        )
+        events = (upright, contact) if stop_at_contact else upright
+        kw = dict(method="DOP853", rtol=rtol, atol=atol, t_eval=t_eval, events=events)
+        sol = solve_ivp(self.rhs, (0.0, t1), y0, **kw)
         if not sol.success:
             raise RuntimeError(sol.message)
         a = sol.y[k - 2 : k + 1]

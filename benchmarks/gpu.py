@@ -1,12 +1,6 @@
-"""gpu: the batch of `speed.py` on one GPU, 1e4 to 1e6 tops.
-
-The scene of `_peers.py` (standard top, theta0 0.1, N spins 140-160 rad/s, 20 s, SO(3)
-equations, summary, float64, rtol 1e-8 for every run): the plain diffrax script (vmap, and
-shared steps: one solve for the batch), `tj.simulate_batch` per member and with
-`steps="shared"` (SO(3) and full levels). Each run is called once to compile (JAX's own
-monitoring events give the compile part of it), then timed twice; at 1e6 members only the
-goal's rows are called again (the others: their first call less compilation), and a run is
-skipped once `--budget` seconds have passed, so that the script ends inside a device lease.
+"""gpu: the batch of `speed.py` (the scene of `_peers.py`, rtol 1e-8) on one GPU, 1e4 to 1e6
+tops: the plain script (vmap, shared steps) against `tj.simulate_batch`. A compiling call, then
+two timed ones (at 1e6 only the goal's rows); runs past `--budget` seconds are skipped.
 
     python benchmarks/gpu.py --ladder --out gpu.json   # on the GPU machine
     python benchmarks/gpu.py --report gpu.json         # anywhere: its block of RESULTS.md
@@ -50,8 +44,8 @@ def runs():
 
     import tippejax as tj
 
-    # Past the public API: the plain script with Dopri8's stages written out, as tippejax runs
-    # them on accelerators, is the strongest plain peer on a GPU; a user of diffrax alone lacks it.
+    # Past the public API: the plain script with Dopri8's stages written out as tippejax's engine
+    # writes them on accelerators (an engine internal, no public solver) is the strongest peer.
     from tippejax._engine.unrolled import UnrolledERK
 
     out = {}
@@ -66,15 +60,11 @@ def runs():
         for steps in ("per_member", "shared"):
 
             def run(s, model=model, steps=steps):
-                kw = dict(
-                    model=model, summary=True, rtol=RTOL, atol=ATOL, grid=("spin",), steps=steps
-                )
-                sol = tj.simulate_batch(p.TOP, theta0=p.THETA0, spin=s, t1=p.T1, **kw)
-                return (
-                    jnp.concatenate([sol.states.axis[:, -1], sol.states.omega[:, -1]], axis=1),
-                    sol.num_steps,
-                    sol,
-                )
+                kw = dict(model=model, summary=True, rtol=RTOL, atol=ATOL, steps=steps)
+                sol = tj.simulate_batch(p.TOP, p.THETA0, s, p.T1, grid=("spin",), **kw)
+                axis, omega = sol.states.axis, sol.states.omega  # summary: (N, 3), or (N, 1, 3)
+                axis, omega = (x[:, -1] if x.ndim == 3 else x for x in (axis, omega))
+                return jnp.concatenate([axis, omega], axis=1), sol.num_steps, sol
 
             out[f"tippejax {model}, {steps.replace('_', ' ')}"] = run
     return out, jax.jit(jax.vmap(lambda s: p.plain_solve(s, 1e-12, 1e-14)[0]))
@@ -92,15 +82,9 @@ def ladder(args):
     sizes = [64, 128] if args.smoke else [int(float(x)) for x in args.sizes.split(",")]
     rows = [ORDER[int(i)] for i in args.rows.split(",")] if args.rows else ORDER
     start, device = time.perf_counter(), jax.devices()[0]
-    info = dict(
-        device=str(getattr(device, "device_kind", device.platform)),
-        machine=h.machine_line(),
-        command=h.command(args),
-        rows=[],
-        skipped=[],
-        errors=[],
-        flops=p.flops_per_member_step(),
-    )
+    info = dict(device=str(getattr(device, "device_kind", device.platform)), rows=[], skipped=[])
+    info.update(machine=h.machine_line(), command=h.command(args), errors=[])
+    info["flops"] = p.flops_per_member_step()
     compiling = []
     jax.monitoring.register_event_duration_secs_listener(
         lambda event, secs, **_: compiling.append(secs) if event in COMPILE_EVENTS else None
@@ -124,13 +108,10 @@ def ladder(args):
             try:
                 compiling.clear()
                 first, _, out = h.call(lambda name=name: fns[name](spins))
-                compile_s, calls = (
-                    sum(compiling),
-                    2 if n < 10**6 else (args.timed if name in GOAL else 0),
-                )
-                times = [h.call(lambda name=name: fns[name](spins))[0] for _ in range(calls)] or [
-                    first - compile_s
-                ]
+                compile_s = sum(compiling)
+                calls = 2 if n < 10**6 else (args.timed if name in GOAL else 0)
+                times = [h.call(lambda name=name: fns[name](spins))[0] for _ in range(calls)]
+                times = times or [first - compile_s]
             except Exception as e:  # noqa: BLE001 - record it and go on
                 info["errors"].append(f"{name}, N={n}: {type(e).__name__}: {str(e)[:2000]}")
                 save()
@@ -138,14 +119,8 @@ def ladder(args):
                     raise
                 continue
             final, steps, sol = np.asarray(out[0]), np.asarray(out[1]), out[2]
-            row = dict(
-                name=name,
-                n=n,
-                first=first,
-                compile=compile_s,
-                times=times,
-                steps_max=int(steps.max()),
-            )
+            row = dict(name=name, n=n, first=first, compile=compile_s, times=times)
+            row["steps_max"] = int(steps.max())
             if sol is not None:
                 row["contact_lost"] = int(np.sum(np.asarray(sol.result == tj.RESULTS.contact_lost)))
                 final = np.where(
@@ -176,13 +151,13 @@ def report_from(info, args):
     goal_text = (
         f"{statistics.median(goal['times']):.1f} s on {info['device']}"
         if goal
-        else "not run at 1e6 here"
+        else "not run at 1e6"
     )
     h.write(
         "gpu.py",
         f"The batch on one GPU ({info['device']})",
         f"""
-{info["elapsed"]:.0f} s; written by `--report` from the run's JSON. Time: the median of the timed calls after a compiling call (at 1e6, rows other than the goal's: the first call less JAX's compile time). Error: the largest over {REF_MEMBERS} members against the plain script at rtol 1e-12. GFLOP/s: a lower bound on the plain script's work per member-step ({info["flops"]:.0f} flop) x the largest member's steps x N / time{f" (the card's float64 peak: {peak / 1e12:.0f} TFLOP/s)" if peak else ""}. 'unrolled': Dopri8's stages written out, as tippejax runs them on accelerators. Goal, 1e6 tops x 20 s in float64 within 20 s on one H100: {goal_text}.
+{info["elapsed"]:.0f} s. Error: the largest over {REF_MEMBERS} members against the plain script at rtol 1e-12; GFLOP/s: a lower bound ({info["flops"]:.0f} flop per member-step){f", the card's float64 peak {peak / 1e12:.0f} TFLOP/s" if peak else ""}. Goal, 1e6 tops x 20 s in float64 within 20 s on one H100: {goal_text}.
 
 {h.table("N | run | s | x plain vmap | first call s | compile s | steps (max) | error | GFLOP/s | contact lost", rows)}
 {"".join(f"{chr(10)}{k.capitalize()}: " + "; ".join(info[k]) for k in ("skipped", "errors") if info[k])}
@@ -194,9 +169,7 @@ def report_from(info, args):
 
 def options(prs):
     prs.add_argument("--out", default=None, help="where the run's JSON goes (not committed)")
-    prs.add_argument(
-        "--report", default=None, metavar="JSON", help="write the block from a run's JSON"
-    )
+    prs.add_argument("--report", metavar="JSON", help="write the block from a run's JSON")
     prs.add_argument("--sizes", default="10000,1000000,100000")
     prs.add_argument("--rows", default=None, help="indices into ORDER, e.g. 0,1 (the goal's)")
     prs.add_argument("--timed", type=int, default=2, help="timed calls of the goal's rows at 1e6")

@@ -1,9 +1,5 @@
-"""gradients: what derivatives through `tj.simulate` cost against the solve, whether they are
-right, and what a new process pays before its first call.
-
-Standard top, theta0 0.1, spin 150 rad/s, 20 s, full model, default solver; derivatives with
-respect to the seven fields of the top (m, R, eps, A, C, g, mu) of two quantities: `t_invert`
-of a summary run, and sum(theta) over 201 saves.
+"""gradients: what derivatives through `tj.simulate` cost against the solve (d t_invert and
+d sum(theta) / d the top's seven fields), whether they are right, and a new process's first call.
 
     python benchmarks/gradients.py --cost
 """
@@ -29,32 +25,17 @@ THROUGH = "reverse through the solve (RecursiveCheckpointAdjoint)"
 TS = jnp.linspace(0.0, 20.0, 201)
 
 
+def run(top, rtol, atol, adjoint, **kw):
+    kw.update(rtol=rtol, atol=atol, throw=False, adjoint=adjoint)
+    return tj.simulate(top, tj.initial_state(top, 0.1, 150.0), 20.0, **kw)
+
+
 def t_invert(top, rtol, atol, adjoint=None):
-    sol = tj.simulate(
-        top,
-        tj.initial_state(top, 0.1, 150.0),
-        20.0,
-        summary=True,
-        rtol=rtol,
-        atol=atol,
-        throw=False,
-        adjoint=adjoint,
-    )
-    return sol.t_invert
+    return run(top, rtol, atol, adjoint, summary=True).t_invert
 
 
 def sum_theta(top, rtol, atol, adjoint=None):
-    sol = tj.simulate(
-        top,
-        tj.initial_state(top, 0.1, 150.0),
-        20.0,
-        saveat=TS,
-        rtol=rtol,
-        atol=atol,
-        throw=False,
-        adjoint=adjoint,
-    )
-    return jnp.sum(sol.theta)
+    return jnp.sum(run(top, rtol, atol, adjoint, saveat=TS).theta)
 
 
 def as_dict(g) -> dict:
@@ -136,7 +117,7 @@ def cost(args):
         "gradients.py --cost",
         "What a derivative costs against the solve",
         f"""
-Timing at rtol 1e-8, {n} interleaved rounds after the compiling call; correctness at rtol 1e-12 (same programs), central differences of relative step 1e-6. x solve: wall / CPU time against the forward solve of the same quantity; compile: the first call less the median of the later ones.
+Timing at rtol 1e-8 ({n} interleaved rounds), correctness at rtol 1e-12; x solve: wall / CPU time against the forward solve.
 
 {h.table("run | " + " | ".join(f"{q}: x solve, compile s" for q in columns), rows)}
 
@@ -153,18 +134,13 @@ def plain_script(n):
 
     def solve(prm, r, a, adjoint=diffrax.RecursiveCheckpointAdjoint()):
         kw = dict(saveat=diffrax.SaveAt(t1=True), adjoint=adjoint, max_steps=100_000)
-        sol = diffrax.diffeqsolve(
-            diffrax.ODETerm(p.so3_field),
-            diffrax.Dopri8(),
-            0.0,
-            20.0,
-            None,
-            p.launch(150.0),
-            tuple(prm),
-            stepsize_controller=diffrax.PIDController(rtol=r, atol=a),
-            **kw,
+        kw["stepsize_controller"] = diffrax.PIDController(rtol=r, atol=a)
+        term, y0 = diffrax.ODETerm(p.so3_field), p.launch(150.0)
+        return jnp.sum(
+            diffrax.diffeqsolve(term, diffrax.Dopri8(), 0.0, 20.0, None, y0, tuple(prm), **kw).ys[
+                -1
+            ][:3]
         )
-        return jnp.sum(sol.ys[-1][:3])
 
     forward = jax.jacfwd(lambda q, r, a: solve(q, r, a, diffrax.ForwardMode()))
     runs = {
@@ -244,22 +220,15 @@ def check(args):
 
         got, want, eager = (matrix(f(top, launch)) for f in (default, through, jacobian(None)))
         scale = np.max(np.abs(want), axis=1, keepdims=True)
-        d, de = (
-            float(np.max(np.abs(got - want) / scale)),
-            float(np.max(np.abs(eager - got) / scale)),
-        )
+        d, de = (float(np.max(np.abs(x - y) / scale)) for x, y in ((got, want), (eager, got)))
         worst, worst_eager = max(worst, d), max(worst_eager, de)
-        rows.append(
-            (
-                d,
-                f"{tj.classify(top)}, A/C {a_c:.2f}, eps/R {e_r:.3f}, mu {mu:.3f}, spin {float(launch[1]):.0f}",
-            )
-        )
+        label = f"{tj.classify(top)}, A/C {a_c:.2f}, eps/R {e_r:.3f}, mu {mu:.3f}, spin {float(launch[1]):.0f}"
+        rows.append((d, label))
     h.write(
         "gradients.py --check",
         "Derivatives on seeded random tops",
         f"""
-{n} tops (`_harness.random_top`, seed 0), theta0 uniform in [0.05, 0.5], spin 1.5-4x the top's threshold, 8 s, summary, rtol 1e-10. Outputs: theta, theta_dot, energy at t1 and t_invert where the top inverts; derivatives in the seven fields and the launch (theta0, spin) by `jax.jacrev`, jitted and eager. Disagreement: the largest difference over an output's derivatives relative to its largest derivative. Default adjoint == reverse mode through the solve within 1e-6: largest {worst:.1e}, {h.verdict(worst < 1e-6)}. Eager == jitted: largest {worst_eager:.1e}, {h.verdict(worst_eager < 1e-6)}. The top of the largest: {max(rows)[1]}.
+{n} random tops. Default adjoint == reverse mode through the solve within 1e-6: largest {worst:.1e}, {h.verdict(worst < 1e-6)}. Eager == jitted: largest {worst_eager:.1e}, {h.verdict(worst_eager < 1e-6)}. The top of the largest: {max(rows)[1]}.
 """,
         args,
     )
@@ -315,11 +284,8 @@ def first_call(args):
     for case in cases:
         with tempfile.TemporaryDirectory() as cache:
             for mode in ("off", "cold", "warm"):
-                r = h.fresh_process(
-                    FIRST_CALL,
-                    case,
-                    env=dict(env, TIPPEJAX_COMPILATION_CACHE="0" if mode == "off" else cache),
-                )
+                mode_env = dict(env, TIPPEJAX_COMPILATION_CACHE="0" if mode == "off" else cache)
+                r = h.fresh_process(FIRST_CALL, case, env=mode_env)
                 res[(case, mode)] = r["first_s"] - r["second_s"]
             rows.append(
                 f"{case} | " + " | ".join(f"{res[(case, m)]:.2f}" for m in ("off", "cold", "warm"))
@@ -333,7 +299,7 @@ def first_call(args):
         "gradients.py --first-call",
         "The first call in a new process",
         f"""
-Each row a new Python process. off: `TIPPEJAX_COMPILATION_CACHE=0`; cold: an empty cache directory; warm: a second process with that directory. `simulate`: default top, theta0 0.1, 100 rad/s, 10 s (`simulate:<level>` at each level); `grad`: `jax.grad` of `t_invert` of an 8 s summary run, eager; `jit(grad)`: in `jax.jit` (`, options`: with `tj.compiler_options()`); `fit`: 120 samples, mu, eps and spin free, `strategy="plain"`, 5 steps. The first call less the second in that process (s): what a new process pays before the run.
+The first call less the second (s) in a new process; off: `TIPPEJAX_COMPILATION_CACHE=0`, cold: an empty cache, warm: a second process with it.
 
 {h.table("case | off | cold | warm", rows)}
 

@@ -1,11 +1,5 @@
-"""levels: the cheaper levels of model against the full model: their error, their cost, and
-the table `model="auto"` reads.
-
-Error: max over the save times of |theta_level - theta_full| (rad), each level from the same
-launch (default solver, rtol 1e-8, 2001 saves); cost: median wall time after compilation
-relative to the full model in the same run. The worst error and median cost per regime of a
-launch (what `model="auto"` reads off it) go into the `MEASURED` table of the `--groups` block,
-which `tippejax/_auto.py` copies and `tests/test_auto.py` checks.
+"""levels: the cheaper levels against the full model (error of theta, cost), and the `MEASURED`
+table of the `--groups` block that `tippejax/_auto.py` copies and `tests/test_auto.py` checks.
 
     python benchmarks/levels.py --scenes   # then --groups, which merges the scenes' table
 """
@@ -24,29 +18,23 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 
 import tippejax as tj
 
 LEVELS = ("so3", "routhian", "gyroscopic")
 INF = float("inf")
-GROUP_TOPS = {
-    "Ia": (0.96, 0.02),
-    "Ib": (0.7, 0.2),
-    "IIa": (0.8, 0.3),
-    "IIb": (0.9, 0.3),
-    "IIc": (0.99, 0.02),
-    "III": (1.5, 0.2),
-}
+GROUP_TOPS = dict(
+    Ia=(0.96, 0.02), Ib=(0.7, 0.2), IIa=(0.8, 0.3), IIb=(0.9, 0.3), IIc=(0.99, 0.02), III=(1.5, 0.2)
+)
 """(A/C, eps/R) of the top of each group (away from the groups' borders)."""
 TOLERANCES = (0.05, 0.1, 0.3)
 
 
 # --- past the public API, in this one place ------------------------------------------------
-# The table auto reads is auto's own: a launch's regime, whether a level accepts it, and the
-# cheapest level at a tolerance are `tippejax._auto`'s rules, which the suite must apply as
-# auto does. The spun-launch figures judge the gyroscopic level's launch projection alone:
-# they need its slow flow without the hand-over to the full model, and launched on its slow
-# manifold, neither of which `tj.simulate(model="gyroscopic")` offers a user.
+# The table auto reads is built with auto's own rules (a launch's regime, whether a level accepts
+# it, the cheapest level), and `--gyro` / `--spun` judge the gyroscopic slow flow alone (no
+# hand-over, launched on its slow manifold): `tj.simulate(model="gyroscopic")` offers neither.
 
 
 def auto_rules():
@@ -62,22 +50,11 @@ def slow_flow_t_invert(top, y0, t1=20.0):
 
     level = GyroscopicLevel()
     y = level.from_state(top, y0)
-    sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(lambda t, y, top: level.vector_field(t, y, top)),
-        diffrax.Dopri5(),
-        0.0,
-        t1,
-        None,
-        y,
-        top,
-        max_steps=100_000,
-        throw=False,
-        stepsize_controller=diffrax.PIDController(rtol=1e-8, atol=1e-10, norm=level.error_norm),
-        event=diffrax.Event(
-            lambda t, y, args, **kw: y.log_tan_half_theta,
-            __import__("optimistix").Newton(1e-12, 1e-12),
-        ),
-    )
+    term = diffrax.ODETerm(lambda t, y, top: level.vector_field(t, y, top))
+    controller = diffrax.PIDController(rtol=1e-8, atol=1e-10, norm=level.error_norm)
+    event = diffrax.Event(lambda t, y, args, **kw: y.log_tan_half_theta, optx.Newton(1e-12, 1e-12))
+    kw = dict(max_steps=100_000, throw=False, stepsize_controller=controller, event=event)
+    sol = diffrax.diffeqsolve(term, diffrax.Dopri5(), 0.0, t1, None, y, top, **kw)
     return float(sol.ts[-1]) if bool(sol.event_mask) else np.nan
 
 
@@ -120,15 +97,10 @@ def scene_row(name, top, y0, t1, *, repeats, n_save):
     rules = auto_rules()
     ts, t1_ = jnp.linspace(0.0, t1, n_save), jnp.asarray(t1)
     ref, t_ref = timed(runner("full"), top, y0, t1_, ts, repeats=repeats)
-    row = dict(
-        scene=name,
-        regime=rules.launch_regime(top, y0),
-        t_invert=float(ref.t_invert),
-        steps=int(ref.num_steps),
-    )
+    row = dict(scene=name, regime=rules.launch_regime(top, y0), t_invert=float(ref.t_invert))
     for level in LEVELS:
         if not rules.accepts(level, top, y0):  # auto never picks it here: not run
-            row[level] = dict(err=INF, dt=INF, cost=np.nan, model="refused", steps=0)
+            row[level] = dict(err=INF, dt=INF, cost=np.nan, model="refused")
             continue
         sol, t = timed(runner(level), top, y0, t1_, ts, repeats=repeats)
         a, b = np.asarray(sol.theta), np.asarray(ref.theta)
@@ -137,13 +109,8 @@ def scene_row(name, top, y0, t1, *, repeats, n_save):
         model = ran(sol)
         if bool(sol.result == tj.RESULTS.no_gyroscopic_balance):  # refused, or stopped on the way
             err, model = INF, "refused" if int(sol.num_steps) == 0 else "stopped"
-        row[level] = dict(
-            err=err,
-            dt=INF if err == INF else abs(float(sol.t_invert) - row["t_invert"]),
-            cost=t / t_ref,
-            model=model,
-            steps=int(sol.num_steps),
-        )
+        dt = INF if err == INF else abs(float(sol.t_invert) - row["t_invert"])
+        row[level] = dict(err=err, dt=dt, cost=t / t_ref, model=model)
     return row
 
 
@@ -259,7 +226,7 @@ def scenes_mode(args):
         "levels.py --scenes",
         "The levels on scenes of the standard top (group IIb)",
         f"""
-Each level from the same launch, default solver, rtol 1e-8, {size["n_save"]} saves. err / dt / cost: max |theta_level - theta_full| (rad) / |t_invert_level - t_invert_full| (s) / median wall time relative to the full model. {"The Routhian level's errors equal the SO(3) level's in every scene." if same else ""}
+{size["n_save"]} saves; err / dt / cost: max |theta_level - theta_full| (rad) / |t_invert_level - t_invert_full| (s) / wall time relative to the full model. {"The Routhian level errs as the SO(3) level in every scene." if same else ""}
 
 {h.table("scene | regime | t_invert full (s) | so3 err / dt / cost | routhian cost | gyro err / dt / cost | gyro ran", body)}
 
@@ -326,7 +293,7 @@ def groups_mode(args):
         "levels.py --groups",
         'Every group: the table `model="auto"` reads',
         f"""
-One top per group ({", ".join(f"{g} {v}" for g, v in GROUP_TOPS.items())} as A/C, eps/R); {len(rows)} launches: spin {grid[0][0]:g}-{grid[0][-1]:g} x n1 (n2 in group I), mu {", ".join(map(str, grid[1]))} s/m, theta0 {", ".join(map(str, grid[2]))} and the most tilted launch the gyroscopic level accepts; {0.5 if args.smoke else 8:g} s. (worst error, median cost) per level over the launches it accepts, IIb merged with `--scenes`. What auto picks, for a launch the gyroscopic level accepts / does not (a level only below {rules.COST_MARGIN} of the full model's cost): {text}.
+{len(rows)} launches, {0.5 if args.smoke else 8:g} s; IIb merged with `--scenes`. Auto picks, for a launch the gyroscopic level accepts / does not: {text}.
 
 {python_block("MEASURED", measured, nested=True)}
 """,
@@ -374,7 +341,7 @@ def gyro_mode(args):
         "levels.py --gyro",
         "The gyroscopic level against SO(3) and the full model",
         f"""
-Standard top, theta0 0.1, 10 s, rtol 1e-8; launches omega = n a (`tj.initial_state`, which carries nutation) and on the slow manifold for the same Jellet (the slow flow's own error). dt_inv (s) of the gyroscopic level against SO(3) and the full model, and SO(3) against the full model:
+dt_inv (s), launches omega = n a and on the slow manifold for the same Jellet:
 
 {h.table("scene | omega = n a: gyro - so3 / gyro - full | on manifold: gyro - so3 / gyro - full | so3 - full", rows)}
 
@@ -434,7 +401,7 @@ def spun_mode(args):
         "levels.py --spun",
         "Spun launches: the launch projection",
         f"""
-t_invert of the gyroscopic slow flow alone (no hand-over; the launch projected as the level does; Dopri5, rtol 1e-8) against SO(3) (rtol 1e-10), omega = n a launches; beside it the full model's own difference from SO(3) and what `model="gyroscopic"` reports (it hands over to the full model where the slow manifold repels). Targets: at most 0.5% at 150 rad/s, 0.4% at 225, 0.3% at 300. Standard top, theta0 = 0.1:
+t_invert of the slow flow alone (Dopri5, rtol 1e-8) against SO(3) (rtol 1e-10), omega = n a launches. Targets: at most 0.5% at 150 rad/s, 0.4% at 225, 0.3% at 300.
 
 {h.table("n0 (rad/s) | SO(3) t_invert (s) | slow flow | full - SO(3) | model='gyroscopic'", rows)}
 
@@ -449,24 +416,16 @@ def wp_mode(args):
     chart gyroscopic_work_precision.png."""
     rtols = (1e-4, 1e-8) if args.smoke else tuple(10.0**-k for k in range(4, 11))
     solvers = {"full": diffrax.Dopri8(), "so3": diffrax.Dopri8(), "gyroscopic": diffrax.Dopri5()}
-    make = {
-        m: eqx.filter_jit(
-            lambda top, y0, r, m=m: (lambda s: (s.t_invert, s.theta[-1]))(
-                tj.simulate(
-                    top,
-                    y0,
-                    15.0,
-                    model=m,
-                    summary=True,
-                    rtol=r,
-                    atol=r / 100,
-                    solver=solvers[m],
-                    throw=False,
-                )
-            )
-        )
-        for m in solvers
-    }
+
+    def program(m):
+        def run(top, y0, r):
+            kw = dict(model=m, summary=True, rtol=r, atol=r / 100, solver=solvers[m], throw=False)
+            sol = tj.simulate(top, y0, 15.0, **kw)
+            return sol.t_invert, sol.theta[-1]
+
+        return eqx.filter_jit(run)
+
+    make = {m: program(m) for m in solvers}
     results, body = {}, []
     for group in ("IIb",) if args.smoke else GROUP_TOPS:
         top = tj.TippeTop.from_ratios(*GROUP_TOPS[group], mu=0.3)
@@ -496,7 +455,7 @@ def wp_mode(args):
         "levels.py --wp",
         "Work-precision per group: the gyroscopic level",
         f"""
-One top per group (mu 0.3), theta0 0.1, omega = n a at n0 = 3 n1 (3 n2 in group I), 15 s, summary; error of t_invert where the full model inverts, else of theta(t1), against the full model at rtol 1e-12. Chart: `gyroscopic_work_precision.png`.
+Error of t_invert where the full model inverts, else of theta(t1), against the full model at rtol 1e-12. Chart: `gyroscopic_work_precision.png`.
 
 {h.table("group (n0 rad/s) | quantity | full: error at rtol 1e-6 / 1e-8 / 1e-10 | so3 | gyroscopic | time vs full at 1e-8 (so3 / gyro)", body)}
 """,
@@ -586,11 +545,11 @@ def cost_mode(args):
         "levels.py --cost",
         "The gyroscopic level at its price: cost against the full model, and the hand-over",
         f"""
-theta0 0.1, omega = n a, {t1:g} s, {n_save} saves, default solvers and rtol; standard top and one top per group (mu 0.3, spin 3 x n1, n2 in group I). Median wall time after compilation of `tj.simulate` in the caller's `jax.jit` (the top traced), {rounds} interleaved rounds; the cost ratio is the median of the rounds' full / gyroscopic ratios. Hand-over: `sol.t_hand_over` (`-` where the slow flow runs the whole run); share: of the run in the slow flow / in the full model. Target at n0 100 (standard top): the gyroscopic level at least 50x cheaper than the full model: {target:.1f}x, {h.verdict(target >= 50)}.
+{t1:g} s, {n_save} saves, {rounds} interleaved rounds. Target at n0 100 (standard top): the gyroscopic level at least 50x cheaper than the full model: {target:.1f}x, {h.verdict(target >= 50)}.
 
 {h.table("top | n0 (rad/s) | route | t_hand_over (s) | share slow / full | gyroscopic ms (steps) | full ms (steps) | full / gyroscopic | t_invert gyro / full (s)", rows)}
 
-Eager call against the same call in `jax.jit` (standard top, n0 100, the saves above; target at most 1.5x):
+Eager against `jax.jit` (standard top, n0 100; target at most 1.5x):
 
 {h.table("level | jit (ms) | eager (ms) | eager / jit", eager_rows)}
 """,

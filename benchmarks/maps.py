@@ -1,9 +1,5 @@
-"""maps: outcome maps: launches per second, memory per launch, what a cheaper level or another
-tolerance changes in a map, maps of 1e5 launches and over two processes, adaptive maps against
-dense ones (agreement, share simulated, speed).
-
-Standard top (group IIb) unless said, theta0 = linspace(0.02, 1.5, 24) x spin = linspace(10,
-220, 32) = 768 launches, 20 s, float64. Times: the second call (compiled), wall clock.
+"""maps: outcome maps: launches per second, memory, cheaper levels and tolerances, 1e5 launches,
+two processes, `model="auto"`, adaptive maps against dense ones. Times: compiled calls.
 
     python benchmarks/maps.py --cost
     python benchmarks/maps.py --adaptive-agreement   # dense 256^2 maps of four tops: an hour
@@ -13,6 +9,7 @@ Standard top (group IIb) unless said, theta0 = linspace(0.02, 1.5, 24) x spin = 
 
 from __future__ import annotations
 
+import math
 import os
 import socket
 import subprocess
@@ -105,7 +102,7 @@ def cost(args):
 
 {h.table("run | wall s | launches/s | vs outcome_map", rows)}
 
-Outcomes that differ from the reference map: {agree}. Memory per launch (XLA's memory analysis of a compiled batch of summary solves, a map's chunk without its classification): {sizes[256] / 1e6:.2f} MB for 256 launches, {sizes[1024] / 1e6:.2f} MB for 1024: **{(sizes[1024] - sizes[256]) / 768e3:.1f} kB per launch**, whatever t1; a map runs in chunks (`chunk_size`).
+Outcomes that differ from the reference map: {agree}. Memory per launch: {sizes[256] / 1e6:.2f} MB for 256 launches, {sizes[1024] / 1e6:.2f} MB for 1024: **{(sizes[1024] - sizes[256]) / 768e3:.1f} kB per launch**, whatever t1.
 """,
         args,
     )
@@ -138,7 +135,7 @@ def scale(args):
         "maps.py --scale",
         "Many launches",
         f"""
-{r["n"]} launches (theta0 x spin over the ranges above), t1 = {t1:g} s, in a fresh process: {r["wall"]:.1f} s ({r["n"] / r["wall"]:.0f} launches/s, {r["failed"]} failed). Peak RSS {r["rss_one"]:.0f} MB after one chunk (with compilation), {r["rss"]:.0f} MB at the end: memory is bounded by the chunk, not the number of launches.
+{r["n"]} launches, t1 = {t1:g} s, in a fresh process: {r["wall"]:.1f} s ({r["n"] / r["wall"]:.0f} launches/s, {r["failed"]} failed). Peak RSS {r["rss_one"]:.0f} MB after one chunk (with compilation), {r["rss"]:.0f} MB at the end.
 """,
         args,
     )
@@ -153,22 +150,12 @@ def processes(args):
         s.bind(("localhost", 0))
         port = s.getsockname()[1]
     start, tmp = time.perf_counter(), os.environ.get("TMPDIR", "/tmp")
+    env = dict(os.environ, JAX_PLATFORMS="cpu", TIPPEJAX_HOST_DEVICES="1")
+    cmd = [sys.executable, script, "--coordinator", f"localhost:{port}", "--num-processes", "2"]
     procs = [
         subprocess.Popen(
-            [
-                sys.executable,
-                script,
-                "--coordinator",
-                f"localhost:{port}",
-                "--num-processes",
-                "2",
-                "--process-id",
-                str(i),
-                "--out",
-                os.path.join(tmp, f"map{i}.npz"),
-                *size,
-            ],
-            env=dict(os.environ, JAX_PLATFORMS="cpu", TIPPEJAX_HOST_DEVICES="1"),
+            [*cmd, "--process-id", str(i), "--out", os.path.join(tmp, f"map{i}.npz"), *size],
+            env=env,
             stdout=subprocess.PIPE,
             stderr=subprocess.STDOUT,
             text=True,
@@ -184,7 +171,7 @@ def processes(args):
         "maps.py --processes",
         "Two processes",
         f"""
-`examples/distributed_map.py {" ".join(size)}`, two CPU processes with one device each: {line.strip()}; the whole command {wall:.1f} s (two interpreters, two compilations). The same map in this process after compilation: {t_one:.2f} s ({th.size * sp.size / t_one:.1f} launches/s). On one machine a second process buys nothing; this shows the code path across processes.
+`examples/distributed_map.py {" ".join(size)}`, two CPU processes with one device each: {line.strip()}; the whole command {wall:.1f} s. The same map in one process after compilation: {t_one:.2f} s ({th.size * sp.size / t_one:.1f} launches/s).
 """,
         args,
     )
@@ -229,36 +216,22 @@ def auto(args):
         (tf, full), (ta, am) = timed["full"], timed["auto"]
         c = compare(full, am)
         sh = compare(*(tj.outcome_map(top, *shifted, t1=t1, model=m) for m in ("full", "auto")))
+        speed = f"**{tf.wall / ta.wall:.2f}x**"
+        shift = f"{100 * sh['agree']:.2f}%, missed {sh['missed']} of {sh['losses']}"
         rows.append(
-            [
-                f"{name} ({tj.classify(top)})",
-                f"{c['n'] / tf.wall:.0f}",
-                f"{c['n'] / ta.wall:.0f}",
-                f"**{tf.wall / ta.wall:.2f}x**",
-                f"{100 * c['agree']:.2f}%",
-                f"{c['missed']} of {c['losses']}",
-                c["extra"],
-                f"{100 * sh['agree']:.2f}%, missed {sh['missed']} of {sh['losses']}",
-            ]
+            f"{name} ({tj.classify(top)}) | {c['n'] / tf.wall:.0f} | {c['n'] / ta.wall:.0f} | {speed} | {100 * c['agree']:.2f}% | {c['missed']} of {c['losses']} | {c['extra']} | {shift}"
         )
         index = np.asarray(am.model_index)
         routes = {r: int(np.sum(index == k)) for k, r in enumerate(am.models)}
-        route_rows.append(
-            [
-                name,
-                "; ".join(
-                    f"{k} {100 * v / index.size:.0f}%"
-                    for k, v in sorted(routes.items(), key=lambda kv: -kv[1])
-                ),
-                f"{np.sum(np.asarray(am.num_steps)) / np.sum(np.asarray(full.num_steps)):.2f}",
-                c["moves"],
-            ]
-        )
+        shares = sorted(routes.items(), key=lambda kv: -kv[1])
+        share = "; ".join(f"{k} {100 * v / index.size:.0f}%" for k, v in shares)
+        steps = np.sum(np.asarray(am.num_steps)) / np.sum(np.asarray(full.num_steps))
+        route_rows.append(f"{name} | {share} | {steps:.2f} | {c['moves']}")
     h.write(
         "maps.py --auto",
         '`model="auto"` maps against full-model maps',
         f"""
-theta0 = linspace(0.02, 1.5, {theta0.size}) x spin = linspace(10, 220, {spin.size}), t1 = {t1:g} s, rtol 1e-6; tops: the standard top and `TippeTop.from_ratios(0.69, 0.38)` (IIa), `(1.6, 0.2)` (III), mu 0.3. Launches/s: median of {1 if args.smoke else 3} interleaved rounds. Missed: contact losses of the full map the auto map lacks; extra: the reverse. Shifted grid: theta0 in [0.05, 1.45] x spin in [14, 215], other launches.
+{theta0.size} x {spin.size} launches, t1 = {t1:g} s; missed / extra: contact losses of the full map the auto map lacks / adds. Shifted grid: {shifted[0].size} x {shifted[1].size} other launches.
 
 {h.table(["map", "full launches/s", "auto launches/s", "speed", "agreement", "missed losses", "extra losses", "shifted grid"], rows)}
 
@@ -290,23 +263,13 @@ def auto_random(args):
         )
         c = compare(full, am)
         rows.append(
-            [
-                str(tj.classify(top)),
-                f"{a_c:.2f}",
-                f"{e_r:.2f}",
-                f"{mu:.2f}",
-                f"{spin[0]:.0f}-{spin[-1]:.0f}",
-                f"{100 * c['agree']:.1f}%",
-                f"{c['missed']} of {c['losses']}",
-                c["extra"],
-                f"{tf / ta:.2f}x",
-            ]
+            f"{tj.classify(top)} | {a_c:.2f} | {e_r:.2f} | {mu:.2f} | {spin[0]:.0f}-{spin[-1]:.0f} | {100 * c['agree']:.1f}% | {c['missed']} of {c['losses']} | {c['extra']} | {tf / ta:.2f}x"
         )
     h.write(
         "maps.py --auto-random",
         '`model="auto"` on random tops',
         f"""
-{k} seeded random tops (`_harness.random_top`, seed 0), each on a random grid of {shape[0]} tilts in [0.02, 1.5] x {shape[1]} spins in [0.5, 8] x n1 (n2 in group I), t1 = {args.t1:g} s; one call each after a compiling call (a rough speed).
+{k} seeded random tops, each on a random {shape[0]} x {shape[1]} grid, t1 = {args.t1:g} s; one call each (a rough speed).
 
 {h.table(["group", "A/C", "eps/R", "mu", "spins (rad/s)", "agreement", "missed losses", "extra losses", "speed"], rows)}
 """,
@@ -326,15 +289,15 @@ ADAPTIVE_TOPS = {
 
 
 def load_line() -> str:
-    one, five, fifteen = os.getloadavg()
-    return f"load average {one:.1f}, {five:.1f}, {fifteen:.1f} on {os.cpu_count()} cores"
+    return ", ".join(f"{x:.1f}" for x in os.getloadavg())
+
+
+LOAD = f"load average on {os.cpu_count()} cores (before; after)"
 
 
 def refine_for(n: int) -> int:
     """The levels of `tippejax map --adaptive`: a base grid of about 32 cells per axis."""
-    from tippejax._cli.maps import adaptive_refine
-
-    return adaptive_refine(n)
+    return max(0, round(math.log2(max(n - 1, 1) / 32)))
 
 
 def distance_to_boundary(dense: np.ndarray) -> np.ndarray:
@@ -399,19 +362,10 @@ def adaptive_agreement(args):
             lambda top=top, axes=axes: tj.outcome_map(top, **axes, t1=t1, refine=k)
         )
         c = agreement(dense, adaptive)
+        outcomes = ", ".join(f"{name} {v}" for name, v in dense.counts().items() if v)
         rows.append(
-            [
-                f"{group} ({ratios[0]}, {ratios[1]})",
-                f"{n} x {n}",
-                f"{theta[0]:.2f}-{theta[1]:.2f}",
-                f"{spin[0]:.0f}-{spin[1]:.0f}",
-                ", ".join(f"{name} {v}" for name, v in dense.counts().items() if v),
-                f"{100 * c['agree']:.3f}% ({c['differ']})",
-                c["worst"],
-                f"{100 * c['share']:.2f}%",
-                f"{c['steps']:.3f}",
-                f"{t_adapt / t_dense:.3f}",
-            ]
+            f"{group} ({ratios[0]}, {ratios[1]}) | {n} x {n} | {theta[0]:.2f}-{theta[1]:.2f} | {spin[0]:.0f}-{spin[1]:.0f} | {outcomes} | "
+            f"{100 * c['agree']:.3f}% ({c['differ']}) | {c['worst']} | {100 * c['share']:.2f}% | {c['steps']:.3f} | {t_adapt / t_dense:.3f}"
         )
         notes.append(
             f"- {group}: {boundary_cells(adaptive)}"
@@ -422,7 +376,7 @@ def adaptive_agreement(args):
         "maps.py --adaptive-agreement",
         "Adaptive maps against dense maps",
         f"""
-`tj.outcome_map(top, theta0=..., spin=..., t1={t1:g}, refine={k})` against the dense map of the same grid (full model, rtol 1e-6), four tops (`TippeTop.from_ratios(A/C, eps/R)`, m 20 g, R 25 mm, mu 0.3 s/m) on axis ranges drawn with seed 59 (theta0 from [0.02, 0.3] to [1.0, 1.5] rad; spins in units of n1, n2 for group I). Worst distance: the largest chessboard distance (cells) from a launch where the two maps disagree to the nearest launch of another outcome in the dense map (1: next to a boundary). Steps: solver steps of the adaptive map over the dense map's; wall: the adaptive map's wall time over the dense map's, both compiled. No GPU was lent to this task.
+refine = {k}, t1 = {t1:g} s; worst distance: cells from a disagreement to the nearest launch of another outcome in the dense map; steps and wall: adaptive over dense.
 
 {h.table(["top", "grid", "theta0 (rad)", "spin (rad/s)", "dense outcomes", "agreement (cells differing)", "worst distance", "simulated", "steps", "wall"], rows)}
 
@@ -462,18 +416,10 @@ def adaptive_speed(args):
             lambda n=n, k=k: tj.outcome_map(top, **standard_axes(n), t1=t1, refine=k)
         )
         c = agreement(dense, adaptive)
+        simulated = f"{int(np.sum(np.asarray(adaptive.simulated)))} ({100 * c['share']:.2f}%)"
         rows.append(
-            [
-                f"{n} x {n}",
-                k,
-                f"{t_dense:.0f}",
-                f"{t_adapt:.1f}",
-                f"{int(np.sum(np.asarray(adaptive.simulated)))} ({100 * c['share']:.2f}%)",
-                f"**1/{1 / c['share']:.0f}**",
-                f"**1/{t_dense / t_adapt:.0f}**",
-                f"{100 * c['agree']:.3f}% ({c['differ']}, worst {c['worst']})",
-                f"{load0}; after: {load_line()}",
-            ]
+            f"{n} x {n} | {k} | {t_dense:.0f} | {t_adapt:.1f} | {simulated} | **1/{1 / c['share']:.0f}** | **1/{t_dense / t_adapt:.0f}** | "
+            f"{100 * c['agree']:.3f}% ({c['differ']}, worst {c['worst']}) | {load0}; {load_line()}"
         )
         dimension = boundary_cells(adaptive)
     big_rows = []
@@ -485,17 +431,9 @@ def adaptive_speed(args):
         wall, cpu, om = h.call(
             lambda n=n, k=k: tj.outcome_map(top, **standard_axes(n), t1=t1, refine=k)
         )
+        simulated = f"{int(np.sum(np.asarray(om.simulated)))} ({100 * om.share_simulated:.3f}%)"
         big_rows.append(
-            [
-                f"{n} x {n}",
-                k,
-                f"{wall:.1f}",
-                f"{cpu:.0f}",
-                f"{int(np.sum(np.asarray(om.simulated)))} ({100 * om.share_simulated:.3f}%)",
-                f"{len(om.levels)}",
-                f"{len(om.unresolved)}",
-                f"{load0}; after: {load_line()}",
-            ]
+            f"{n} x {n} | {k} | {wall:.1f} | {cpu:.0f} | {simulated} | {len(om.levels)} | {len(om.unresolved)} | {load0}; {load_line()}"
         )
         report(args, t1, sizes, big[: len(big_rows)], rows, big_rows, dimension)
 
@@ -508,13 +446,13 @@ def report(args, t1, sizes, big, rows, big_rows, dimension):
         "maps.py --adaptive-speed",
         "Adaptive maps: cost against the dense map",
         f"""
-The standard top (group IIb), theta0 = linspace({STANDARD_AXES[0][0]}, {STANDARD_AXES[0][1]}, n) x spin = linspace({STANDARD_AXES[1][0]:g}, {STANDARD_AXES[1][1]:g}, n), t1 = {t1:g} s, full model, rtol 1e-6; refine = round(log2((n - 1) / 32)) (a base grid of about 32 cells per axis, `tippejax map --adaptive`). One run of each map after a call that compiled its program (the same chunk shapes at t1 = 0.01 s); wall clock, on a machine shared with other work (its load average is given). No GPU was lent to this task: no GPU figures.
+refine = round(log2((n - 1) / 32)); one run of each map after a compiling call; wall clock on a shared machine.
 
-{h.table(["grid", "refine", "dense wall s", "adaptive wall s", "launches simulated", "simulations", "wall time", "agreement (differing, worst distance)", "machine load (before; after)"], rows)}
+{h.table(["grid", "refine", "dense wall s", "adaptive wall s", "launches simulated", "simulations", "wall time", "agreement (differing, worst distance)", LOAD], rows)}
 
 Targets: at most 1/{limits[512]} of the dense map's simulations and wall time at 512^2, 1/{limits[1024]} at 1024^2. Boundaries of the {sizes[-1]}^2 adaptive map (D: box-counting dimension; distance in cells from the linear theory's curve): {dimension}.
 
-{h.table(["adaptive map", "refine", "wall s", "CPU s", "launches simulated", "batched calls", "regions not refined", "machine load (before; after)"], big_rows) if big_rows else "No adaptive map of the large sizes was run."}
+{h.table(["adaptive map", "refine", "wall s", "CPU s", "launches simulated", "batched calls", "regions not refined", LOAD], big_rows) if big_rows else "No adaptive map of the large sizes was run."}
 
 Targets: 1000^2 within 60 s and 4096^2 within 600 s on 2 CPU cores.{f" **Not run in this run: {', '.join(f'{n}^2' for n in not_run)}** (`--sizes`, `--big`)." if not_run else ""}
 """,

@@ -1,22 +1,13 @@
-"""real_tops: real tippe tops (Coulomb-type friction, Contensou drilling, the stem) against peers.
-
-Scene (Leine & Glocker 2003; cardillo's `examples/tippetop.py` up to commit 1c667a30): m = 6 g,
-R = 15 mm, eps = 3 mm, A = 8e-7, C = 7e-7 kg m^2, stem tip r2 = 5 mm at a2 = 16 mm, mu = 0.3,
-contact radius 0.5 mm, slip scale 1e-6 m/s, theta0 = 0.1 rad, 180 rad/s about the axis, ball
-centre at rest. Peers: the independent scipy model `tests/real_top_reference.py` (rigid ball
-until the stem is 0.1 mm from the table, then Hunt-Crossley ball and stem, E* 5 GPa, c 200 s/m)
-and cardillo's Moreau time stepping (set-valued Coulomb-Contensou ellipse law, impacts).
+"""real_tops: real tops (Coulomb-type friction, Contensou drilling, the stem) on Leine & Glocker's
+scene, against the scipy reference `tests/real_top_reference.py` and cardillo's Moreau stepping.
 
     python benchmarks/real_tops.py --peers --cardillo /work/cardillo \\
         --cardillo-python /work/cardillo-venv/bin/python
     python benchmarks/real_tops.py --batch --n 1000
-    python benchmarks/real_tops.py --smoke          # every mode, tiny sizes, writes nothing
 
-cardillo is not a dependency: `--cardillo` is a checkout of that commit and `--cardillo-python` a
-python with its requirements (numpy < 2, scipy, matplotlib, tqdm). Each of its runs goes to a
-subprocess at `nice`, one at a time, and is kept in `--cache` (a rerun reuses it; a run at
-dt 1e-4 takes about 20 minutes). Its results converge at first order in dt: they are
-extrapolated to dt -> 0 by the line through the two finest dts.
+cardillo (not a dependency): `--cardillo`, a checkout at commit 1c667a30, run by
+`--cardillo-python` at `nice`, one run at a time, cached in `--cache`; its times, first order
+in dt, are extrapolated to dt -> 0 through the two finest dts.
 """
 
 from __future__ import annotations
@@ -27,7 +18,7 @@ import os
 import pathlib
 import subprocess
 import sys
-import time
+import warnings
 
 import _harness as h
 import diffrax
@@ -70,18 +61,8 @@ def lg_run(top, t1, *, saves=None, solver=None, rtol=1e-8, **kw):
     """`simulate` of the scene's launch; `saves` None: every 10 ms."""
     y0 = tj.initial_state(top, theta=THETA0, spin=SPIN)
     ts = np.linspace(0.0, t1, int(round(t1 / 0.01)) + 1) if saves is None else saves
-    return tj.simulate(
-        top,
-        y0,
-        t1,
-        saveat=ts,
-        solver=solver,
-        rtol=rtol,
-        atol=rtol * 1e-2,
-        max_steps=1_000_000,
-        throw=False,
-        **kw,
-    )
+    kw = dict(saveat=ts, solver=solver, rtol=rtol, atol=rtol * 1e-2, throw=False, **kw)
+    return tj.simulate(top, y0, t1, max_steps=1_000_000, **kw)
 
 
 def reference():
@@ -112,17 +93,10 @@ def ref_events(r) -> dict:
 def tj_events(sol, saves=None) -> dict:
     """tippejax's events; with `saves`, theta at the touch interpolated from the save times."""
     t_stem = float(sol.t_stem)
-    theta_stem = (
-        float(np.interp(t_stem, saves, np.asarray(sol.theta)))
-        if saves is not None and np.isfinite(t_stem)
-        else math.nan
-    )
-    return dict(
-        t_half=float(sol.t_invert),
-        t_stem=t_stem,
-        theta_stem=theta_stem,
-        ball_return=float(sol.t_ball_return),
-    )
+    theta_stem = math.nan
+    if saves is not None and np.isfinite(t_stem):
+        theta_stem = float(np.interp(t_stem, saves, np.asarray(sol.theta)))
+    return dict(t_half=float(sol.t_invert), t_stem=t_stem, theta_stem=theta_stem)
 
 
 def theta_error(ts, theta, r, until) -> float:
@@ -152,26 +126,18 @@ def cardillo_run(args, dt, t_final):
         if not args.cardillo:
             return None
         cache.mkdir(parents=True, exist_ok=True)
-        cmd = [
-            "nice",
-            "-n",
-            "10",
-            args.cardillo_python,
-            str(h.HERE / "_cardillo_worker.py"),
-            args.cardillo,
-            repr(dt),
-            repr(t_final),
-            str(out),
-        ]
+        worker = [str(h.HERE / "_cardillo_worker.py"), args.cardillo, repr(dt), repr(t_final)]
+        cmd = ["nice", "-n", "10", args.cardillo_python, *worker, str(out)]
         with open(out.with_suffix(".log"), "w") as log:
-            subprocess.run(
-                cmd,
-                check=True,
-                stdout=log,
-                stderr=subprocess.STDOUT,
-                env={**os.environ, "MPLBACKEND": "Agg"},
-            )
+            env = {**os.environ, "MPLBACKEND": "Agg"}
+            subprocess.run(cmd, check=True, stdout=log, stderr=subprocess.STDOUT, env=env)
     return dict(np.load(out))
+
+
+def cardillo_runs(args, smoke) -> dict:
+    """{dt: summary} of the cardillo runs there are (cached: a smoke run reads them too)."""
+    runs = {dt: cardillo_run(args, dt, T_PEERS) for dt in ((1e-3,) if smoke else DTS)}
+    return {dt: cardillo_summary(r) for dt, r in runs.items() if r is not None}
 
 
 def _crossing(t, values, start=0):
@@ -225,55 +191,32 @@ def peers(args):
     rows = []
 
     def row(name, wall, ev, err, steps=""):
-        rows.append(
-            [
-                name,
-                g(wall),
-                g(err),
-                f(ev["t_half"], 6),
-                f(ev["t_stem"], 6),
-                f(ev.get("theta_stem", math.nan)),
-                steps,
-            ]
-        )
+        touch = f"{f(ev['t_half'], 6)} | {f(ev['t_stem'], 6)} | {f(ev['theta_stem'])}"
+        rows.append(f"{name} | {g(wall)} | {g(err)} | {touch} | {steps}")
         return wall, err
 
-    fns = {}
-    top = lg_top()
-    saves = np.arange(0.0, t1 + 5e-4, 1e-3)[: int(round(t1 / 1e-3)) + 1]
-    for rtol in (1e-6,) if args.smoke else (1e-6, 1e-8, 1e-10):
-        fns[rtol] = lambda rtol=rtol: lg_run(top, t1, saves=saves, rtol=rtol)
-    timed = h.interleaved(fns, args.rounds or (1 if args.smoke else 5))
-    tj_points = {}
+    top, saves = lg_top(), np.arange(0.0, t1 + 5e-4, 1e-3)[: int(round(t1 / 1e-3)) + 1]
+    fns = {r: (lambda r=r: lg_run(top, t1, saves=saves, rtol=r)) for r in (1e-6, 1e-8, 1e-10)}
+    timed = h.interleaved(
+        dict(list(fns.items())[:1]) if args.smoke else fns, args.rounds or (1 if args.smoke else 5)
+    )
+    solver, tj_points = type(tj.default_solver(top)).__name__, {}
     for rtol, (timing, sol) in timed.items():
         err = theta_error(saves, sol.theta, truth, until)
-        solver = type(tj.default_solver(top)).__name__
-        tj_points[rtol] = row(
-            f"tippejax, rtol {rtol:g} ({solver})",
-            timing.wall,
-            tj_events(sol, saves),
-            err,
-            int(sol.num_steps),
-        )
-    refs = {}
+        name = f"tippejax, rtol {rtol:g} ({solver})"
+        tj_points[rtol] = row(name, timing.wall, tj_events(sol, saves), err, int(sol.num_steps))
     for rtol in (1e-6,) if args.smoke else (1e-6, 1e-9):
         runs = [ref_run(rr, t1=t1, rtol=rtol) for _ in range(1 if args.smoke else 3)]
-        wall = float(np.median([r["wall"] for r in runs]))
-        refs[rtol] = row(
-            f"scipy reference, rtol {rtol:g} (DOP853, then LSODA)",
-            wall,
-            ref_events(runs[0]),
+        wall, err = (
+            float(np.median([r["wall"] for r in runs])),
             theta_error(truth["t"], runs[0]["theta"], truth, until),
-            runs[0]["nfev"],
         )
-    cards = {}
-    for dt in (1e-3,) if args.smoke else DTS:
-        run = cardillo_run(args, dt, T_PEERS)  # (cached: the smoke run reads it too)
-        if run is not None:
-            cards[dt] = cardillo_summary(run)
+        name = f"scipy reference, rtol {rtol:g} (DOP853, then LSODA)"
+        row(name, wall, ref_events(runs[0]), err, runs[0]["nfev"])
+    cards = cardillo_runs(args, args.smoke)
     for dt, c in cards.items():
         grid = truth["t"][truth["t"] < min(until, c["t"][-1])]
-        err = float(
+        c["err"] = float(
             np.max(
                 np.abs(
                     np.interp(grid, c["t"], c["theta"])
@@ -281,19 +224,15 @@ def peers(args):
                 )
             )
         )
-        c["err"] = err
-        row(f"cardillo MoreauClassical, dt {dt:g}", c["wall"], c, err, c["steps"])
+        row(f"cardillo MoreauClassical, dt {dt:g}", c["wall"], c, c["err"], c["steps"])
     if len(cards) >= 2:
         fine = sorted(cards)[:2]
+        ext = [
+            f(extrapolated(cards, k), d)
+            for k, d in (("t_half", 6), ("t_stem", 6), ("theta_stem", 4))
+        ]
         rows.append(
-            [
-                f"cardillo, dt -> 0 (from dt {fine[1]:g} and {fine[0]:g})",
-                "",
-                "",
-                *(f(extrapolated(cards, k), 6) for k in ("t_half", "t_stem")),
-                f(extrapolated(cards, "theta_stem")),
-                "",
-            ]
+            f"cardillo, dt -> 0 (from dt {fine[1]:g} and {fine[0]:g}) |  |  | {' | '.join(ext)} | "
         )
     verdict = ""
     if cards:
@@ -302,102 +241,51 @@ def peers(args):
         if good:
             ratio = min(good) / finest["wall"]
             verdict = (
-                f"\n\nTarget, tippejax at most 1/1000 of cardillo's time at equal or better "
-                f"accuracy: cardillo at dt {min(cards):g} ({g(finest['wall'])} s, max "
-                f"d theta {g(finest['err'])}) against tippejax's cheapest run at least as "
-                f"accurate: {g(ratio)} of its time (1/{1 / ratio:.0f}), "
-                f"{h.verdict(ratio <= 1e-3)}."
+                f"\n\nTarget, tippejax at most 1/1000 of cardillo's time at equal or better accuracy: cardillo at dt {min(cards):g} "
+                f"({g(finest['wall'])} s, max d theta {g(finest['err'])}) against tippejax's cheapest run at least as accurate: "
+                f"{g(ratio)} of its time (1/{1 / ratio:.0f}), {h.verdict(ratio <= 1e-3)}."
             )
+    head = "run | wall s | max d theta before touch (rad) | theta = pi/2 s | stem touch s | theta at touch | steps / f-evals"
     h.write(
         f"{SUITE} --peers",
         "Leine & Glocker's top with its stem: tippejax, scipy, cardillo",
-        f"""
-Leine & Glocker's top with its stem, ellipse law (cardillo's), slip scale {DELTA:g} m/s, {t1:g} s.
-'max d theta': against the scipy reference at rtol 1e-11 (its 1 ms samples), up to 10 ms before
-the stem touches ({f(ev_truth["t_stem"], 6)} s). tippejax: median of interleaved warm runs with
-1 ms saves; the reference: median of its runs (numba {"on" if rr.HAVE_NUMBA else "off"});
-cardillo: one run each (cached; `--cardillo`), set-valued laws with impacts, whose times
-converge at first order in dt.
-
-{
-            h.table(
-                [
-                    "run",
-                    "wall s",
-                    "max d theta before touch (rad)",
-                    "theta = pi/2 s",
-                    "stem touch s",
-                    "theta at touch",
-                    "steps / f-evals",
-                ],
-                rows,
-            )
-        }{verdict}
-""",
+        f"Ellipse law, slip scale {DELTA:g} m/s, {t1:g} s; stem touch {f(ev_truth['t_stem'], 6)} s; numba {'on' if rr.HAVE_NUMBA else 'off'}.\n\n{h.table(head, rows)}{verdict}",
         args,
     )
 
 
 def batch(args):
     """1000 tops with seeded random launches: per top against the viscous law on the scene."""
-    n = 8 if args.smoke else args.n
-    t1 = 0.5 if args.smoke else T_PEERS
+    n, t1 = (8, 0.5) if args.smoke else (args.n, T_PEERS)
     rng = np.random.default_rng(58)
-    theta0 = rng.uniform(0.05, 0.3, n)
-    spin = rng.uniform(150.0, 210.0, n)
+    theta0, spin = rng.uniform(0.05, 0.3, n), rng.uniform(150.0, 210.0, n)
     rows, per_top = [], {}
     for name in ("ellipse", "hertz", "viscous"):
-        top = lg_top(name)
 
-        def fn(top=top):
+        def fn(top=lg_top(name)):
             return tj.simulate_batch(top, theta0, spin, t1, grid=(), summary=True)
 
         ((timing, sol),) = h.interleaved({name: fn}, args.rounds or 1).values()
         per_top[name] = timing.wall / n
-        ok = np.asarray(sol.result == tj.RESULTS.successful)
-        on_stem = np.isfinite(np.asarray(sol.t_stem))
+        ok = int(np.sum(np.asarray(sol.result == tj.RESULTS.successful)))
+        on_stem = int(np.sum(np.isfinite(np.asarray(sol.t_stem))))
+        steps = g(float(np.mean(np.asarray(sol.num_steps))))
         rows.append(
-            [
-                name,
-                n,
-                g(timing.wall),
-                g(1e3 * timing.wall / n),
-                g(timing.compile),
-                f"{int(ok.sum())}/{n}",
-                f"{int(on_stem.sum())}/{n}",
-                g(float(np.mean(np.asarray(sol.num_steps)))),
-            ]
+            f"{name} | {n} | {g(timing.wall)} | {g(1e3 * timing.wall / n)} | {g(timing.compile)} | {ok}/{n} | {on_stem}/{n} | {steps}"
         )
-    ratios = {k: per_top[k] / per_top["viscous"] for k in ("ellipse", "hertz")}
+    r = {k: per_top[k] / per_top["viscous"] for k in ("ellipse", "hertz")}
+    head = (
+        "law | tops | wall s | ms per top | compile s | successful | reached the stem | mean steps"
+    )
     h.write(
         f"{SUITE} --batch",
         "A batch of tops with the stem, per law",
         f"""
-Leine & Glocker's top with its stem, {n} seeded launches (theta0 uniform in [0.05, 0.3] rad, spin
-in [150, 210] rad/s), {
-            t1:g} s, `simulate_batch(top, theta0, spin, t1, grid=(), summary=True)` (per member,
-the default solver), the Contensou laws at slip scale {DELTA:g} m/s and the viscous law (mu 0.3
-s/m) on the same scene. Wall: the call after the compiling one.
+{n} seeded launches, {t1:g} s, `simulate_batch(..., grid=(), summary=True)`.
 
-{
-            h.table(
-                [
-                    "law",
-                    "tops",
-                    "wall s",
-                    "ms per top",
-                    "compile s",
-                    "successful",
-                    "reached the stem",
-                    "mean steps",
-                ],
-                rows,
-            )
-        }
+{h.table(head, rows)}
 
-Target, per top at most 3x the viscous law's cost on the same scene: ellipse {
-            ratios["ellipse"]:.2f}x,
-hertz {ratios["hertz"]:.2f}x, {h.verdict(max(ratios.values()) <= 3.0)}.
+Target, per top at most 3x the viscous law's cost on the same scene: ellipse {r["ellipse"]:.2f}x, hertz {r["hertz"]:.2f}x, {h.verdict(max(r.values()) <= 3.0)}.
 """,
         args,
     )
@@ -420,59 +308,29 @@ def work_precision(args):
     for scene, (name, stem, t1) in scenes.items():
         top = lg_top(name, stem=stem, slip_scale=1e-3 if name == "coulomb" else DELTA)
         saves = np.linspace(0.0, t1, int(round(t1 / 0.01)) + 1)
-        ref = lg_run(top, t1, saves=saves, solver=diffrax.Dopri8(), rtol=1e-12)
-        theta_ref = np.asarray(ref.theta)
+        ref = np.asarray(lg_run(top, t1, saves=saves, solver=diffrax.Dopri8(), rtol=1e-12).theta)
         default = type(tj.default_solver(top)).__name__
         fns = {
             (s, r): (lambda s=s, r=r: lg_run(top, t1, saves=saves, solver=SOLVERS[s](), rtol=r))
             for s in solvers
             for r in rtols
-            if not (s == "Kvaerno5" and r < 1e-8)
+            if not (s == "Kvaerno5" and r < 1e-8)  # the slowest by far
         }
-        for (s, r), (timing, sol) in h.interleaved(
-            fns, args.rounds or (1 if args.smoke else 3)
-        ).items():
+        for (s, r), (t, sol) in h.interleaved(fns, args.rounds or (1 if args.smoke else 3)).items():
             ok = bool(sol.result == tj.RESULTS.successful)
-            err = float(np.nanmax(np.abs(np.asarray(sol.theta) - theta_ref))) if ok else math.nan
-            curves.setdefault((scene, s), []).append((timing.wall, err))
+            err = float(np.nanmax(np.abs(np.asarray(sol.theta) - ref))) if ok else math.nan
+            curves.setdefault((scene, s), []).append((t.wall, err))
+            label = s + (" (default)" if s == default else "")
             rows.append(
-                [
-                    scene,
-                    s + (" (default)" if s == default else ""),
-                    f"{r:.0e}",
-                    g(timing.wall),
-                    g(timing.compile, 2),
-                    int(sol.num_steps),
-                    int(sol.num_rejected_steps),
-                    g(err, 2),
-                ]
+                f"{scene} | {label} | {r:.0e} | {g(t.wall)} | {g(t.compile, 2)} | {int(sol.num_steps)} | {int(sol.num_rejected_steps)} | {g(err, 2)}"
             )
     h.write(
         f"{SUITE} --wp",
         "Work against precision per law, and on the stem",
         f"""
-Leine & Glocker's top launched as in the scene, full level, saves every 10 ms, through the first
-pi/2 crossing (1.2 s) without the stem, and to {T_PEERS:g} s with it (the compliant phase from about
-1.37 s: its contact's vibration sets the explicit steps). Laws: viscous (mu 0.3 s/m), Coulomb
-(slip scale 1e-3 m/s), Coulomb-Contensou hertz and ellipse (1e-6 m/s). 'max d theta' against
-Dopri8 at rtol 1e-12; atol = rtol / 100; wall: median of interleaved warm runs; Kvaerno5 at the
-looser tolerances only (it is the slowest by far). Chart: `real_tops_wp.png`.
+Error against Dopri8 at rtol 1e-12; atol = rtol / 100. Chart: `real_tops_wp.png`.
 
-{
-            h.table(
-                [
-                    "scene",
-                    "solver",
-                    "rtol",
-                    "wall s",
-                    "compile s",
-                    "steps",
-                    "rejected",
-                    "max d theta",
-                ],
-                rows,
-            )
-        }
+{h.table("scene | solver | rtol | wall s | compile s | steps | rejected | max d theta", rows)}
 """,
         args,
     )
@@ -494,76 +352,35 @@ looser tolerances only (it is the slowest by far). Chart: `real_tops_wp.png`.
 
 def slip(args):
     """The slip_scale convergence table: Contensou converges, pure Coulomb does not."""
-    rr = reference()
-    rows = []
+    rr, rows = reference(), []
     contensou = (1e-4,) if args.smoke else (1e-4, 1e-5, 1e-6)
     coulomb = (1e-2,) if args.smoke else (1e-2, 3e-3, 1e-3, 3e-4)
-    import warnings
-
     for name, deltas in (("ellipse", contensou), ("hertz", contensou), ("coulomb", coulomb)):
         for delta in deltas:
             top = lg_top(name, stem=False, slip_scale=delta)
             y0 = tj.initial_state(top, theta=THETA0, spin=SPIN)
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
-                start = time.perf_counter()
-                t = float(tj.inversion_time(top, y0, t1=30.0, rtol=1e-8, atol=1e-10, throw=False))
-                wall = time.perf_counter() - start
+                wall, _, t = h.call(
+                    lambda: tj.inversion_time(top, y0, t1=30.0, rtol=1e-8, atol=1e-10, throw=False)
+                )
+            t = float(t)
             warned = any(
                 issubclass(w.category, UserWarning) and "slip_scale" in str(w.message)
                 for w in caught
             )
+            kw = dict(mu=MU, rho=RHO, delta=delta, stem=False, contact="rigid")
             r = rr.solve(
-                rr.LEINE_GLOCKER,
-                name,
-                THETA0,
-                SPIN,
-                30.0,
-                mu=MU,
-                rho=RHO,
-                delta=delta,
-                stem=False,
-                contact="rigid",
-                stop_at_half=True,
-                dt_sample=1e-2,
+                rr.LEINE_GLOCKER, name, THETA0, SPIN, 30.0, stop_at_half=True, dt_sample=1e-2, **kw
             )
             rows.append(
-                [
-                    name,
-                    g(delta),
-                    f(t, 7),
-                    f(r["t_half"], 7),
-                    g(abs(t - r["t_half"]), 2),
-                    g(t * delta),
-                    "yes" if warned else "no",
-                    g(wall),
-                ]
+                f"{name} | {g(delta)} | {f(t, 7)} | {f(r['t_half'], 7)} | {g(abs(t - r['t_half']), 2)} | {g(t * delta)} | {'yes' if warned else 'no'} | {g(wall)}"
             )
+    head = "law | slip scale m/s | tippejax pi/2 s | reference pi/2 s | difference s | t x delta (m) | UserWarning | tippejax wall s"
     h.write(
         f"{SUITE} --slip",
         "The first pi/2 crossing against the slip scale",
-        f"""
-Leine & Glocker's top without the stem, launched as in the scene, `tj.inversion_time` (full level,
-the default solver, rtol 1e-8, the first call: it compiles) against the reference (rtol 1e-9).
-With Contensou friction the crossing converges as the slip scale goes to 0; with pure Coulomb
-friction it grows about like 1/delta (t x delta tends to a constant), and tippejax warns.
-
-{
-            h.table(
-                [
-                    "law",
-                    "slip scale m/s",
-                    "tippejax pi/2 s",
-                    "reference pi/2 s",
-                    "difference s",
-                    "t x delta (m)",
-                    "UserWarning",
-                    "tippejax wall s",
-                ],
-                rows,
-            )
-        }
-""",
+        f"No stem; `tj.inversion_time` (rtol 1e-8, first call) against the reference (rtol 1e-9).\n\n{h.table(head, rows)}",
         args,
     )
 
@@ -579,156 +396,102 @@ def contact(args):
             ("c x 10", dict(contact_damping=2000.0)),
             ("c / 10", dict(contact_damping=20.0)),
         ]
-    rows = []
-    saves = np.linspace(0.0, t1, int(round(t1 / 0.01)) + 1)
+    saves, at = (
+        np.linspace(0.0, t1, int(round(t1 / 0.01)) + 1),
+        [tq for tq in (2.5, 4.0) if tq <= t1],
+    )
     runs = {(name, 1e-8): kw for name, kw in variants}
     if not args.smoke:  # (tippejax's own convergence)
         runs[(variants[0][0], 1e-10)] = {}
     fns = {
-        key: (lambda kw=kw, rtol=key[1]: lg_run(lg_top(**kw), t1, saves=saves, rtol=rtol))
+        key: (lambda kw=kw, r=key[1]: lg_run(lg_top(**kw), t1, saves=saves, rtol=r))
         for key, kw in runs.items()
     }
+    rows = []
     for (name, rtol), (timing, sol) in h.interleaved(fns, args.rounds or 1).items():
         theta = np.asarray(sol.theta)
         on_stem = (saves > float(sol.t_stem)) & ~(saves >= float(sol.t_ball_return))
+        top_theta = f(float(np.max(theta[on_stem])) if on_stem.any() else math.nan)
+        cells = " | ".join([top_theta, *(f(float(np.interp(tq, saves, theta))) for tq in at)])
+        label = name + ("" if rtol == 1e-8 else f", rtol {rtol:g}")
         rows.append(
-            [
-                name + ("" if rtol == 1e-8 else f", rtol {rtol:g}"),
-                f(float(sol.t_stem), 6),
-                f(float(sol.t_ball_return), 4),
-                f(float(np.max(theta[on_stem])) if on_stem.any() else math.nan),
-                *(f(float(np.interp(tq, saves, theta))) for tq in (2.5, 4.0) if tq <= t1),
-                int(sol.num_steps),
-                g(timing.wall),
-            ]
+            f"{label} | {f(float(sol.t_stem), 6)} | {f(float(sol.t_ball_return), 4)} | {cells} | {int(sol.num_steps)} | {g(timing.wall)}"
         )
     rr = reference()
     r = ref_run(rr, t1=t1)
     ev = ref_events(r)
     on = (saves > ev["t_stem"]) & ~(saves >= ev["ball_return"])  # (on the same saves)
-    rows.append(
+    cells = " | ".join(
         [
-            "reference (E* 5 GPa, c 200 s/m)",
-            f(ev["t_stem"], 6),
-            f(ev["ball_return"], 4),
             f(float(np.max(np.interp(saves[on], r["t"], r["theta"])))),
-            *(f(rr.theta_at(r, tq)) for tq in (2.5, 4.0) if tq <= t1),
-            r["nfev"],
-            g(r["wall"]),
+            *(f(rr.theta_at(r, tq)) for tq in at),
         ]
     )
-    head = (
-        ["contact", "stem touch s", "ball returns s", "max theta on the stem"]
-        + [f"theta({tq:g})" for tq in (2.5, 4.0) if tq <= t1]
-        + ["steps", "wall s"]
+    rows.append(
+        f"reference (E* 5 GPa, c 200 s/m) | {f(ev['t_stem'], 6)} | {f(ev['ball_return'], 4)} | {cells} | {r['nfev']} | {g(r['wall'])}"
+    )
+    head = " | ".join(
+        [
+            "contact",
+            "stem touch s",
+            "ball returns s",
+            "max theta on the stem",
+            *(f"theta({tq:g})" for tq in at),
+            "steps",
+            "wall s",
+        ]
     )
     h.write(
         f"{SUITE} --contact",
         "Sensitivity to the contact parameters after the touch",
-        f"""
-Leine & Glocker's top with its stem, ellipse law, {t1:g} s, tippejax at rtol 1e-8 (Dopri8, saves
-every 10 ms), the stem's `contact_modulus` E* and `contact_damping` c ten times larger and smaller;
-last row the reference. 'max theta on the stem': between the touch and the ball's return, on
-the 10 ms saves (the reference interpolated to them).
-
-{h.table(head, rows)}
-""",
+        f"Ellipse law, {t1:g} s, rtol 1e-8, 10 ms saves.\n\n{h.table(head, rows)}",
         args,
     )
 
 
 def lg(args):
     """Leine & Glocker's figures: the touch angle and time, and their figure 15."""
-    rr = reference()
-    top = lg_top("hertz")
-    rows = []
-    t1 = 0.3 if args.smoke else 1.6
-    cards = {}
-    for dt in (1e-3,) if args.smoke else DTS:
-        run = cardillo_run(args, dt, T_PEERS)  # (cached: the smoke run reads it too)
-        if run is not None:
-            cards[dt] = cardillo_summary(run)
+    rr, rows, t1 = reference(), [], 0.3 if args.smoke else 1.6
+    cards = cardillo_runs(args, args.smoke)
     for pressure in ("hertz", "ellipse"):
-        sol = lg_run(lg_top(pressure), t1)
-        ref = ref_events(ref_run(rr, pressure, t1=t1))
+        sol, ref = lg_run(lg_top(pressure), t1), ref_events(ref_run(rr, pressure, t1=t1))
+        angle = _touch_angle(lg_top(pressure), float(sol.t_stem), t1)
         rows.append(
-            [
-                f"tippejax, {pressure}",
-                f(float(sol.t_invert), 6),
-                f(float(sol.t_stem), 6),
-                f(_touch_angle(lg_top(pressure), float(sol.t_stem), t1)),
-            ]
+            f"tippejax, {pressure} | {f(float(sol.t_invert), 6)} | {f(float(sol.t_stem), 6)} | {f(angle)}"
         )
         rows.append(
-            [
-                f"reference, {pressure}",
-                f(ref["t_half"], 6),
-                f(ref["t_stem"], 6),
-                f(ref["theta_stem"]),
-            ]
+            f"reference, {pressure} | {f(ref['t_half'], 6)} | {f(ref['t_stem'], 6)} | {f(ref['theta_stem'])}"
         )
     if len(cards) >= 2:
-        rows.append(
-            [
-                "cardillo (ellipse), dt -> 0",
-                *(f(extrapolated(cards, k), 6) for k in ("t_half", "t_stem")),
-                f(extrapolated(cards, "theta_stem")),
-            ]
-        )
-    rows.append(["geometry, ball on the table", "", "", f(float(top.stem_angle))])
-    rows.append(["Leine & Glocker 2003 (published)", "about 1", "about 1.5", "about 2.45"])
-    radii = (5e-4,) if args.smoke else (5e-4, 5e-5, 1e-5)
+        ext = [
+            f(extrapolated(cards, k), d)
+            for k, d in (("t_half", 6), ("t_stem", 6), ("theta_stem", 4))
+        ]
+        rows.append("cardillo (ellipse), dt -> 0 | " + " | ".join(ext))
+    rows.append(f"geometry, ball on the table |  |  | {f(float(lg_top('hertz').stem_angle))}")
+    rows.append("Leine & Glocker 2003 (published) | about 1 | about 1.5 | about 2.45")
     fig15 = []
-    for rho in radii:
-        row = [f"{rho * 1e3:g}"]
+    for rho in (5e-4,) if args.smoke else (5e-4, 5e-5, 1e-5):
+        cells = []
         for pressure in ("hertz", "ellipse"):
             stemless = lg_top(pressure, stem=False, rho=rho)
-            sol = lg_run(
-                stemless, 0.5, saves=np.linspace(0.0, 0.5, 11), solver=diffrax.Tsit5(), rtol=1e-9
-            )
-            r = rr.solve(
-                rr.LEINE_GLOCKER,
-                pressure,
-                THETA0,
-                SPIN,
-                0.5,
-                mu=MU,
-                rho=rho,
-                delta=DELTA,
-                stem=False,
-                contact="rigid",
-                dt_sample=0.05,
-            )
-            row += [f(float(sol.theta[-1])), f(rr.theta_at(r, 0.5))]
-        fig15.append(row)
+            saves = np.linspace(0.0, 0.5, 11)
+            sol = lg_run(stemless, 0.5, saves=saves, solver=diffrax.Tsit5(), rtol=1e-9)
+            kw = dict(mu=MU, rho=rho, delta=DELTA, stem=False, contact="rigid", dt_sample=0.05)
+            r = rr.solve(rr.LEINE_GLOCKER, pressure, THETA0, SPIN, 0.5, **kw)
+            cells += [f(float(sol.theta[-1])), f(rr.theta_at(r, 0.5))]
+        fig15.append(f"{rho * 1e3:g} | " + " | ".join(cells))
     h.write(
         f"{SUITE} --lg",
         "Leine & Glocker's figures",
         f"""
-Leine & Glocker's top with its stem, slip scale {
-            DELTA:g} m/s. The stem's touch: tippejax (rtol 1e-8,
-the default solver), the reference (rtol 1e-9), cardillo extrapolated to dt -> 0 (its cached runs),
-the geometric angle with the ball on the table, and what Leine & Glocker published (their own
-integration of the model puts the touch later than the two independent integrations here; see
-`/work/shared/paper/FRICTION.md`).
+Slip scale {DELTA:g} m/s; their published touch is later than both integrations here (`/work/shared/paper/FRICTION.md`).
 
-{h.table(["run", "theta = pi/2 s", "stem touch s", "theta at touch"], rows)}
+{h.table("run | theta = pi/2 s | stem touch s | theta at touch", rows)}
 
-Their figure 15: theta at 0.5 s against the contact radius (before the stem can touch), tippejax
-(Tsit5, rtol 1e-9) and the reference.
+Their figure 15: theta at 0.5 s against the contact radius (Tsit5, rtol 1e-9).
 
-{
-            h.table(
-                [
-                    "rho mm",
-                    "tippejax hertz",
-                    "reference hertz",
-                    "tippejax ellipse",
-                    "reference ellipse",
-                ],
-                fig15,
-            )
-        }
+{h.table("rho mm | tippejax hertz | reference hertz | tippejax ellipse | reference ellipse", fig15)}
 """,
         args,
     )
@@ -736,10 +499,11 @@ Their figure 15: theta at 0.5 s against the contact radius (before the stem can 
 
 def _touch_angle(top, t_stem, t1):
     """theta at the located touch: a run whose saves include it (same save count)."""
+    if not np.isfinite(t_stem):  # no touch in this run (a smoke run's short one)
+        return math.nan
     saves = np.linspace(0.0, t1, int(round(t1 / 0.01)) + 1)
     saves = np.sort(np.append(saves[:-1], t_stem))
-    sol = lg_run(top, t1, saves=saves)
-    return float(sol.theta[int(np.searchsorted(saves, t_stem))])
+    return float(lg_run(top, t1, saves=saves).theta[int(np.searchsorted(saves, t_stem))])
 
 
 MODES = {

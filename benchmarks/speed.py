@@ -1,9 +1,6 @@
-"""speed: tippejax against the peers a user has, on one scene (`_peers.py`).
-
-Every peer runs the same SO(3) equations; tippejax at each level, events on. Per top at equal
-error: each peer at the rtol that gives the plain diffrax script's error at rtol 1e-8 (found on
-a single top's rtol ladder, log-log), then timed in interleaved rounds; ratios are medians of
-the round-by-round ratios (`_harness.paired`).
+"""speed: tippejax against the peers a user has on one scene (`_peers.py`), at equal error: each
+peer at the rtol that gives the plain diffrax script's error at rtol 1e-8, timed in interleaved
+rounds; ratios are medians of the round-by-round ratios.
 
     python benchmarks/speed.py --one-top      # one top; the chart peers.png
     python benchmarks/speed.py --batch --big  # batches of 1000 (and 1e4), 1 device and every core
@@ -115,8 +112,7 @@ def equal_error(levels, args) -> tuple[dict, float]:
     return {n: h.interp_loglog(target, e, rtols) for n, e in errs.items()}, target
 
 
-def rounds(args, default):
-    return 1 if args.smoke else (args.rounds or default)
+rounds = h.rounds
 
 
 def batch_size(args):
@@ -176,7 +172,7 @@ def one_top(args):
         "speed.py --one-top",
         "One top at equal error",
         f"""
-SO(3) equations, theta0 0.1, spin 150 rad/s, 20 s. Error of the final state, max(|a - a_ref|, |omega - omega_ref| / |omega_ref|), against the same equations at rtol 1e-13 (each tippejax level against itself at 1e-12). Equal error {target:.2e} (the plain script's at rtol {TARGET:g}; atol = rtol/100). JAX peers: {rounds(args, 21)} interleaved rounds, 'vs plain' the median of the round ratios; numba, scipy and the gyroscopic level (at rtol 1e-8; its error {eq[GYRO]["error"]:.1e} is its model error) from the ladders. Compile: first call less a later one. Chart: `peers.png`.
+Equal error {target:.2e} (the plain script's at rtol {TARGET:g}); {rounds(args, 21)} interleaved rounds; numba, scipy and the gyroscopic level (at rtol 1e-8; its model error {eq[GYRO]["error"]:.1e}) from the ladders. Chart: `peers.png`.
 
 {h.table("peer | rtol | steps | vs plain steps | ms | vs plain | compile s", body)}
 
@@ -236,12 +232,8 @@ def time_batch(n, eq, n_devices, args) -> dict:
         fns = {k: fns[k] for k in (PLAIN, "tj.simulate_batch so3")}
     for name, (t, (_, steps)) in h.interleaved(fns, rounds(args, 5)).items():
         steps = np.asarray(steps if steps is not None else np.zeros(n))
-        out[name] = dict(
-            walls=t.walls or [t.first_wall],
-            wall=t.wall,
-            steps_sum=int(steps.sum()),
-            steps_median=float(np.median(steps)),
-        )
+        out[name] = dict(walls=t.walls or [t.first_wall], wall=t.wall, steps_sum=int(steps.sum()))
+        out[name]["steps_median"] = float(np.median(steps))
     return out
 
 
@@ -315,7 +307,7 @@ def batch(args):
         "speed.py --batch",
         "Batches on one device and on every core",
         f"""
-Spins linspace(140, 160, N), 20 s, summary unless '6 saves'; each peer at its equal-error rtol (error {target:.2e}: {", ".join(f"{k} {v:.2e}" for k, v in eq.items())}); ms per top, medians of {rounds(args, 5)} interleaved rounds; 'vs plain' the median of the round ratios against the plain script on the same devices. Every core: a process with {cores} host devices, each running its shard. scipy DOP853, a loop over the tops: {scipy_ms:.0f} ms per top.
+Equal-error rtols (error {target:.2e}): {", ".join(f"{k} {v:.2e}" for k, v in eq.items())}; {rounds(args, 5)} interleaved rounds; every core: {cores} host devices. scipy DOP853, a loop over the tops: {scipy_ms:.0f} ms per top.
 
 {chr(10).join(text)}
 {h.table("target | measured | verdict", targets)}
@@ -383,28 +375,19 @@ def devices(args):
         return f"{np.median(r):.3f} ({np.quantile(r, 0.25):.3f}-{np.quantile(r, 0.75):.3f})"
 
     ms = ", ".join(f"{k} {1e3 * np.median(v) / n:.3f} ({where})" for (k, where), v in walls.items())
+    rows = [
+        f"tippejax, one process / two processes | {ratio(('tippejax', one), ('tippejax', two))}",
+        f"plain, one process / two processes | {ratio(('plain', one), ('plain', two))}",
+        f"tippejax / plain, one process (target <= 1.2) | {ratio(('tippejax', one), ('plain', one))}",
+        f"tippejax / plain, two processes | {ratio(('tippejax', two), ('plain', two))}",
+    ]
     h.write(
         "speed.py --devices",
         "Two host devices in one process against two processes",
         f"""
-Batch of {n} (SO(3), summary): `tj.simulate_batch` at its equal-error rtol ({
-            rtol:.2e}) and the plain script at 1e-8, {
-            rounds(args, 7)
-        } rounds. One process with 2 host devices, each running its shard, against the same shards in two one-device processes pinned to a core each. ms per top: {
-            ms
-        }.
+Batch of {n} (SO(3), summary), rtol {rtol:.2e} (the plain script 1e-8), {rounds(args, 7)} rounds; ms per top: {ms}.
 
-{
-            h.table(
-                "ratio | median (quartiles)",
-                [
-                    f"tippejax, one process / two processes | {ratio(('tippejax', one), ('tippejax', two))}",
-                    f"plain, one process / two processes | {ratio(('plain', one), ('plain', two))}",
-                    f"tippejax / plain, one process (target <= 1.2) | {ratio(('tippejax', one), ('plain', one))}",
-                    f"tippejax / plain, two processes | {ratio(('tippejax', two), ('plain', two))}",
-                ],
-            )
-        }
+{h.table("ratio | median (quartiles)", rows)}
 """,
         args,
     )
@@ -421,13 +404,8 @@ def numba_goal(args):
     """`simulate_batch` against numba per core and on every core, per member and with shared
     steps, and the plain shared-step script; every run's error measured."""
     n, (eq, target) = batch_size(args), equal_error(("so3",), args)
-    s, nb, cores, r3, rn = (
-        p.spins(n),
-        p.numba_batch(),
-        len(jax.devices()),
-        eq["tippejax so3"],
-        eq[NUMBA],
-    )
+    s, nb, cores = p.spins(n), p.numba_batch(), len(jax.devices())
+    r3, rn = eq["tippejax so3"], eq[NUMBA]
     fns = {
         "numba, 1 thread": lambda: nb(s, rn, rn / 100, threads=1),
         "simulate_batch, 1 device": functools.partial(tj_batch("so3", shard=False), s, r3),
@@ -447,9 +425,8 @@ def numba_goal(args):
     timed = h.interleaved(fns, rounds(args, 9))
     rows = []
     for k, (t, out) in timed.items():
-        base = timed["numba, 1 thread" if "1 device" in k else f"numba, {cores} threads (prange)"][
-            0
-        ]
+        base = timed["numba, 1 thread" if "1 device" in k else f"numba, {cores} threads (prange)"]
+        base = base[0]
         med, lo, hi = h.paired(t, base)
         goal = (
             f"{med:.3f} ({lo:.3f}-{hi:.3f}) {h.verdict(med <= 1)}"
@@ -461,7 +438,7 @@ def numba_goal(args):
         "speed.py --numba",
         "The numba goal: per core and on every core",
         f"""
-Batch of {n}, summary, at equal error ({target:.2e}; numba rtol {rn:.2e}, tippejax so3 {r3:.2e}), {rounds(args, 9)} interleaved rounds, one process with {cores} host devices. Error: the largest over the members against the plain script at rtol 1e-12. Goal: at or below numba on the same cores (median of the paired ratios, quartiles).
+Batch of {n}, summary, equal error {target:.2e} (numba rtol {rn:.2e}, tippejax so3 {r3:.2e}), {rounds(args, 9)} interleaved rounds, {cores} host devices. Goal: at or below numba on the same cores (median of the paired ratios, quartiles).
 
 {h.table("run | ms per top | error | / numba on the same cores", rows)}
 """,
@@ -480,17 +457,8 @@ def wp(args):
     )
 
     def run(model, solver, rtol):
-        sol = tj.simulate(
-            top,
-            y0,
-            T1,
-            model=model,
-            saveat=ts,
-            rtol=rtol,
-            atol=rtol / 100,
-            solver=solver,
-            throw=False,
-        )
+        kw = dict(model=model, saveat=ts, rtol=rtol, atol=rtol / 100, solver=solver, throw=False)
+        sol = tj.simulate(top, y0, T1, **kw)
         return np.asarray(sol.theta), float(sol.t_invert), int(sol.num_steps)
 
     curves, body, refs = {}, [], {m: run(m, diffrax.Dopri8(), 1e-13) for m in ("full", "so3")}
@@ -525,41 +493,24 @@ def wp(args):
             f"gyroscopic | default | {r:.0e} | {1e3 * t.wall:.3g} | {steps} | | {abs(t_inv - refs['full'][1]):.2e} |"
         )
     coarse, fine = (float(tj.simulate(top, y0, T1, saveat=g).t_invert) for g in (p.TS, ts))
-    y200 = tj.initial_state(top, 0.1, 200.0)
-    lost = float(
-        tj.simulate(
-            top, y200, 7.0, solver=diffrax.Dopri8(), rtol=1e-6, atol=1e-8, throw=False
-        ).t_contact_loss
-    )
-    y300 = tj.initial_state(top, 0.1, 300.0)
-    long = tj.simulate(
-        top,
-        y300,
-        40.0,
-        rtol=1e-10,
-        atol=1e-12,
-        summary=True,
-        throw=False,
-        on_contact_loss="continue",
-    )
+    kw = dict(solver=diffrax.Dopri8(), rtol=1e-6, atol=1e-8, throw=False)
+    lost = float(tj.simulate(top, tj.initial_state(top, 0.1, 200.0), 7.0, **kw).t_contact_loss)
+    kw = dict(rtol=1e-10, atol=1e-12, summary=True, throw=False, on_contact_loss="continue")
+    long = tj.simulate(top, tj.initial_state(top, 0.1, 300.0), 40.0, **kw)
+    events = [
+        f"t_invert on a 6-point grid = on 201 points | {coarse:.12f} s, {fine:.12f} s | {h.verdict(abs(coarse - fine) < 1e-9)}",
+        f"spin 200: contact loss found with Dopri8 at rtol 1e-6 (5.1865 s) | {lost:.6f} s | {h.verdict(abs(lost - 5.1865) < 5e-5)}",
+        f"40 s at rtol 1e-10, spin 300, on_contact_loss='continue' | t_final {float(long.t_final):g} s, {int(long.num_steps)} steps | {h.verdict(float(long.t_final) == 40.0)}",
+    ]
     h.write(
         "speed.py --wp",
         "Work-precision of one top against scipy",
         f"""
-Standard top, theta0 0.1, spin 150 rad/s, 20 s, 201 saves. Error: max |theta - theta_ref| over the saves and |t_invert - t_invert_ref|, against tippejax Dopri8 at rtol 1e-13 of the same model. scipy: `solve_ivp(DOP853)` on the vector-form model in numpy (`_peers.VectorModel`), atol = rtol/100. 'scipy / tippejax': scipy's time at tippejax's error (log-log on scipy's ladder) over tippejax's. The default solver's rows (on the chart) are shown where it is not Dopri8. The gyroscopic level: t_invert against the full model's. Chart: `work_precision.png`.
+Errors against tippejax Dopri8 at rtol 1e-13 of the same model; 'scipy / tippejax': scipy DOP853's time at tippejax's error over tippejax's. Chart: `work_precision.png`.
 
 {h.table("model | solver | rtol | ms | steps | max d theta | d t_invert | scipy / tippejax", body)}
 
-{
-            h.table(
-                "event | measured | verdict",
-                [
-                    f"t_invert on a 6-point grid = on 201 points | {coarse:.12f} s, {fine:.12f} s | {h.verdict(abs(coarse - fine) < 1e-9)}",
-                    f"spin 200: contact loss found with Dopri8 at rtol 1e-6 (5.1865 s) | {lost:.6f} s | {h.verdict(abs(lost - 5.1865) < 5e-5)}",
-                    f"40 s at rtol 1e-10, spin 300, on_contact_loss='continue' | t_final {float(long.t_final):g} s, {int(long.num_steps)} steps | {h.verdict(float(long.t_final) == 40.0)}",
-                ],
-            )
-        }
+{h.table("event | measured | verdict", events)}
 """,
         args,
     )
@@ -592,9 +543,8 @@ def stiff(args):
             tj.initial_state(top, 0.1, 100.0),
             dict(saveat=ts, throw=False, max_steps=2_000_000),
         )
-        ref = np.asarray(
-            tj.simulate(top, y0, 0.5, rtol=1e-11, atol=1e-13, solver=diffrax.Kvaerno5(), **kw).theta
-        )
+        ref = tj.simulate(top, y0, 0.5, rtol=1e-11, atol=1e-13, solver=diffrax.Kvaerno5(), **kw)
+        ref = np.asarray(ref.theta)
         fns = {
             n: functools.partial(tj.simulate, top, y0, 0.5, rtol=1e-8, atol=1e-10, solver=s, **kw)
             for n, s in solvers.items()
@@ -610,7 +560,7 @@ def stiff(args):
         "speed.py --stiff",
         "Stiff friction: where the default solver changes",
         f"""
-Standard top with larger mu, theta0 0.1, spin 100 rad/s, 0.5 s, rtol 1e-8, 201 saves; error against Kvaerno5 at rtol 1e-11; {rounds(args, 2)} interleaved rounds. Wall s / steps / max d theta:
+{rounds(args, 2)} interleaved rounds. Wall s / steps / max d theta:
 
 {h.table("mu (s/m) | friction rate (1/s) | Tsit5 | Dopri8 | Kvaerno5 | default picks", rows)}
 """,
@@ -674,9 +624,9 @@ def grid(args):
         "speed.py --grid",
         "A grid of launches: against scipy, lock-step, bucketing, 1e5 launches",
         f"""
-Full model, rtol 1e-8, summary: theta0 linspace(0.05, 0.3, {a}) x spin linspace(100, 200, {b}), 20 s, `tj.simulate_batch` on {len(jax.devices())} devices: {1e3 * t.wall / steps.size:.2f} ms per launch; scipy DOP853 on the numpy model with the contact-loss event ({len(launches)} launches, scaled): **{scipy_total / t.wall:.0f}x** the batch's time. Lock-step: max {steps.max()} steps against a median of {np.median(steps):.0f} ({100 * (1 - steps.mean() / steps.max()):.0f}% of the lane-steps idle).
+{a} x {b} launches on {len(jax.devices())} devices: {1e3 * t.wall / steps.size:.2f} ms per launch; scipy DOP853 with the contact-loss event ({len(launches)} launches, scaled): **{scipy_total / t.wall:.0f}x** the batch's time. Lock-step: max {steps.max()} steps against a median of {np.median(steps):.0f} ({100 * (1 - steps.mean() / steps.max()):.0f}% of the lane-steps idle).
 
-Spread batch (spin linspace(20, 400)), `simulate_batch(..., buckets=k)` (sorted by spin), {rounds(args, 2)} interleaved rounds:
+Spread batch (spin 20-400), `buckets=k`, {rounds(args, 2)} interleaved rounds:
 
 {h.table("t1 | buckets | wall s | vs 1 bucket | steps max | steps median", rows)}
 

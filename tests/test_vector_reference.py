@@ -185,10 +185,6 @@ def test_bad_input():
 
 @pytest.fixture(scope="module")
 def fit_records():
-    import pathlib
-    import sys
-
-    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent.parent / "benchmarks"))
     import fit_records
 
     return fit_records

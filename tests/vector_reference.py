@@ -1,7 +1,7 @@
 r"""Independent reference integrator for the tippe top in vector form, regular at the poles.
 
 Written from first principles (Newton-Euler), not from tippejax and not from `euler_reference`'s
-Euler-angle equations: a test oracle and the data source of `benchmarks/fit_records.py`. Unlike the
+Euler-angle equations: a test oracle and the data source of `tests/fit_records.py`. Unlike the
 Euler-angle chart it has no singularity at theta = 0 or pi, so it integrates upright launches.
 
 Model (Ciocci & Langerock, Sec. 2; conventions of `euler_reference`): a sphere of radius R and mass

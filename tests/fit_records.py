@@ -1,51 +1,14 @@
-r"""Seeded random records for the fitting benchmark (issue 17, item 1), made by an independent integrator.
+r"""Seeded random records of the tilt for `benchmarks/fitting.py`, from the reference integrators.
 
-Every record is a tippe top's tilt theta(t) as a camera would see it: sampled at 20-500 Hz, with
-Gaussian noise, sometimes a gap. The clean signal comes from `tests/vector_reference.py`
-(Newton-Euler in vector form, DOP853; no tippejax physics), so a fit that recovers the parameters
-is not recovering its own integrator's output. tippejax is imported only for `classify` and
-`thresholds` (group of a top, turn-over threshold n1), each checked against the closed forms.
-
-How a record is drawn (record i of seed s uses its own generator, `default_rng([s, i])`, so
-`draw_records(10, s)` is the first 10 of `draw_records(60, s)`):
-
-- Group: the groups IIa, IIb, IIc, III in turn (record i gets GROUPS[i % 4]).
-- Top: A/C uniform in (0.5, 1.6), eps/R uniform in (0.05, 0.5), redrawn until `tj.classify`
-  gives the record's group and the threshold n1 is below N1_MAX (a top next to the Group I
-  boundary, A/C - 1 + eps/R -> 0, has n1 -> infinity); m log-uniform in 5-60 g, R uniform in
-  10-30 mm, C = 0.4 m R^2 times a factor uniform in (0.8, 1.2), mu log-uniform in 0.05-2 s/m,
-  g = 9.81.
-- Spin n0 = k n1 with k log-uniform in (1.5, 8). n1 (eq. n1) is defined in Groups II and III: above
-  it theta = 0 is unstable, so every record's top rises (Group III tops rise to an intermediate
-  tilt and do not invert; the same spin scale is used for them).
-- Kind of record, drawn once per record (redraws below keep it): upright with probability 0.2,
-  one gap with probability 1/3.
-- Launch: tilted, theta0 uniform in (0.02, 0.5) with w = n0 a (theta_dot = phi_dot = 0); or
-  upright, theta0 = 0 with theta_dot uniform in (0.2, 2) rad/s (phi = 0: the axis tips towards
-  -e_y; `tests/vector_reference.initial_vector`). Both follow `euler_reference.initial_vector`'s
-  convention (psi_dot = n0 - phi_dot cos theta0).
-- Record: length uniform in 3-20 s, rate log-uniform in 20-500 Hz (samples at k / rate),
-  noise sigma log-uniform in 0.002-0.03 rad; a gap is a NaN stretch of 2-10% of the samples
-  starting uniformly between 5% and 95% minus its length.
-- Contact loss (R_n reaches 0; the integration stops there): the record is cut to end before
-  the loss if that leaves >= 3 s (`contact_lost=True`, `t_contact_loss` set); otherwise the
-  draw (top included, same group and kind) is redrawn.
-- Identifiability: a draw whose Cramer-Rao bound on mu, eps or spin exceeds `max_crb_rel`
-  (default 0.5%) of the true value is redrawn, so that "within 2%" means >= 4 bounds. This
-  skews the kept records towards lower noise, longer records and higher rates (see the report).
-- Free parameters: mu, eps and spin, plus theta_dot for upright launches. eps changes with A, C
-  held fixed (the fit's parametrisation).
-
-The Cramer-Rao bound: Fisher F = J^T J / sigma^2 over the non-NaN samples, J = d theta / d p by
-central differences of the independent integrator (relative steps 1e-6 for mu and eps, 1e-7 for
-spin, absolute 1e-5 rad/s for theta_dot), all 1 + 2 n_free solves in one batch with one shared
-DOP853 step sequence at rtol 1e-10, so that the differences are those of one smooth map (they
-converge as the steps shrink). The clean data use rtol 1e-12. crb = sqrt(diag(F^-1)).
-
-Records are cached under ~/.cache/tippejax-bench/ (one .npz per record, keyed by seed, record
-index, VERSION and a hash of this file and of the integrator); nothing there is committed.
-
-`python benchmarks/fitting.py --records` prints the table of records.
+`draw_records(n, seed)` (`--table`, `--coverage`): viscous tops of the groups IIa, IIb, IIc, III
+in turn, clean tilt from `tests/vector_reference.py`, each with the Cramer-Rao bound (CRB) of its
+free parameters; a draw whose bound on mu, eps or spin exceeds `MAX_CRB_REL` of the value, or that
+loses contact before 3 s, is redrawn. `law_record(seed, i, attempt)` (`--laws`): the friction laws
+`LAWS[i % 3]` over the groups, from `tests/real_top_reference.py` (ball on the table, no stem).
+tippejax is used only for `classify` and `thresholds`, each checked against the paper's closed
+forms. The ranges drawn are in `benchmarks/README.md` (`tests/test_vector_reference.py` checks
+them). Records are cached per record under `CACHE_ROOT` (keyed by a hash of this file and of the
+integrators), never in the repository.
 """
 
 from __future__ import annotations
@@ -60,19 +23,17 @@ import time
 
 import numpy as np
 
-HERE = pathlib.Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE.parent / "tests"))
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent))
+import real_top_reference as rr  # noqa: E402
 import vector_reference as vr  # noqa: E402
 
-VERSION = 1
+VERSION, LAW_VERSION = 1, 2
 GROUPS = ("IIa", "IIb", "IIc", "III")
+LAWS = ("viscous", "hertz", "coulomb")  # --laws: record i obeys LAWS[i % 3]
 N1_MAX = 150.0  # rad/s: spins up to 8 n1 = 1200 rad/s
-UPRIGHT_FRACTION = 0.2
-GAP_FRACTION = 1.0 / 3.0
-# Central-difference steps. The solves of one record share one step sequence, so the differences
-# are those of one smooth discrete map and converge as h -> 0 (checked down to 1e-4 of these
-# steps); steps 100x larger (rel 1e-4 mu/eps, 1e-5 spin, abs 1e-3 theta_dot) are NOT small enough
-# on records whose bound is ~1e-5 of the value: record 52 of seed 0 got a bound on mu 8x too small.
+UPRIGHT_FRACTION, GAP_FRACTION = 0.2, 1.0 / 3.0
+# Central differences of solves sharing one step sequence converge as the step shrinks; 100x
+# larger steps are not small enough on records whose bound is ~1e-5 of the value.
 FD_STEPS = {
     "mu": ("rel", 1e-6),
     "eps": ("rel", 1e-6),
@@ -80,16 +41,13 @@ FD_STEPS = {
     "theta_dot": ("abs", 1e-5),
 }
 CUT_ON = ("mu", "eps", "spin")  # max_crb_rel applies to these (theta_dot's bound is reported)
-RTOL_DATA, RTOL_FD = 1e-12, 1e-10
+RTOL_DATA, RTOL_FD, LAW_RTOL = 1e-12, 1e-10, 1e-10
 MAX_CRB_REL = 0.005
+CONTENSOU_SLIP_SCALE = 1e-5
 CACHE_ROOT = pathlib.Path(
     os.environ.get("TIPPEJAX_BENCH_CACHE", pathlib.Path.home() / ".cache" / "tippejax-bench")
 )
-
-
-# ----------------------------------------------------------------------------------------------
-# Groups
-# ----------------------------------------------------------------------------------------------
+_ARRAYS = ("ts", "theta_clean", "theta_obs")
 
 
 def _classify_numpy(a, e):
@@ -147,11 +105,6 @@ def _draw_top(rng, group):
                 raise AssertionError("tj.thresholds(top).n1 disagrees with eq. n1")
             return params, float(n1[i])
     raise RuntimeError(f"no top of group {group} drawn")
-
-
-# ----------------------------------------------------------------------------------------------
-# One record
-# ----------------------------------------------------------------------------------------------
 
 
 def _perturbed(params, launch, name, delta):
@@ -309,95 +262,137 @@ def _draw_one(seed, index, max_crb_rel):
     )
 
 
-# ----------------------------------------------------------------------------------------------
-# Cache
-# ----------------------------------------------------------------------------------------------
-
-_ARRAYS = ("ts", "theta_clean", "theta_obs")
-
-
-def _source_hash():
+def _source_hash(reference) -> str:
     h = hashlib.sha256()
-    for path in (pathlib.Path(__file__), pathlib.Path(vr.__file__)):
+    for path in (pathlib.Path(__file__), pathlib.Path(reference.__file__)):
         h.update(path.read_bytes())
     return h.hexdigest()[:12]
 
 
-def _cache_path(seed, index, max_crb_rel):
-    cut = "all" if max_crb_rel is None else f"crb{max_crb_rel:g}"
-    return (
-        CACHE_ROOT
-        / f"fit_records-v{VERSION}-{_source_hash()}"
-        / f"seed{seed}-{cut}"
-        / f"{index:05d}.npz"
-    )
-
-
 def _save(path, rec):
+    """A record (None: a rejected attempt) as .npz: its arrays and its metadata as JSON."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    meta = {k: v for k, v in rec.items() if k not in _ARRAYS}
-    tmp = path.with_suffix(".tmp.npz")
-    np.savez(tmp, meta=np.array(json.dumps(meta)), **{k: rec[k] for k in _ARRAYS})
+    tmp, arrays = path.with_suffix(".tmp.npz"), {} if rec is None else {k: rec[k] for k in _ARRAYS}
+    meta = None if rec is None else {k: v for k, v in rec.items() if k not in _ARRAYS}
+    np.savez(tmp, meta=np.array(json.dumps(meta)), **arrays)
     os.replace(tmp, path)
 
 
 def _load(path):
     with np.load(path, allow_pickle=False) as f:
         rec = json.loads(str(f["meta"]))
-        for k in _ARRAYS:
-            rec[k] = f[k]
-    rec["free"] = tuple(rec["free"])
-    rec["gap"] = tuple(rec["gap"]) if rec["gap"] is not None else None
+        if rec is not None:
+            rec.update({k: f[k] for k in _ARRAYS})
     return rec
 
 
-def draw_records(
-    n: int,
-    seed: int,
-    *,
-    max_crb_rel: float | None = MAX_CRB_REL,
-    cache: bool = True,
-    verbose: bool = False,
-) -> list[dict]:
-    """Records 0..n-1 of `seed` (see the module docstring); cached per record.
-
-    `max_crb_rel`: a draw whose Cramer-Rao bound on mu, eps or spin exceeds this fraction of the
-    true value is redrawn (default 0.5%: a fit can then be asked to land within 2% = 4 bounds);
-    None keeps every draw (then over half the records hardly constrain mu or eps).
+def draw_records(n: int, seed: int, *, max_crb_rel=MAX_CRB_REL, cache=True, verbose=False):
+    """Records 0..n-1 of `seed`, cached per record; `max_crb_rel` None keeps every draw.
 
     Each record: group, params (m, R, eps, A, C, g, mu), n1, spin_over_n1, launch (theta0, spin,
     theta_dot, phi_dot), upright, ts, theta_clean, theta_obs (noise, gap as NaN), sigma, rate_hz,
-    length_s, gap ((t_start, t_end) or None), free, truth, crb (Cramer-Rao std per free
-    parameter), crb_rel (crb / |truth|), crb_cov (F^-1 as nested lists, order of `free`),
-    crb_corr (its correlation matrix), t_invert (first upward crossing of pi/2 or None),
-    contact_lost, t_contact_loss, min_normal_force.
-    """
+    length_s, gap ((t_start, t_end) or None), free, truth, crb (per free parameter), crb_rel,
+    crb_cov, crb_corr, t_invert, contact_lost, t_contact_loss, min_normal_force."""
     if not (isinstance(n, int) and n >= 0):
         raise ValueError(f"n must be a non-negative int, got {n!r}")
     if not isinstance(seed, int):
         raise ValueError(f"seed must be an int, got {seed!r}")
-    records, warned = [], False
+    cut = "all" if max_crb_rel is None else f"crb{max_crb_rel:g}"
+    folder = CACHE_ROOT / f"fit_records-v{VERSION}-{_source_hash(vr)}" / f"seed{seed}-{cut}"
+    records = []
     for index in range(n):
-        path = _cache_path(seed, index, max_crb_rel)
+        path = folder / f"{index:05d}.npz"
         if cache and path.exists():
-            records.append({**_load(path), "from_cache": True})
-            continue
-        if not warned:
-            warned = True
-            if not vr.HAVE_NUMBA:
-                print(
-                    "fit_records: numba is not installed, so the reference integrator runs "
-                    "as plain Python, about 100x slower (a record can take many minutes); "
-                    '`pip install -e ".[bench]"` installs it',
-                    file=sys.stderr,
-                )
-        t0 = time.perf_counter()
-        rec = _draw_one(seed, index, max_crb_rel)
-        rec["seconds"] = time.perf_counter() - t0
-        if cache:
-            _save(path, rec)
-            rec = _load(path)
+            rec = dict(_load(path), from_cache=True)
+        else:
+            if not (vr.HAVE_NUMBA or records or index):
+                print("fit_records: without numba the reference runs far slower", file=sys.stderr)
+            t0 = time.perf_counter()
+            rec = dict(_draw_one(seed, index, max_crb_rel), seconds=time.perf_counter() - t0)
+            if cache:
+                _save(path, rec)
+                rec = _load(path)
+            if verbose:
+                print(f"  record {index}: {rec['group']}, {rec['seconds']:.2f} s", file=sys.stderr)
+        rec["free"] = tuple(rec["free"])
+        rec["gap"] = tuple(rec["gap"]) if rec["gap"] is not None else None
         records.append(rec)
-        if verbose:
-            print(f"  record {index}: {rec['group']}, {rec['seconds']:.2f} s", file=sys.stderr)
     return records
+
+
+def _draw_law(seed: int, index: int, attempt: int) -> dict | None:
+    """Attempt `attempt` at law record `index`; None if contact is lost before 2 s."""
+    rng = np.random.default_rng([seed, index, attempt, 58])
+    law, group = LAWS[index % len(LAWS)], GROUPS[(index // len(LAWS)) % len(GROUPS)]
+    params, n1 = _draw_top(rng, group)
+    params.pop("mu")
+    friction = dict(law=law)
+    if law == "viscous":
+        friction["mu"] = float(math.exp(rng.uniform(math.log(0.1), math.log(1.5))))
+    else:
+        friction["mu"] = float(rng.uniform(0.15, 0.5))
+    if law == "hertz":
+        friction["patch_radius"] = float(math.exp(rng.uniform(math.log(2e-4), math.log(1e-3))))
+        friction["slip_scale"] = CONTENSOU_SLIP_SCALE
+    if law == "coulomb":
+        friction["slip_scale"] = float(math.exp(rng.uniform(math.log(3e-3), math.log(3e-2))))
+    spin_factor = math.exp(rng.uniform(math.log(1.5), math.log(6.0)))
+    theta0 = float(rng.uniform(0.05, 0.5))
+    rate = float(math.exp(rng.uniform(math.log(30.0), math.log(240.0))))
+    length = float(rng.uniform(2.0, 5.0))
+    sigma = float(math.exp(rng.uniform(math.log(0.005), math.log(0.02))))
+    noise_seed = int(rng.integers(2**31))
+    n = int(math.floor(length * rate))
+    kw = dict(rho=friction.get("patch_radius", 5e-4), delta=friction.get("slip_scale", 1e-6))
+    try:
+        out = rr.solve(
+            params,
+            law,
+            theta0,
+            spin_factor * n1,
+            (n + 0.5) / rate,
+            mu=friction["mu"],
+            stem=False,
+            contact="rigid",
+            dt_sample=1.0 / rate,
+            rtol=LAW_RTOL,
+            **kw,
+        )
+    except RuntimeError as err:
+        print(f"law record {index} attempt {attempt}: {err}", file=sys.stderr)
+        return None
+    t, theta = out["t"], out["theta"]
+    keep = (t > 0.5 / rate) & (t <= n / rate + 1e-9)  # frames 1..n: the first after the launch
+    ts, clean = t[keep], theta[keep]
+    if ts.size < 2 or ts[-1] < 2.0:
+        return None  # contact lost too early
+    obs = clean + sigma * np.random.default_rng(noise_seed).standard_normal(ts.size)
+    return dict(
+        index=index,
+        seed=seed,
+        attempt=attempt,
+        law=law,
+        group=group,
+        params=params,
+        friction=friction,
+        n1=n1,
+        spin_over_n1=spin_factor,
+        launch=dict(theta0=theta0, spin=spin_factor * n1),
+        ts=ts,
+        theta_clean=clean,
+        theta_obs=obs,
+        sigma=sigma,
+        rate_hz=rate,
+        length_s=float(ts[-1]),
+        contact_lost=bool(ts[-1] < (n - 0.5) / rate),
+        t_half=float(out["t_half"]),
+    )
+
+
+def law_record(seed: int, index: int, attempt: int) -> dict | None:
+    """`_draw_law`, cached (a rejected attempt is cached as rejected)."""
+    folder = CACHE_ROOT / f"fit_law_records-v{LAW_VERSION}-{_source_hash(rr)}" / f"seed{seed}"
+    path = folder / f"{index:05d}-{attempt:03d}.npz"
+    if not path.exists():
+        _save(path, _draw_law(seed, index, attempt))
+    return _load(path)
