@@ -91,7 +91,8 @@ def test_summary_mode_is_the_end_of_the_trajectory(top, inverting):
     assert int(summary.num_steps) == int(fine.num_steps)
 
 
-@pytest.mark.parametrize("model", [pytest.param("so3", marks=pytest.mark.slow), "full"])
+@pytest.mark.slow
+@pytest.mark.parametrize("model", ["so3", "full"])
 def test_a_run_without_the_body_vector(top, inverting, model):
     """`body=False` (summary mode's default) drops the 4 body components: psi and the body
     vector are nan, nothing else depends on them, and the motion agrees with the run that
