@@ -179,7 +179,7 @@ def test_bad_input():
 
 
 # --------------------------------------------------------------------------------------------
-# benchmarks/fit_records.py: the records made from this integrator
+# tests/fit_records.py: the records made from this integrator
 # --------------------------------------------------------------------------------------------
 
 
