@@ -35,23 +35,18 @@ def getkey():
     return lambda: next(keys)
 
 
-STRICT_PROMOTION = ("test_models.py", "test_invariants.py", "test_friction.py", "test_state.py")
-"""The test files that run under JAX's strict dtype promotion (`jax.numpy_dtype_promotion`):
-there an implicit promotion (a float32 array meeting a float64 one, an int meeting a float) is
-an error, not a silent widening. The physics (the models, the invariants, the friction laws and
-the states) holds to it; the rest of the suite runs JAX's standard promotion."""
-
 # Implicit rank promotion (an array of shape (3,) broadcast against one of shape (n, 3)) is an
 # error in every test: a batch dimension is added by `vmap` or written out, never guessed.
 jax.config.update("jax_numpy_rank_promotion", "raise")
 
 
 @pytest.fixture(autouse=True)
-def _strict_promotion(request):
-    if request.path.name in STRICT_PROMOTION:
-        with jax.numpy_dtype_promotion("strict"):
-            yield
-    else:
+def _strict_promotion():
+    """Every test runs under JAX's strict dtype promotion (`jax.numpy_dtype_promotion`): an
+    implicit promotion (a float32 array meeting a float64 one, an int meeting a float) is an
+    error, not a silent widening. (A test that starts a process of its own runs that process
+    under JAX's defaults.)"""
+    with jax.numpy_dtype_promotion("strict"):
         yield
 
 

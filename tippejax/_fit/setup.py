@@ -431,7 +431,7 @@ def finish(u, code, data: Data, value, jac_u, sol, cfg: Config):
     n_used = jnp.sum(data.weights > 0) + (jnp.sum(data.phi_weights > 0) if cfg.has_phi else 0)
     p = len(cfg.free)
     rss = jnp.sum(value**2)
-    s2 = rss / jnp.maximum(n_used - p, 1)
+    s2 = rss / jnp.maximum(n_used - p, 1).astype(rss.dtype)
     # J_p = J_u (du/dp); Sigma = s2 (J_p^T J_p)^{-1} = s2 G (J_u^T J_u)^{-1} G^T with G = dp/du.
     jtj = jac_u.T @ jac_u
     scale = 1.0 / jnp.sqrt(jnp.maximum(jnp.diag(jtj), 1e-300))

@@ -117,7 +117,7 @@ def pole_linearisation(top: TippeTop, J, *, north: bool = True) -> Array:
         )
 
     jac = jax.jacfwd(field)(jnp.zeros(6, dtype))
-    return jac[:3, :3] + 1j * jac[3:, :3]
+    return jax.lax.complex(jac[:3, :3], jac[3:, :3])
 
 
 class FullLevelState(eqx.Module):
