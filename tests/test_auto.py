@@ -102,9 +102,12 @@ def test_choose_model():
         choose_model(top, y0, tolerance=-1.0)
 
 
+@pytest.mark.slow
 def test_auto_keeps_its_promise_on_a_new_launch():
     """A launch not among the benchmark's scenes (same regime): auto picks the level the table
-    says, says so, and the run is within the tolerance it asked for of the full model."""
+    says, says so, and the run is within the tolerance it asked for of the full model. Slow: one
+    launch; `test_auto_keeps_its_promise_on_random_launches` holds the promise on seeded random
+    launches."""
     top = tj.default_top()
     y0 = tj.initial_state(top, 0.15, 120.0)
     assert launch_regime(top, y0) == "inverts"

@@ -57,8 +57,11 @@ print(json.dumps(dict(devices=jax.device_count(),
 """
 
 
+@pytest.mark.slow
 def test_sharded_batch_on_four_host_devices():
-    """The same numbers as one device; every device loops over its own members alone."""
+    """The same numbers as one device; every device loops over its own members alone. Slow:
+    every batch test runs sharded over the default run's host devices; this is the four-device
+    route."""
     env = host_devices_env(4)
     out = subprocess.run(
         [sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True, check=True
@@ -70,8 +73,10 @@ def test_sharded_batch_on_four_host_devices():
     assert r["whiles"] > 0 and r["collectives"] == 0
 
 
+@pytest.mark.slow
 def test_bucketed_batch_equals_unbucketed():
-    """buckets > 1 sorts launches by spin into equal-size batches and puts results back."""
+    """buckets > 1 sorts launches by spin into equal-size batches and puts results back. Slow: a
+    second route of the batch against itself."""
     top = tj.default_top()
     thetas, spins = [0.1, 0.4], [90.0, 30.0]  # spins out of order: the sort must be undone
     plain = tj.simulate_batch(top, thetas, spins, 1.0, saveat=TS)
@@ -87,11 +92,13 @@ def test_bucketed_batch_equals_unbucketed():
         )
 
 
+@pytest.mark.slow
 def test_blocks_of_members_equal_single_runs(monkeypatch):
-    """A CPU device's shard runs in blocks of at most PER_MEMBER_BLOCK members (`lax.map`
-    over `vmap`, padded to equal blocks): with blocks of 2, a sweep of 2 tops x 3 spins (the
-    tops' fields split into the blocks with the launches) is every member's single run, the
-    padding cut off."""
+    """A CPU device's shard runs in blocks of at most PER_MEMBER_BLOCK members (`lax.map` over
+    `vmap`, padded to equal blocks): with blocks of 2, a sweep of 2 tops x 3 spins (the tops'
+    fields split into the blocks with the launches) is every member's single run, the padding
+    cut off. Slow: a second route of the batch against single runs
+    (`test_batch_equals_single_runs`)."""
     from tippejax import _batch, _devices
 
     monkeypatch.setattr(_devices, "PER_MEMBER_BLOCK", 2)

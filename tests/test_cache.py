@@ -75,7 +75,9 @@ def test_the_solve_is_stored_and_a_second_process_loads_it(tmp_path):
     assert third == first
 
 
+@pytest.mark.slow
 def test_a_stored_program_that_cannot_be_read_is_traced_again(tmp_path):
+    """Slow: a second process, for a fault the store's reader handles."""
     cache = str(tmp_path / "cache")
     first, _ = _run(SIMULATE, TIPPEJAX_COMPILATION_CACHE=cache)
     for name in os.listdir(cache + "-exports"):

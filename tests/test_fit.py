@@ -186,10 +186,12 @@ def test_phase_check_leaves_a_slipped_cycle_for_the_lower_one(monkeypatch):
     assert bool(checked.converged), checked.message()
 
 
+@pytest.mark.slow
 def test_batched_fit_checks_the_phase_per_recording():
     """Two recordings fitted in one call, one from its truth's cycle and one from a guess two
     nutation cycles off (plain strategy): the phase check refits the second alone, and both
-    end within half a cycle, 2% and 3 standard errors of the truth."""
+    end within half a cycle, 2% and 3 standard errors of the truth. Slow: the test above holds
+    the phase check itself; this is its batched route."""
     spin = 3.0 * float(tj.thresholds(TOP_IIA).n1)
     obs = np.stack([_record(TOP_IIA, TS_FAST, 0.2, spin, seed=s)[0] for s in (4, 5)])
     cycles = float(TOP_IIA.C) * spin / (2 * np.pi * float(TOP_IIA.A)) * (TS_FAST[-1] - TS_FAST[0])
@@ -399,10 +401,14 @@ class _Stop(Exception):
     pass
 
 
+# One compilation for every test on the short problem: the data are an argument, not a constant.
+_value_and_jacobian = jax.jit(problem.value_and_jacobian, static_argnums=2)
+
+
 def test_gradient_of_every_free_parameter_matches_finite_differences(short_problem):
     data, cfg = short_problem
     p = len(cfg.free)
-    value_and_jac = jax.jit(lambda u: problem.value_and_jacobian(u, data, cfg))
+    value_and_jac = lambda u: _value_and_jacobian(u, data, cfg)  # noqa: E731
     u_to_p = jax.jit(
         lambda u: jnp.stack([params.physical(u, data.base, cfg.free)[n] for n in cfg.free])
     )
@@ -459,13 +465,13 @@ def test_pinned_coordinate_has_no_derivative_and_stays_put(short_problem):
     u = jnp.asarray(np.random.default_rng(3).normal(0.0, 0.05, p))
     s = cfg.free.index("spin")
     held = eqx.tree_at(lambda d: d.pinned, data, jnp.zeros(p).at[s].set(1.0))
-    _, jac_free = jax.jit(lambda v: problem.value_and_jacobian(v, data, cfg))(u)
-    r_held, jac_held = jax.jit(lambda v: problem.value_and_jacobian(v, held, cfg))(u)
+    _, jac_free = _value_and_jacobian(u, data, cfg)
+    r_held, jac_held = _value_and_jacobian(u, held, cfg)
     jac_free, jac_held = np.asarray(jac_free), np.asarray(jac_held)
     assert np.abs(jac_free[:, s]).max() > 0
     assert np.all(jac_held[:, s] == 0.0)
     np.testing.assert_allclose(np.delete(jac_held, s, 1), np.delete(jac_free, s, 1), rtol=1e-12)
-    evaluate = jax.jit(lambda v: problem.value_and_jacobian(v, held, cfg))
+    evaluate = lambda v: _value_and_jacobian(v, held, cfg)  # noqa: E731
     u_end, *_ = least_squares(
         lambda v: tuple(np.asarray(x)[None] for x in evaluate(jnp.asarray(v[0]))),
         np.asarray(u)[None],

@@ -538,7 +538,9 @@ def test_coulomb_inversion_time_grows_like_one_over_slip_scale():
     assert times[2] / times[0] > 4.0
 
 
+@pytest.mark.slow
 def test_float32_run_agrees_with_float64(runs):
+    """Slow: the float32 twin of the runs above; `test_laws_in_float32` holds every law in float32."""
     top, ref = runs["hertz", "full"]
     top32 = top.astype(jnp.float32)
     y0 = jax.tree_util.tree_map(

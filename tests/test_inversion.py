@@ -213,7 +213,9 @@ def test_value_against_euler_reference(runs):
     np.testing.assert_allclose(runs["t"], want, rtol=1e-8)
 
 
+@pytest.mark.slow
 def test_vmap_matches_single_run(runs, reverse):
+    """Slow: vmap against a loop (plumbing); the value is checked against the save grid."""
     np.testing.assert_allclose(reverse["value"], runs["t"], rtol=1e-12)
 
 

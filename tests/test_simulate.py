@@ -590,7 +590,9 @@ def _float32_run():
     )
 
 
+@pytest.mark.slow
 def test_float32_with_x64_disabled(full_ref):
+    """Slow: `tests/test_float32.py` runs float32 with x64 off in a process of its own."""
     with jax.enable_x64(False):
         sol = _float32_run()
         assert sol.theta.dtype == jnp.float32

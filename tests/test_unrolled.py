@@ -192,10 +192,12 @@ def test_stages_written_out_give_tippejax_the_stage_loops_results():
     _assert_same_solves(_run("1", "solves"))
 
 
+@pytest.mark.slow
 def test_tippejaxs_stage_loop_gives_diffraxs_results():
     """The CPU default (`StageLoopERK`) against diffrax's own stage loop
     (`TIPPEJAX_UNROLL_STAGES=diffrax`, the independent route): the same events, states and
-    result codes, per member and with shared steps."""
+    result codes, per member and with shared steps. Slow: the step tests above hold
+    `StageLoopERK`'s step to diffrax's in every run; this is the whole-solve route."""
     _assert_same_solves(_run("diffrax", "solves", prepared="Dopri8"))
 
 

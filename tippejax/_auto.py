@@ -4,7 +4,7 @@ The levels it can pick: `"full"`, `"so3"`, `"routhian"` and `"gyroscopic"` (the 
 theta alone; it is only picked for a launch it accepts, i.e. inside its own chart: gyroscopic
 balance holds and the launch's nutation is small enough to project, see `choose_model`).
 
-The numbers in `MEASURED` are copied from `benchmarks/LEVELS.md`, made by
+The numbers in `MEASURED` are copied from `benchmarks/RESULTS.md`, made by
 `python benchmarks/levels.py --groups`: for each group of tops (`classify`) and each regime of
 launch in it, the worst error in theta(t) of each level against the full model over the
 benchmark's scenes of that group and regime, and the median cost (wall time relative to the
@@ -30,7 +30,7 @@ random launches of four groups against them).
 (rad), the same metric for every level. The gyroscopic level drops the nutation, so its error
 on this metric is mostly the nutation amplitude of the full model's motion (0.1-0.3 rad for the
 benchmark's launches with omega = n a, which carry nutation); its slow drift alone (theta
-against the nutation-averaged full model, and t_invert) is far closer (`benchmarks/LEVELS.md`).
+against the nutation-averaged full model, and t_invert) is far closer (`benchmarks/RESULTS.md`).
 Auto therefore uses it only where a caller accepts an error of the size of the nutation (or in
 the stiff regime, where the others err as much); a caller who wants the averaged motion
 cheaply asks for `model="gyroscopic"` directly.
