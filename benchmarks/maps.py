@@ -2,8 +2,8 @@
 two processes, `model="auto"`, adaptive maps against dense ones. Times: compiled calls.
 
     python benchmarks/maps.py --cost
-    python benchmarks/maps.py --adaptive-agreement   # dense 256^2 maps of four tops: an hour
-    python benchmarks/maps.py --adaptive-speed       # dense 512^2 and 1024^2 maps: hours
+    python benchmarks/maps.py --adaptive-agreement   # dense 256^2 maps of four tops: minutes
+    python benchmarks/maps.py --adaptive-speed       # dense 512^2 and 1024^2 maps: a quarter of an hour
     python benchmarks/maps.py --adaptive-speed --sizes 256 --big 1000   # minutes
 """
 
