@@ -1,5 +1,10 @@
 """Internals the tests cross-check, imported from their private modules (not the public API)."""
 
+from tippejax._analysis.branch import (
+    branch_jellet as branch_jellet,
+    intermediate_condition as intermediate_condition,
+    stability_function as stability_function,
+)
 from tippejax._analysis.groups import group_index as group_index
 from tippejax._analysis.potential import (
     effective_potential_d2_closed_form as effective_potential_d2_closed_form,
@@ -13,12 +18,7 @@ from tippejax._analysis.stability import (
     relative_equilibrium as relative_equilibrium,
     vector_field_eigenvalues as vector_field_eigenvalues,
 )
-from tippejax._analysis.steady_states import (
-    branch_jellet as branch_jellet,
-    intermediate_condition as intermediate_condition,
-    pole_threshold as pole_threshold,
-    stability_function as stability_function,
-)
+from tippejax._analysis.steady_states import pole_threshold as pole_threshold
 from tippejax._models.full import full_vector_field as full_vector_field
 from tippejax._models.routhian import (
     RouthianState as RouthianState,

@@ -14,7 +14,7 @@ import pytest  # noqa: E402
 from PIL import Image  # noqa: E402
 
 import tippejax as tj  # noqa: E402
-from tippejax._animate import (  # noqa: E402
+from tippejax._animate.frames import (  # noqa: E402
     STEM_LENGTH,
     _end_reason,
     _valid_count,
@@ -121,7 +121,7 @@ def test_modelled_stem_is_drawn_and_moves_with_the_axis(tmp_path, monkeypatch):
     """A top with a `tj.Stem`: the rod runs along the axis to the tip's centre O + a2 a, the
     tip's outline (an artist of its own) is drawn there at each frame, of radius r2, and the
     centre of mass is at the height the states carry."""
-    import tippejax._animate as animate_module
+    import tippejax._animate.draw as animate_module
 
     top = tj.TippeTop(m=0.006, R=0.015, eps=0.003, A=8e-7, C=7e-7, stem=tj.Stem(0.005, 0.016))
     thetas = np.array([0.3, 1.2, 2.3])

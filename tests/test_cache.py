@@ -96,7 +96,7 @@ def test_cached_call_stores_only_what_another_process_could_reuse(tmp_path, monk
     import jax
     import jax.numpy as jnp
 
-    import tippejax._cache as cache
+    import tippejax._cache.stored as cache
 
     monkeypatch.setattr(cache, "EXPORT_DIR", str(tmp_path))
     monkeypatch.setattr(cache, "_LOADED", {})
@@ -137,7 +137,7 @@ def test_cached_call_compiles_with_the_callers_options(tmp_path, monkeypatch):
     import jax
     import jax.numpy as jnp
 
-    import tippejax._cache as cache
+    import tippejax._cache.stored as cache
     from tippejax._engine.cpu import CPU_COMPILER_OPTIONS
 
     monkeypatch.setattr(cache, "EXPORT_DIR", str(tmp_path))
@@ -215,7 +215,7 @@ def test_options_reach_an_eager_vmap_and_stay_out_of_a_callers_jit(tmp_path, mon
     import jax
     import jax.numpy as jnp
 
-    import tippejax._cache as cache
+    import tippejax._cache.stored as cache
 
     monkeypatch.setattr(cache, "EXPORT_DIR", str(tmp_path))
     monkeypatch.setattr(cache, "_LOADED", {})
@@ -245,7 +245,7 @@ def test_compile_ahead_compiles_on_the_side_and_the_call_uses_it(tmp_path, monke
     import equinox as eqx
     import jax.numpy as jnp
 
-    import tippejax._cache as cache
+    import tippejax._cache.stored as cache
 
     monkeypatch.setattr(cache, "EXPORT_DIR", str(tmp_path))
     monkeypatch.setattr(cache, "_LOADED", {})

@@ -322,7 +322,7 @@ def test_the_watch_reads_the_dense_output_in_normalised_time(top, solver):
     [0, 1] (constant weights) and divides by h: the same as the interpolation on the step's own
     times and its derivative in t (diffrax's interpolations are polynomials in (t - t0)/h with
     coefficients k_i = h f_i)."""
-    from tippejax._engine.segment import FlatField, ravel_state
+    from tippejax._engine.packing import FlatField, ravel_state
     from tippejax._engine.watch import _midpoint
     from tippejax._models.levels import LEVELS
 
@@ -348,7 +348,7 @@ def test_the_watch_reads_the_dense_output_in_normalised_time(top, solver):
 
 
 def test_ravel_state_round_trip_and_leaves():
-    from tippejax._engine.segment import ravel_state
+    from tippejax._engine.packing import ravel_state
     from tippejax._models.so3 import RigidState
 
     y = RigidState(
@@ -393,7 +393,7 @@ def test_one_top_is_packed_in_one_vector_and_a_batch_in_narrow_ones(top):
     model's end state and inversion time of one top are the same either way (the same
     arithmetic, to rounding; the derivatives in both modes are checked against each other and
     against finite differences in `test_grad.py`)."""
-    from tippejax._engine.segment import (
+    from tippejax._engine.packing import (
         FORWARD_MODE_PACK_WIDTH,
         ONE_TOP_PACK_WIDTH,
         PACK_WIDTH,

@@ -11,8 +11,8 @@ from helpers import host_devices_env
 
 import tippejax as tj
 from tippejax._auto import choose_model
-from tippejax._map_stages import staged_outcomes
 from tippejax._maps.auto import auto_models
+from tippejax._maps.stages import staged_outcomes
 from tippejax._models.levels import LEVELS
 from tippejax._outcome import INTERMEDIATE, INVERTED, UPRIGHT
 
@@ -314,7 +314,7 @@ def test_map_of_a_batch_of_tops_is_refused_clearly(tops):
 @pytest.fixture(scope="module")
 def auto_map():
     """The grid of `standard_map` with `model="auto"`: staged, see
-    `tippejax/_map_stages.py`."""
+    `tippejax/_maps/stages.py`."""
     return tj.outcome_map(tj.default_top(), THETA0, SPIN, t1=T1, model="auto")
 
 

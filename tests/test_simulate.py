@@ -363,7 +363,7 @@ def test_contact_loss_too_brief_for_the_watch_is_reported(monkeypatch):
     so it is blinded here to the ends of each step (`event_pieces=7` only keys this program,
     kept out of the store of traced programs): Dopri8's long steps at rtol 1e-5 then go over
     the dip, which the 1.3 ms save grid sees."""
-    from tippejax import _cache
+    from tippejax._cache import stored as _cache
     from tippejax._engine import bernstein as watch
 
     monkeypatch.setattr(_cache, "EXPORT_DIR", None)

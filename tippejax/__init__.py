@@ -6,7 +6,7 @@ float32, set the environment variable `TIPPEJAX_ENABLE_X64=0` before the import.
 Importing tippejax also turns on JAX's persistent compilation cache in a user cache directory
 (`$XDG_CACHE_HOME/tippejax/jax`, default `~/.cache/tippejax/jax`), so a new process does not
 compile again; `TIPPEJAX_COMPILATION_CACHE=0` turns it off, and a cache directory the user
-configured is kept (`tippejax/_cache.py`).
+configured is kept (`tippejax/_cache/`).
 
 The public API is this flat namespace. Internals (vector fields, the Routhian plumbing, the
 linear-stability cross-checks, the engine) stay importable from their private modules.

@@ -16,7 +16,7 @@ from jaxtyping import ArrayLike
 from ._cache import cacheable
 from ._devices import cpu_block, run_in_blocks, shard_over, shared_block
 from ._engine.cpu import CpuProgram
-from ._engine.segment import top_axes
+from ._engine.shared import top_axes
 from ._engine.solver_choice import default_solver, is_traced
 from ._models.levels import LEVELS
 from ._plausibility import warn_if_implausible_spin

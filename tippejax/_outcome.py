@@ -6,8 +6,8 @@ import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
+from ._analysis.branch import branch_pieces, find_branch_root
 from ._analysis.potential import effective_potential_d2_closed_form
-from ._analysis.steady_states import branch_pieces, find_branch_root
 from ._solution import OUTCOMES, RESULTS
 from ._top import TippeTop
 

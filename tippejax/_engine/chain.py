@@ -16,7 +16,8 @@ from .._invariants import normal_force, normal_force_denominator
 from .._models.base import AbstractLevel
 from .._solution import RESULTS
 from .._state import State, state_from_euler
-from .segment import run_segment, run_segment_shared, top_axes
+from .segment import run_segment
+from .shared import run_segment_shared, top_axes
 
 
 def level_chain(level: AbstractLevel) -> tuple[AbstractLevel, ...]:

@@ -244,7 +244,7 @@ class Setup:
         key = (id(data), u.shape, u.tobytes())
         if key in self._evaluations:  # (the optimiser's last accepted point, then `finish`)
             return self._evaluations[key][1]
-        # (the fit's programs go to the persistent cache too, `_cache.py`)
+        # (the fit's programs go to the persistent cache too, `_cache/`)
         out = _own_call(
             _run_evaluate, to_device(u), data, cfg=self.cfg, batched=self.batched, mesh=self.mesh
         )

@@ -11,12 +11,12 @@ from .._analysis.potential import effective_potential_d2_closed_form
 from .._auto import choose_model
 from .._engine.solver_choice import default_solver
 from .._invariants import jellet
-from .._map_stages import staged_outcomes
 from .._models.levels import LEVELS
 from .._outcome import classify_end
 from .._solution import RESULTS
 from .._state import euler_angles, initial_state
 from .._top import TippeTop
+from .stages import staged_outcomes
 
 
 def auto_models(top: TippeTop, flat_theta, flat_spin, tolerance) -> tuple[list[str], np.ndarray]:
@@ -58,7 +58,7 @@ def _classify_all(top, J, theta_final, result, settle_tol):
 def staged_map(
     top: TippeTop, flat_theta, flat_spin, t1, *, rtol, atol, solver, max_steps, settle_tol, devices
 ):
-    """`outcome_map(model="auto")` with `tolerance=None`: the stages of `_map_stages`.
+    """`outcome_map(model="auto")` with `tolerance=None`: the stages of `stages.py`.
 
     **Returns:** `(fields, routes, index)`: the per-launch fields of an `OutcomeMap`, the
     distinct routes (levels in the order they ran) and each launch's index into them."""

@@ -47,7 +47,7 @@ class OutcomeMap(eqx.Module):
     - `model_index`: index into `models`, the level each launch was simulated with; for the
       staged maps of `model="auto"` the route, e.g. `"full->gyroscopic"` (the levels in the
       order they ran; a `"full"` after `"gyroscopic"` is the full model run again from where
-      the run last left it, see `tippejax/_map_stages.py`).
+      the run last left it, see `tippejax/_maps/stages.py`).
     - `simulated`: whether each launch was simulated (all of them in a dense map).
     - `resolved`: False where an adaptive map stopped refining because the boundary did not
       become simpler (see `unresolved`); those launches take the nearest simulated one's

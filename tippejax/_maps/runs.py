@@ -15,7 +15,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from .._devices import cpu_block, gather, run_in_blocks, shard_over
 from .._engine.chain import run_chain
 from .._engine.cpu import CpuProgram
-from .._engine.segment import PACK_WIDTH
+from .._engine.packing import PACK_WIDTH
 from .._engine.watch import EVENT_PIECES
 from .._invariants import jellet
 from .._models.levels import LEVELS

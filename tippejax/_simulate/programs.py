@@ -12,7 +12,7 @@ import jax.numpy as jnp
 from .._cache import cached_call
 from .._engine.chain import run_chain
 from .._engine.cpu import own_compiler_options
-from .._engine.segment import FORWARD_MODE_PACK_WIDTH, PACK_WIDTH
+from .._engine.packing import FORWARD_MODE_PACK_WIDTH, PACK_WIDTH
 from .._engine.sensitivity import ForwardSensitivities, forward_sensitivities, jacobian_of
 from .._engine.solver_choice import IMPLICIT_RATE, friction_rate
 from .._invariants import energy, jellet, normal_force, slip_velocity

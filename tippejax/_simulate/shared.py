@@ -10,7 +10,8 @@ import jax
 import jax.numpy as jnp
 
 from .._engine.chain import run_chain
-from .._engine.segment import SHARED_PACK_WIDTH, top_axes
+from .._engine.packing import SHARED_PACK_WIDTH
+from .._engine.shared import top_axes
 from .._engine.solver_choice import default_solver
 from .._engine.watch import EVENT_PIECES
 from .._models.levels import LEVELS

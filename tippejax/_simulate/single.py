@@ -15,7 +15,7 @@ from .._auto import choose_model
 from .._cache import cacheable, cached_call, calling_context
 from .._engine.chain import level_chain
 from .._engine.cpu import own_compiler_options
-from .._engine.segment import pack_width_for
+from .._engine.packing import pack_width_for
 from .._engine.sensitivity import ForwardSensitivities
 from .._engine.solver_choice import (
     IMPLICIT_RATE,

@@ -54,6 +54,6 @@ from .settle import (
 )
 from .state import GyroscopicLevelState as GyroscopicLevelState
 
-# the names `_map_stages.py`, tests and benchmarks import
+# the names `_maps/slow_entry.py`, tests and benchmarks import
 _projection = linear_projection
 _linear_state = linear_state

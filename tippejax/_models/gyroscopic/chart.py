@@ -88,7 +88,7 @@ def entry_margin(
     `decay_min`, $\ln$ `nutation_max` $- \ln a$, $\ln$(`contact_max` $g) -
     \ln(\epsilon\sin\theta\,a\nu^2))$ (see `contact_margin` of `GyroscopicLevel`). Positive:
     the level may take over a run of the full model there (`outcome_map(model="auto")`,
-    `tippejax/_map_stages.py`). The margins above those at which the level hands over
+    `tippejax/_maps/stages.py`). The margins above those at which the level hands over
     (`BALANCE_MARGIN`, `HAND_OVER_MARGIN`) keep a run from handing back and forth."""
     theta = jnp.asarray(theta, dtype=jnp.result_type(theta, top.m))
     x, s = jnp.cos(theta), jnp.sin(theta)

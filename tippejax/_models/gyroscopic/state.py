@@ -20,7 +20,7 @@ class GyroscopicLevelState(eqx.Module):
     orientation, and `nutation` $= \ln a$ from $\sigma$ to watch the nutation that is dropped;
     none of them feeds back. $J$ is constant. `nutation_rate` (None by default): a constant
     $\dot{\ln a}$ that replaces $\sigma$, for a run whose nutation is not the SO(3) model's (the
-    full model's rolling mode, `tippejax/_map_stages.py`).
+    full model's rolling mode, `tippejax/_maps/slow_entry.py`).
     """
 
     log_tan_half_theta: Float[Array, ""]

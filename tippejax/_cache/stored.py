@@ -1,44 +1,4 @@
-"""The persistent compilation cache: a new process reuses the XLA programs of earlier ones.
-
-Importing tippejax points JAX's persistent compilation cache (`jax_compilation_cache_dir`) at a
-user cache directory, `$XDG_CACHE_HOME/tippejax/jax` (`~/.cache/tippejax/jax` by default), so
-that `simulate`, `grad` and `fit` compile once per machine and version rather than once per
-process. It does nothing when:
-
-- the environment variable `TIPPEJAX_COMPILATION_CACHE` is `0` (or `false`, `no`, `off`): the
-  one opt-out;
-- the user configured a cache already (`JAX_COMPILATION_CACHE_DIR`, or
-  `jax.config.update("jax_compilation_cache_dir", ...)` before importing tippejax): theirs is
-  kept;
-- the directory cannot be created (read-only home): no cache, no error.
-
-`TIPPEJAX_COMPILATION_CACHE` may also name a directory, used instead of the default. Every
-program is stored, however quick to compile, unless the user set
-`JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS` (JAX's default, 1 s, leaves out the many small
-programs a first call also compiles: about 1 s of a warm first `simulate`). The cache saves
-XLA compilation only: each process still traces the Python functions again (a few seconds
-for a first `simulate`; the gradients suite's first-call mode measures it).
-
-JAX does not store programs with host callbacks, which every `eqx.error_if` is; see
-`cacheable` for how the solve is kept free of them. Programs that span several CPU devices (a
-batch sharded over the cores) are kept out of the cache: loading them crashed processes
-(`guard_multi_device_programs`).
-
-**Traced programs too.** The XLA cache does not spare a new process the tracing of the Python
-functions (diffrax's loop, the events, the fit's optimiser), seconds for a first `simulate`
-and more for a first `fit`. `cached_call` keeps the traced programs as well: the first call with a
-configuration exports the jitted function (`jax.export`) and stores the serialized program
-beside the XLA cache (`<cache>-exports`); a later process deserializes it and runs it, compiled
-from the XLA cache, without tracing. The entry's key holds everything the trace depended on:
-the static options' repr, the arguments' tree, shapes and dtypes, the platform (and whether the
-stages are written out, `TIPPEJAX_UNROLL_STAGES`), the versions of
-jax, jaxlib, equinox, diffrax, optimistix, lineax and optax, and a hash of tippejax's own
-source. Anything unusual falls back to the plain jitted call: traced arguments (under `jit`,
-`vmap` or `grad`), a static option whose repr is not stable (one that prints a memory address),
-arguments on several devices, the cache off, or any error while exporting or loading (set
-`TIPPEJAX_EXPORT_DEBUG=1` to print why a program was not stored). Entries of older versions
-are never read again; the directory may be deleted at any time.
-"""
+"""The on-disk store of traced programs (`jax.export`): a new process runs them without tracing."""
 
 from __future__ import annotations
 
@@ -57,131 +17,20 @@ import threading
 import jax
 import numpy as np
 
-from ._engine.unrolled import UNROLL_STAGES, unroll_stages
-
-_OFF = ("0", "false", "no", "off")
-MIN_COMPILE_TIME_SECS = 0.0
-
-
-def default_cache_dir() -> str:
-    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return os.path.join(base, "tippejax", "jax")
-
-
-def enable_compilation_cache() -> str | None:
-    """Turn the persistent cache on (see the module docstring); returns the directory used."""
-    setting = os.environ.get("TIPPEJAX_COMPILATION_CACHE", "1").strip()
-    if setting.lower() in _OFF:
-        return None
-    if jax.config.jax_compilation_cache_dir:  # the user's own choice wins
-        return None
-    path = setting if setting.lower() not in ("1", "true", "yes", "on", "") else default_cache_dir()
-    try:
-        os.makedirs(path, exist_ok=True)
-    except OSError:
-        return None
-    jax.config.update("jax_compilation_cache_dir", path)
-    if "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS" not in os.environ:
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_TIME_SECS)
-    return path
-
-
-@contextlib.contextmanager
-def cacheable():
-    """Trace the enclosed jitted calls without equinox's runtime checks, so that the compiled
-    program can be stored in the persistent cache.
-
-    JAX does not store a program that holds a host callback, and every `eqx.error_if` is one.
-    The checks traced inside tippejax's solves are the libraries' own: diffrax checks that the
-    save times are ordered and within [t0, t1], optimistix that a bisection's bracket holds a
-    root. tippejax checks the save times itself before the solve (in Python when they are
-    concrete), and its root finds are bracketed by construction; failures of the solve are
-    reported through `RESULTS`, not through `error_if`. So while a cache directory is set these
-    library checks are compiled out of the solve (only of the solve: the checks of the inputs,
-    `TippeTop` and `initial_state`, stay). With the cache off (`TIPPEJAX_COMPILATION_CACHE=0`)
-    or with `EQX_ON_ERROR` set by the user, nothing changes.
-    """
-    import equinox._errors as errors
-
-    if not jax.config.jax_compilation_cache_dir or "EQX_ON_ERROR" in os.environ:
-        yield
-        return
-    old = errors.EQX_ON_ERROR
-    errors.EQX_ON_ERROR = "off"
-    try:
-        yield
-    finally:
-        errors.EQX_ON_ERROR = old
-
-
-def _spans_cpu_devices(backend, devices) -> bool:
-    try:
-        return backend.platform == "cpu" and len(devices) > 1
-    except Exception:  # pragma: no cover - another jaxlib's objects
-        return False
-
-
-def guard_multi_device_programs() -> bool:
-    """Keep XLA:CPU programs that span several devices out of JAX's persistent cache: they
-    are neither read from it nor written to it, and compile in every process.
-
-    Loading such a program from the cache crashed some new processes (SIGABRT, no message;
-    jax 0.10, 2 host devices, a sharded `simulate_batch`), while the same program compiled
-    afresh, one-device programs loaded from the cache and a plain diffrax batch sharded the
-    same way never did. The programs of one device (every `simulate`, `grad` and `fit` of one record) are
-    still cached. JAX has no public switch per program, so this wraps its private
-    `compiler._cache_read` and `_cache_write`; where they are not found (another jax) nothing
-    is changed.
-
-    **Returns:** whether the guard is in place.
-    """
-    try:
-        from jax._src import compiler
-    except ImportError:  # pragma: no cover
-        return False
-    read = getattr(compiler, "_cache_read", None)
-    write = getattr(compiler, "_cache_write", None)
-    if read is None or write is None:  # pragma: no cover - another jax
-        return False
-    if getattr(read, "_tippejax_guard", False):
-        return True
-
-    def guarded_read(
-        module_name, cache_key, compile_options, backend, executable_devices, *args, **kwargs
-    ):
-        if _spans_cpu_devices(backend, executable_devices):
-            return None, None
-        return read(
-            module_name, cache_key, compile_options, backend, executable_devices, *args, **kwargs
-        )
-
-    def guarded_write(
-        cache_key, compile_time_secs, module_name, backend, executable, *args, **kwargs
-    ):
-        devices = getattr(executable, "local_devices", lambda: ())()
-        if _spans_cpu_devices(backend, devices):
-            return None
-        return write(
-            cache_key, compile_time_secs, module_name, backend, executable, *args, **kwargs
-        )
-
-    guarded_read._tippejax_guard = True
-    compiler._cache_read, compiler._cache_write = guarded_read, guarded_write
-    return True
-
-
-CACHE_DIR = enable_compilation_cache()
-"""The directory this process caches in (None: off, or a directory the user configured)."""
-
-MULTI_DEVICE_GUARD = guard_multi_device_programs()
-"""Whether programs over several CPU devices bypass the persistent cache (see
-`guard_multi_device_programs`)."""
+from .._engine.unrolled import UNROLL_STAGES, unroll_stages
+from .context import calling_context
+from .persistent import CACHE_DIR
 
 EXPORT_DIR = None if CACHE_DIR is None else CACHE_DIR.rstrip(os.sep) + "-exports"
 """Where `cached_call` keeps traced programs (None: off, with the persistent cache)."""
 
+
 _LOADED: dict[str, tuple] = {}  # key -> (jitted call of the exported program, output tree)
+
+
 _LOCKS: dict[str, threading.Lock] = {}  # key -> held while the program is loaded or traced
+
+
 _PACKAGES = ("jax", "jaxlib", "equinox", "diffrax", "optimistix", "lineax", "optax")
 
 
@@ -214,7 +63,7 @@ def _versions() -> str:
         except importlib.metadata.PackageNotFoundError:  # pragma: no cover
             parts.append(f"{name}=?")
     source = hashlib.sha256()
-    root = pathlib.Path(__file__).resolve().parent
+    root = pathlib.Path(__file__).resolve().parents[1]  # (the package, not this folder)
     for path in sorted(root.rglob("*.py")):
         source.update(str(path.relative_to(root)).encode())
         source.update(path.read_bytes())
@@ -311,51 +160,6 @@ def to_device(x, dtype=None) -> jax.Array:
     dtype, each a compilation in a new process (warm cache or not), and a fit makes dozens."""
     x = np.asarray(x, dtype)
     return jax.device_put(x.astype(jax.dtypes.canonicalize_dtype(x.dtype), copy=False))
-
-
-def _trace_classes():
-    """JAX's private trace context and the trace classes `calling_context` tells apart, or
-    None where they are not found (another JAX)."""
-    try:
-        from jax._src import core
-        from jax._src.interpreters.batching import BatchTrace
-        from jax._src.interpreters.partial_eval import DynamicJaxprTrace
-
-        core.trace_ctx.trace  # noqa: B018 (present in this JAX)
-    except (ImportError, AttributeError):  # pragma: no cover - another jax
-        return None
-    return core.trace_ctx, BatchTrace, DynamicJaxprTrace
-
-
-_TRACES = _trace_classes()
-
-
-def calling_context() -> str:
-    """Where a jitted function is being called, as JAX sees it:
-
-    - `"staged"`: inside a program being traced (a caller's `jit`, or a loop's body). The
-      call becomes part of that program: JAX refuses compile options on it (even when every
-      input is a concrete array), and there is nothing of its own to store.
-    - `"vmap"`: under eager `jax.vmap`s only. JAX batches the jitted function and runs the
-      batched one as a top-level program, with its compile options.
-    - `"eager"`: otherwise (no transformation, or an eager `jax.grad`, `jax.jvp` or
-      `jax.jacfwd`, whose derivative rules call with concrete inputs). A call with concrete
-      inputs runs as a top-level program.
-
-    Reads JAX's private trace context (`jax._src.core.trace_ctx`); `"staged"` where that is
-    not found (another JAX), which costs only the options and the store."""
-    if _TRACES is None:  # pragma: no cover - another jax
-        return "staged"
-    context, batch_trace, staging_trace = _TRACES
-    trace, batched = context.trace, True
-    while getattr(trace, "parent_trace", None) is not None:  # (the innermost first)
-        if isinstance(trace, staging_trace):
-            return "staged"
-        batched = batched and isinstance(trace, batch_trace)
-        trace = trace.parent_trace
-    if isinstance(trace, staging_trace):
-        return "staged"
-    return "vmap" if batched and trace is not context.trace else "eager"
 
 
 _WITH_OPTIONS: dict = {}  # (jitted function, options) -> the same function jitted with them
