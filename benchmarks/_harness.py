@@ -211,7 +211,8 @@ def figure_path(name: str, args) -> pathlib.Path:
 
 
 def command(args) -> str:
-    return "python benchmarks/" + " ".join([pathlib.Path(sys.argv[0]).name, *sys.argv[1:]])
+    """The command as the file's head reads it: `python benchmarks/<command>`."""
+    return " ".join([pathlib.Path(sys.argv[0]).name, *sys.argv[1:]])
 
 
 def write(key: str, title: str, body: str, args, header: str | None = None) -> None:

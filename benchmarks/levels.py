@@ -33,7 +33,7 @@ TOLERANCES = (0.05, 0.1, 0.3)
 
 # --- past the public API, in this one place ------------------------------------------------
 # The table auto reads is built with auto's own rules (a launch's regime, whether a level accepts
-# it, the cheapest level), and `--gyro` / `--spun` judge the gyroscopic slow flow alone (no
+# it, the cheapest level), and `--spun` judges the gyroscopic slow flow alone (no
 # hand-over, launched on its slow manifold): `tj.simulate(model="gyroscopic")` offers neither.
 
 
@@ -56,14 +56,6 @@ def slow_flow_t_invert(top, y0, t1=20.0):
     kw = dict(max_steps=100_000, throw=False, stepsize_controller=controller, event=event)
     sol = diffrax.diffeqsolve(term, diffrax.Dopri5(), 0.0, t1, None, y, top, **kw)
     return float(sol.ts[-1]) if bool(sol.event_mask) else np.nan
-
-
-def on_slow_manifold(top, theta, jellet):
-    """The state on the gyroscopic slow manifold at `theta` for the Jellet J (no nutation)."""
-    from tippejax._models.gyroscopic import GyroscopicLevel, GyroscopicLevelState
-
-    y = GyroscopicLevelState.from_theta(jnp.asarray(theta), 0.0, 0.0, jnp.log(1e-12), jellet)
-    return GyroscopicLevel().to_state(top, y)
 
 
 # --- one scene in every level --------------------------------------------------------------
@@ -141,35 +133,37 @@ def fmt(x, spec=".3g"):
     return "inf" if x == INF else format(x, spec)
 
 
-def python_block(name, table_, nested):
-    def py(x, spec):
-        return 'float("inf")' if x == INF else format(x, spec)
-
-    def regimes(m, indent):
-        return [
-            f'{indent}"{reg}": {{'
-            + ", ".join(
-                f'"{lv}": ({py(e, ".3g")}, {py(c, ".2f")})' for lv, (e, c) in m[reg].items()
-            )
-            + "},"
-            for reg in m
+def measured_block(name, table_, nested):
+    """The table `name` (`tippejax/_auto.py` copies it): a row per (group,) regime, a cell per
+    level, worst error / highest cost; `read_block` and `tests/test_auto.py` read it back."""
+    groups = table_.items() if nested else [(None, table_)]
+    rows = [
+        [
+            *([g] if nested else []),
+            reg,
+            *(f"{fmt(m[reg][lv][0])} / {fmt(m[reg][lv][1], '.2f')}" for lv in LEVELS),
         ]
-
-    lines = ["```python", f"{name} = {{"]
-    if nested:
-        for group, m in table_.items():
-            lines += [f'    "{group}": {{', *regimes(m, " " * 8), "    },"]
-    else:
-        lines += regimes(table_, " " * 4)
-    return "\n".join(lines + ["}", "```"])
+        for g, m in groups
+        for reg in m
+    ]
+    head = [*(["group"] if nested else []), "regime", *LEVELS]
+    return f"`{name}`, worst error (rad) / highest cost per level:\n\n{h.table(head, rows)}"
 
 
 def read_block(name):
     text = h.RESULTS.read_text()
-    block = re.search(rf"```python\n({name} = \{{.*?\n\}})\n```", text, re.S).group(1)
-    namespace = {}
-    exec(block, namespace)
-    return namespace[name]
+    lines = re.search(rf"^`{name}`.*\n\n((?:\|.*\n?)+)", text, re.M).group(1).splitlines()
+    head = [c.strip() for c in lines[0].strip("|").split("|")]
+    out = {}
+    for line in lines[2:]:
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        key = cells[: head.index("regime") + 1]
+        at = out.setdefault(key[0], {}) if len(key) > 1 else out
+        at[key[-1]] = {
+            lv: tuple(float(x) for x in c.split(" / "))
+            for lv, c in zip(head[len(key) :], cells[len(key) :])
+        }
+    return out
 
 
 # --- modes ---------------------------------------------------------------------------------
@@ -230,7 +224,7 @@ def scenes_mode(args):
 
 {h.table("scene | regime | t_invert full (s) | so3 err / dt / cost | routhian cost | gyro err / dt / cost | gyro ran", body)}
 
-{python_block("MEASURED_IIB_SCENES", measured, nested=False)}
+{measured_block("MEASURED_IIB_SCENES", measured, nested=False)}
 """,
         args,
     )
@@ -295,57 +289,7 @@ def groups_mode(args):
         f"""
 {len(rows)} launches, {0.5 if args.smoke else 8:g} s; IIb merged with `--scenes`. Auto picks, for a launch the gyroscopic level accepts / does not: {text}.
 
-{python_block("MEASURED", measured, nested=True)}
-""",
-        args,
-    )
-
-
-def gyro_mode(args):
-    """The gyroscopic level against SO(3) and the full model over the spin and mu, and its
-    speed against the full model over a 20 s run."""
-
-    def dt(top, y0, t1=10.0):
-        ts = jnp.linspace(0.0, t1, 2001)
-        ti = {
-            m: float(runner(m)(top, y0, jnp.asarray(t1), ts).t_invert)
-            for m in ("gyroscopic", "so3", "full")
-        }
-        return ti["gyroscopic"] - ti["so3"], ti["gyroscopic"] - ti["full"], ti["so3"] - ti["full"]
-
-    top, rows, errs = tj.default_top(), [], {"omega = n a": [], "on manifold": []}
-    spins_ = (100.0, 140.0) if args.smoke else (60.0, 80.0, 100.0, 140.0, 200.0)
-    for n0 in spins_:
-        y0 = tj.initial_state(top, 0.1, n0)
-        (a, b, c), (d, e, _) = dt(top, y0), dt(top, on_slow_manifold(top, 0.1, tj.jellet(top, y0)))
-        rows.append(f"n0 = {n0:g} | {a:+.1e} / {b:+.1e} | {d:+.1e} / {e:+.1e} | {c:+.1e}")
-        errs["omega = n a"].append(abs(a))
-        errs["on manifold"].append(abs(d))
-    for mu in (1.0,) if args.smoke else (0.1, 0.3, 1.0, 3.0):
-        t = top.replace(mu=mu)
-        a, b, c = dt(t, tj.initial_state(t, 0.1, 100.0), max(10.0, 3.4 / mu))
-        rows.append(f"mu = {mu:g} (n0 100) | {a:+.1e} / {b:+.1e} | | {c:+.1e}")
-    rates = ", ".join(f"{k} n0^{rate(spins_, v):+.2f}" for k, v in errs.items())
-    fns, y0 = {}, tj.initial_state(top, 0.1, 100.0)
-    for m in ("gyroscopic", "full"):
-        run = eqx.filter_jit(
-            lambda y0, t1, m=m: (
-                tj.simulate(top, y0, t1, model=m, summary=True, throw=False).num_steps
-            )
-        )
-        for t1 in (20.0, 0.01):
-            fns[(m, t1)] = functools.partial(run, y0, jnp.asarray(t1))
-    tm = {k: (t.wall, int(n)) for k, (t, n) in h.interleaved(fns, 1 if args.smoke else 7).items()}
-    (g, ng), (f, nf) = tm[("gyroscopic", 20.0)], tm[("full", 20.0)]
-    h.write(
-        "levels.py --gyro",
-        "The gyroscopic level against SO(3) and the full model",
-        f"""
-dt_inv (s), launches omega = n a and on the slow manifold for the same Jellet:
-
-{h.table("scene | omega = n a: gyro - so3 / gyro - full | on manifold: gyro - so3 / gyro - full | so3 - full", rows)}
-
-Fitted |gyro - so3| against the spin: {rates}. Speed, 20 s summary run (n0 100), {1 if args.smoke else 7} interleaved runs: full {1e3 * f:.2f} ms ({nf} steps), gyroscopic {1e3 * g:.3f} ms ({ng} steps): **{f / g:.0f}x**; a 0.01 s run {1e3 * tm[("gyroscopic", 0.01)][0]:.2f} ms against {1e3 * tm[("full", 0.01)][0]:.2f} ms.
+{measured_block("MEASURED", measured, nested=True)}
 """,
         args,
     )
@@ -560,7 +504,6 @@ Eager against `jax.jit` (standard top, n0 100; target at most 1.5x):
 MODES = {
     "scenes": (scenes_mode, "scenes of the standard top; the IIb table"),
     "groups": (groups_mode, "a grid of launches in every group; the MEASURED table"),
-    "gyro": (gyro_mode, "the gyroscopic level over the spin and mu; its speed"),
     "spun": (spun_mode, "omega = n a launches: the launch projection"),
     "wp": (wp_mode, "work-precision per group; gyroscopic_work_precision.png"),
     "cost": (cost_mode, "the gyroscopic level's cost and hand-over per group and spin"),

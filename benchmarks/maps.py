@@ -243,40 +243,6 @@ Targets: >= 99% agreement, 0 missed contact losses, >= 20x launches/s.
     )
 
 
-def auto_random(args):
-    """The auto map against the full map on seeded random tops nobody tuned on."""
-    rng, rows = np.random.default_rng(0), []
-    k, shape = (1, (3, 4)) if args.smoke else (args.tops, (12, 16))
-    for _ in range(k):
-        top, a_c, e_r, mu, n_ref = h.random_top(rng)
-        theta0, spin = (
-            np.sort(rng.uniform(0.02, 1.5, shape[0])),
-            np.sort(rng.uniform(0.5, 8.0, shape[1])) * n_ref,
-        )
-        (full, tf), (am, ta) = (
-            second_call(
-                lambda m=m: tj.outcome_map(
-                    top, theta0, spin, t1=2.0 if args.smoke else args.t1, model=m
-                )
-            )
-            for m in ("full", "auto")
-        )
-        c = compare(full, am)
-        rows.append(
-            f"{tj.classify(top)} | {a_c:.2f} | {e_r:.2f} | {mu:.2f} | {spin[0]:.0f}-{spin[-1]:.0f} | {100 * c['agree']:.1f}% | {c['missed']} of {c['losses']} | {c['extra']} | {tf / ta:.2f}x"
-        )
-    h.write(
-        "maps.py --auto-random",
-        '`model="auto"` on random tops',
-        f"""
-{k} seeded random tops, each on a random {shape[0]} x {shape[1]} grid, t1 = {args.t1:g} s; one call each (a rough speed).
-
-{h.table(["group", "A/C", "eps/R", "mu", "spins (rad/s)", "agreement", "missed losses", "extra losses", "speed"], rows)}
-""",
-        args,
-    )
-
-
 # --- adaptive maps ---------------------------------------------------------------------------
 
 ADAPTIVE_TOPS = {
@@ -362,9 +328,8 @@ def adaptive_agreement(args):
             lambda top=top, axes=axes: tj.outcome_map(top, **axes, t1=t1, refine=k)
         )
         c = agreement(dense, adaptive)
-        outcomes = ", ".join(f"{name} {v}" for name, v in dense.counts().items() if v)
         rows.append(
-            f"{group} ({ratios[0]}, {ratios[1]}) | {n} x {n} | {theta[0]:.2f}-{theta[1]:.2f} | {spin[0]:.0f}-{spin[1]:.0f} | {outcomes} | "
+            f"{group} ({ratios[0]}, {ratios[1]}) | {n} x {n} | {theta[0]:.2f}-{theta[1]:.2f} | {spin[0]:.0f}-{spin[1]:.0f} | "
             f"{100 * c['agree']:.3f}% ({c['differ']}) | {c['worst']} | {100 * c['share']:.2f}% | {c['steps']:.3f} | {t_adapt / t_dense:.3f}"
         )
         notes.append(
@@ -378,7 +343,7 @@ def adaptive_agreement(args):
         f"""
 refine = {k}, t1 = {t1:g} s; worst distance: cells from a disagreement to the nearest launch of another outcome in the dense map; steps and wall: adaptive over dense.
 
-{h.table(["top", "grid", "theta0 (rad)", "spin (rad/s)", "dense outcomes", "agreement (cells differing)", "worst distance", "simulated", "steps", "wall"], rows)}
+{h.table(["top", "grid", "theta0 (rad)", "spin (rad/s)", "agreement (cells differing)", "worst distance", "simulated", "steps", "wall"], rows)}
 
 Boundaries of the adaptive maps (cells: map cells holding both outcomes; D: box-counting dimension; distance in cells (median, max) from the linear theory's curve):
 
@@ -465,7 +430,6 @@ def options(prs):
     prs.add_argument("--n-spin", type=int, default=32)
     prs.add_argument("--t1", type=float, default=20.0)
     prs.add_argument("--launches", type=int, default=100_000, help="--scale")
-    prs.add_argument("--tops", type=int, default=12, help="--auto-random")
     prs.add_argument("--resolution", type=int, default=256, help="--adaptive-agreement")
     prs.add_argument(
         "--sizes",
@@ -488,7 +452,6 @@ MODES = {
     "scale": (scale, "1e5 launches in a fresh process: time and peak memory"),
     "processes": (processes, "two processes with jax.distributed"),
     "auto": (auto, "model='auto' maps against full maps: speed, agreement, missed losses"),
-    "auto-random": (auto_random, "the same on seeded random tops"),
     "adaptive-agreement": (adaptive_agreement, "adaptive against dense maps of four tops"),
     "adaptive-speed": (adaptive_speed, "adaptive against dense maps: simulations, wall time"),
 }

@@ -17,7 +17,7 @@ import sys
 import time
 
 # One JAX device here, unless the mode is about devices or every core (set before JAX starts).
-if not {"--numba", "--devices", "--grid", "--worker"} & set(sys.argv):
+if not {"--numba", "--grid", "--worker"} & set(sys.argv):
     os.environ.setdefault("TIPPEJAX_HOST_DEVICES", "1")
 
 import _harness as h  # noqa: E402
@@ -198,17 +198,14 @@ Targets: steps at equal error <= 1.05x the plain script: {steps:.2f}x, {h.verdic
 
 def batch_fns(n, eq, n_devices, smoke):
     """{row: zero-argument call -> (finals, steps)} of the batch modes."""
-    s, sp, nb, r, rn = jnp.asarray(p.spins(n)), p.spins(n), p.numba_batch(), eq[PLAIN], eq[NUMBA]
+    s, r = jnp.asarray(p.spins(n)), eq[PLAIN]  # numba: the --numba mode
     fns = {
-        f"{NUMBA}, prange": lambda: nb(sp, rn, rn / 100),
         PLAIN: lambda: p.plain("vmap", n_devices)(s, r, r / 100),
         "plain diffrax, 6 saves": lambda: p.plain("saves", n_devices)(s, r, r / 100),
         "plain diffrax in blocks, tj.compiler_options()": lambda: p.plain("blocks", n_devices)(
             s, r, r / 100
         ),
     }
-    if n_devices == 1:
-        fns[f"{NUMBA}, 1 thread"] = lambda: nb(sp, rn, rn / 100, threads=1)
     for lv in ("so3",) if smoke else ("so3", "full"):
         rl = eq[f"tippejax {lv}"]
         fns[f"tj.simulate {lv} in jit(vmap)"] = functools.partial(
@@ -314,90 +311,6 @@ Equal-error rtols (error {target:.2e}): {", ".join(f"{k} {v:.2e}" for k, v in eq
 """,
         args,
     )
-
-
-def devices(args):
-    """The batch on 2 host devices in one process, against its two shards in two processes pinned
-    to a core each: what one process with 2 XLA:CPU devices costs each program."""
-    n = batch_size(args)
-    if args.worker:
-        core, half, rtol = json.loads(args.worker)
-        os.sched_setaffinity(0, {core})
-        runs = shard_runs(np.split(p.spins(n), 2)[half], rtol)
-        for run in runs.values():
-            run()
-        print("ready", flush=True)
-        for line in sys.stdin:
-            start = time.perf_counter()
-            runs[line.strip()]()
-            print(time.perf_counter() - start, flush=True)
-        return
-    cores = sorted(os.sched_getaffinity(0))[:2]
-    if len(jax.devices()) < 2 or len(cores) < 2:
-        raise SystemExit("--devices needs 2 cores and 2 host devices")
-    rtol = equal_error(("so3",), args)[0]["tippejax so3"]
-    here = shard_runs(p.spins(n), rtol)
-    for run in here.values():
-        run()
-    env = dict(os.environ, TIPPEJAX_HOST_DEVICES="1")
-    workers = [
-        subprocess.Popen(
-            [sys.executable, __file__, "--devices", "--worker", json.dumps([c, i, rtol])]
-            + ["--smoke"] * args.smoke,
-            stdin=subprocess.PIPE,
-            stdout=subprocess.PIPE,
-            text=True,
-            env=env,
-        )
-        for i, c in enumerate(cores)
-    ]
-    for w in workers:
-        if w.stdout.readline().strip() != "ready":
-            raise SystemExit("a worker failed to start")
-    one, two = "one process", "two processes"
-    walls = {(k, where): [] for k in here for where in (one, two)}
-    for _ in range(rounds(args, 7)):
-        for k, run in here.items():
-            walls[(k, one)].append(h.call(run)[0])
-            start = time.perf_counter()
-            for w in workers:
-                w.stdin.write(k + "\n")
-                w.stdin.flush()
-            for w in workers:
-                w.stdout.readline()
-            walls[(k, two)].append(time.perf_counter() - start)
-    for w in workers:
-        w.stdin.close()
-        w.wait()
-
-    def ratio(a, b):
-        r = np.asarray(walls[a]) / np.asarray(walls[b])
-        return f"{np.median(r):.3f} ({np.quantile(r, 0.25):.3f}-{np.quantile(r, 0.75):.3f})"
-
-    ms = ", ".join(f"{k} {1e3 * np.median(v) / n:.3f} ({where})" for (k, where), v in walls.items())
-    rows = [
-        f"tippejax, one process / two processes | {ratio(('tippejax', one), ('tippejax', two))}",
-        f"plain, one process / two processes | {ratio(('plain', one), ('plain', two))}",
-        f"tippejax / plain, one process (target <= 1.2) | {ratio(('tippejax', one), ('plain', one))}",
-        f"tippejax / plain, two processes | {ratio(('tippejax', two), ('plain', two))}",
-    ]
-    h.write(
-        "speed.py --devices",
-        "Two host devices in one process against two processes",
-        f"""
-Batch of {n} (SO(3), summary), rtol {rtol:.2e} (the plain script 1e-8), {rounds(args, 7)} rounds; ms per top: {ms}.
-
-{h.table("ratio | median (quartiles)", rows)}
-""",
-        args,
-    )
-
-
-def shard_runs(s, rtol):
-    return {
-        "tippejax": functools.partial(tj_batch("so3"), s, rtol),
-        "plain": lambda: p.plain("vmap")(jnp.asarray(s), 1e-8, 1e-10),
-    }
 
 
 def numba_goal(args):
@@ -568,29 +481,9 @@ def stiff(args):
     )
 
 
-BIG = """
-import json, resource, sys, time
-import numpy as np
-import tippejax as tj
-n, chunk, t1 = int(sys.argv[1]), int(sys.argv[2]), float(sys.argv[3])
-rng = np.random.default_rng(1)
-th, sp = rng.uniform(0.05, 0.3, n), rng.uniform(100.0, 200.0, n)
-start, first, rss0, ok = time.perf_counter(), None, None, 0
-for k in range(0, n, chunk):
-    sol = tj.simulate_batch(tj.default_top(), th[k:k + chunk], sp[k:k + chunk], t1, grid=(),
-                            summary=True)
-    ok += int(np.sum(np.asarray(sol.result == tj.RESULTS.successful)))
-    if first is None:
-        first = time.perf_counter() - start
-        rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-print(json.dumps(dict(wall=time.perf_counter() - start, first=first, rss0=rss0, ok=ok,
-                      rss=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024)))
-"""
-
-
 def grid(args):
     """A grid of 1000 launches of the full model against a scipy loop; lock-step cost and
-    bucketing on a spread batch; 1e5 launches in bounded memory; the chart batch.png."""
+    bucketing on a spread batch; the chart batch.png."""
     a, b = (2, 4) if args.smoke else (20, 50)
     th, sp = np.linspace(0.05, 0.3, a), np.linspace(100, 200, b)
     kw = dict(summary=True, rtol=1e-8, atol=1e-10)
@@ -618,19 +511,15 @@ def grid(args):
             f"{t1:g} s | {m} | {w:.2f} | {lock[t1][1][0] / w:.2f}x | {s.max()} | {np.median(s):.0f}"
             for m, (w, s) in lock[t1].items()
         ]
-    n_big = (200, 100) if args.smoke else (100_000, 2000)
-    big = h.fresh_process(BIG, str(n_big[0]), str(n_big[1]), "1.0")
     h.write(
         "speed.py --grid",
-        "A grid of launches: against scipy, lock-step, bucketing, 1e5 launches",
+        "A grid of launches: against scipy, lock-step, bucketing",
         f"""
 {a} x {b} launches on {len(jax.devices())} devices: {1e3 * t.wall / steps.size:.2f} ms per launch; scipy DOP853 with the contact-loss event ({len(launches)} launches, scaled): **{scipy_total / t.wall:.0f}x** the batch's time. Lock-step: max {steps.max()} steps against a median of {np.median(steps):.0f} ({100 * (1 - steps.mean() / steps.max()):.0f}% of the lane-steps idle).
 
 Spread batch (spin 20-400), `buckets=k`, {rounds(args, 2)} interleaved rounds:
 
 {h.table("t1 | buckets | wall s | vs 1 bucket | steps max | steps median", rows)}
-
-{n_big[0]} launches of 1 s in chunks of {n_big[1]}, a fresh process: {big["wall"]:.1f} s (first chunk {big["first"]:.1f} s), {big["ok"]} ok; peak RSS {big["rss0"]:.0f} MB after the first chunk, {big["rss"]:.0f} MB at the end.
 """,
         args,
     )
@@ -656,7 +545,6 @@ Spread batch (spin 20-400), `buckets=k`, {rounds(args, 2)} interleaved rounds:
 MODES = {
     "one-top": (one_top, "one top: every peer's ladder and equal error; peers.png"),
     "batch": (batch, "batches of 1000 (--big: 1e4) on one device and on every core"),
-    "devices": (devices, "2 host devices in one process against two pinned processes"),
     "numba": (numba_goal, "the numba goal, per member and shared steps"),
     "wp": (wp, "work-precision against scipy; events; work_precision.png"),
     "stiff": (stiff, "solvers under stiff friction"),

@@ -17,11 +17,20 @@ RESULTS_MD = pathlib.Path(__file__).parents[1] / "benchmarks" / "RESULTS.md"
 
 
 def _block(name):
+    """The table `name` of RESULTS.md: a row per (group,) regime, "error / cost" per level."""
     text = RESULTS_MD.read_text()
-    block = re.search(rf"```python\n({name} = \{{.*?\n\}})\n```", text, re.S).group(1)
-    namespace = {}
-    exec(block, namespace)
-    return namespace[name]
+    lines = re.search(rf"^`{name}`.*\n\n((?:\|.*\n?)+)", text, re.M).group(1).splitlines()
+    head = [c.strip() for c in lines[0].strip("|").split("|")]
+    n_keys = head.index("regime") + 1
+    out = {}
+    for line in lines[2:]:
+        cells = [c.strip() for c in line.strip("|").split("|")]
+        at = out.setdefault(cells[0], {}) if n_keys > 1 else out
+        at[cells[n_keys - 1]] = {
+            level: tuple(float(x) for x in cell.split(" / "))
+            for level, cell in zip(head[n_keys:], cells[n_keys:])
+        }
+    return out
 
 
 def test_measured_table_matches_results_md():
