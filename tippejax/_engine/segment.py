@@ -207,7 +207,11 @@ def _run_end(
     t_end, flat_end = t_last, flat_last
     if terminating:
         if locate:
-            t_event, flat_event = locate_terminating(watched, terms, top, records, finder)
+            t_event, flat_event = _where_fired(
+                stopped,
+                lambda: locate_terminating(watched, terms, top, records, finder),
+                (records.last_t1, records.last_y0),
+            )
         else:
             t_event, flat_event = records.last_t0, records.last_y0
         t_end = jnp.where(stopped, t_event.astype(t_last.dtype), t_last)
@@ -223,11 +227,30 @@ def _run_end(
     observed_times = {}
     for i, name in enumerate(observed):
         if locate:
-            t_obs = locate_observed(watched, terms, top, records, len(terminating) + i, finder)
+            t_obs = _where_fired(
+                records.found[i],
+                lambda i=i: locate_observed(
+                    watched, terms, top, records, len(terminating) + i, finder
+                ),
+                jnp.asarray(jnp.nan, records.step_t1.dtype),
+            )
         else:
             t_obs = jnp.where(records.found[i], records.step_t0[i], jnp.nan)
         observed_times[name] = jnp.where(t_obs <= t_end, t_obs, jnp.nan)
     return t_end, flat_end, fired, observed_times
+
+
+def _where_fired(fired, locate, unfired):
+    """`locate()` where the event `fired`, else `unfired` (of the same structure): the root
+    find runs only for an event that fell in the run (`lax.cond`; under `vmap`, where the
+    condition is batched, both branches run and the result is selected)."""
+
+    def skip():
+        return jax.tree_util.tree_map(
+            lambda x, ref: jnp.asarray(x).astype(ref.dtype), unfired, jax.eval_shape(locate)
+        )
+
+    return jax.lax.cond(fired, locate, skip)
 
 
 def _prepared_solver(solver, controller, adjoint):
