@@ -114,7 +114,7 @@ def _key(name: str, in_tree, leaves, static: dict, fixed: dict) -> str | None:
     text = _static_text(static)
     if text is None:
         return None
-    avals = tuple((x.dtype, x.shape, bool(x.weak_type)) for x in leaves)
+    avals = tuple((x.dtype, x.shape, bool(getattr(x, "weak_type", False))) for x in leaves)
     try:
         flags = (jax.config.jax_enable_x64, jax.default_backend(), unroll_stages())
         ident = (name, text, in_tree, avals, tuple(sorted(fixed.items())), flags)
@@ -137,7 +137,9 @@ def _key_text(name: str, in_tree, leaves, static: dict, fixed: dict) -> str | No
     text = text + fixed_text
     if _VERSIONS is None:
         _VERSIONS = _versions()
-    avals = ";".join(f"{x.dtype}{x.shape}{'w' if x.weak_type else ''}" for x in leaves)
+    avals = ";".join(
+        f"{x.dtype}{x.shape}{'w' if getattr(x, 'weak_type', False) else ''}" for x in leaves
+    )
     flags = (
         f"x64={jax.config.jax_enable_x64};platform={jax.default_backend()};"
         f"unroll={unroll_stages()};stages={UNROLL_STAGES}"
@@ -152,6 +154,12 @@ def _single_device(leaves) -> bool:
         if sharding is not None and len(sharding.device_set) > 1:
             return False
     return True
+
+
+def _canonical(x) -> np.ndarray:
+    """A host value as a numpy array of JAX's canonical dtype (float32 where x64 is off)."""
+    x = np.asarray(x)
+    return x.astype(jax.dtypes.canonicalize_dtype(x.dtype), copy=False)
 
 
 def to_device(x, dtype=None) -> jax.Array:
@@ -185,8 +193,8 @@ def _entry(fn, args, static, compiler_options=None):
     """The store's key of the call `fn(*args, **static)`, its array inputs and a function
     that puts inputs back into `args`; None where the store does not apply."""
     leaves, in_tree = jax.tree_util.tree_flatten(args)
-    leaves = [to_device(x) if isinstance(x, (np.ndarray, np.generic)) else x for x in leaves]
-    dynamic = [i for i, x in enumerate(leaves) if isinstance(x, jax.Array)]
+    leaves = [_canonical(x) if isinstance(x, (np.ndarray, np.generic)) else x for x in leaves]
+    dynamic = [i for i, x in enumerate(leaves) if isinstance(x, (jax.Array, np.ndarray))]
     inputs = [leaves[i] for i in dynamic]
     if (
         EXPORT_DIR is None
@@ -212,16 +220,16 @@ def _entry(fn, args, static, compiler_options=None):
         return jax.tree_util.tree_unflatten(in_tree, full)
 
     # Committed and uncommitted arrays are different signatures to `jit`, and an exported
-    # program is compiled again for each: every input is committed to its device.
-    loose = [i for i, x in enumerate(inputs) if not getattr(x, "committed", True)]
-    if loose:  # (one transfer call for all of them: each call has a fixed cost)
-        device = next(iter(inputs[loose[0]].devices()))
-        if all(inputs[i].devices() == {device} for i in loose):
-            committed = jax.device_put([inputs[i] for i in loose], device)
-        else:
-            committed = [jax.device_put(inputs[i], next(iter(inputs[i].devices()))) for i in loose]
+    # program is compiled again for each. Inputs that are all uncommitted (a user's arrays
+    # and host values, which `jit` puts on the device itself) go in as they are; where some
+    # are committed, every input is committed to that device, in one transfer call (each
+    # call has a fixed cost).
+    committed = [x for x in inputs if getattr(x, "committed", False)]
+    loose = [i for i, x in enumerate(inputs) if not getattr(x, "committed", False)]
+    if committed and loose:
+        device = next(iter(committed[0].devices()))
         inputs = list(inputs)
-        for i, x in zip(loose, committed):
+        for i, x in zip(loose, jax.device_put([inputs[i] for i in loose], device)):
             inputs[i] = x
     return key, inputs, rebuild
 

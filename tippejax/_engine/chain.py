@@ -21,6 +21,20 @@ from .shared import run_segment_shared, top_axes
 
 
 def level_chain(level: AbstractLevel) -> tuple[AbstractLevel, ...]:
+    """`level`, then its fallbacks in turn (a level's options are static: the chain is a
+    function of the level alone, kept once built)."""
+    try:
+        return _level_chain(level)
+    except TypeError:  # (an unhashable level)
+        return _build_chain(level)
+
+
+@functools.lru_cache(maxsize=64)
+def _level_chain(level: AbstractLevel) -> tuple[AbstractLevel, ...]:
+    return _build_chain(level)
+
+
+def _build_chain(level: AbstractLevel) -> tuple[AbstractLevel, ...]:
     chain = [level]
     while chain[-1].fallback() is not None:
         chain.append(chain[-1].fallback())

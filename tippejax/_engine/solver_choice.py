@@ -13,6 +13,8 @@ Tsit5's.
 
 from __future__ import annotations
 
+import weakref
+
 import diffrax
 import jax
 import numpy as np
@@ -56,15 +58,35 @@ def host_friction_rate(top: TippeTop) -> float | None:
     leaves = jax.tree_util.tree_leaves(top)
     if any(is_traced(x) for x in leaves):
         return None
-    numpy_top = jax.tree_util.tree_map(lambda x: np.asarray(x, dtype=float), top)
-    return float(np.max(friction_rate(numpy_top)))
+    known = _RATES.get(id(top))
+    if known is not None and known[0]() is top:  # (the same top: the same immutable arrays)
+        return known[1]
+    numpy_top = jax.tree_util.tree_map(  # (one transfer for every leaf)
+        lambda x: np.asarray(x, dtype=float), jax.device_get(top)
+    )
+    rate = float(np.max(friction_rate(numpy_top)))
+    try:
+        ref = weakref.ref(top)
+    except TypeError:  # pragma: no cover
+        return rate
+    if len(_RATES) > 256:
+        _RATES.clear()
+    _RATES[id(top)] = (ref, rate)
+    return rate
+
+
+_RATES: dict = {}  # id(top) -> (a weak reference to it, its rate): an eager loop asks again
 
 
 def solver_for_rate(rate: float | None, *, slow_flow: bool = False) -> diffrax.AbstractSolver:
     """`default_solver` of a top whose `host_friction_rate` is `rate` (None: traced)."""
-    explicit = diffrax.Dopri5() if slow_flow else diffrax.Dopri8()
+    explicit = _SOLVERS["Dopri5" if slow_flow else "Dopri8"]
     if rate is None:
         return explicit
     if rate > IMPLICIT_RATE:
-        return diffrax.Kvaerno5()
-    return diffrax.Tsit5() if rate > STIFF_RATE else explicit
+        return _SOLVERS["Kvaerno5"]
+    return _SOLVERS["Tsit5"] if rate > STIFF_RATE else explicit
+
+
+_SOLVERS = {name: getattr(diffrax, name)() for name in ("Dopri5", "Dopri8", "Tsit5", "Kvaerno5")}
+"""The default solvers, built once (immutable modules: every call may share them)."""

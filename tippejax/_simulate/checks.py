@@ -9,7 +9,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._bucket import bucket
-from .._cache import to_device
 from .._engine.solver_choice import is_traced
 from .._errors import error_if
 from .._state import State
@@ -22,11 +21,12 @@ def concrete(*xs) -> bool:
 
 
 def as_dtype(x, dtype):
-    """`x` as an array of `dtype`: a jax array or tracer of that dtype as it is, a host value
-    put on the device without a program (`to_device`), else converted by `jnp.asarray`."""
+    """`x` as an array of `dtype`: a jax array or tracer of that dtype as it is, else
+    converted by `jnp.asarray`; a host value stays on the host as a numpy array of `dtype`
+    (no program, no transfer of its own: the call's inputs go to the device together)."""
     if isinstance(x, jax.Array) or is_traced(x):
         return x if jnp.result_type(x) == dtype else jnp.asarray(x, dtype)
-    return to_device(x, dtype)
+    return np.asarray(x, dtype)
 
 
 def check_top_and_state(top: TippeTop, y0: State):
@@ -188,8 +188,6 @@ def save_times(summary, saveat, t0, t1, dtype):
         xp = np if isinstance(ts, np.ndarray) else jnp
         if size > n_save:
             ts = xp.concatenate([ts, xp.broadcast_to(ts[-1:], (size - n_save,))])
-        if xp is np:
-            ts = to_device(ts, dtype)
     return ts, n_save
 
 
