@@ -195,7 +195,7 @@ def checked_state(y0: State) -> State:
     """`y0`, checked to be a valid state (`_state_defect`): a `ValueError` for a concrete
     state, a runtime check (`tippejax._errors`) for a traced one."""
     if concrete(y0):  # (checked in numpy: no device program)
-        defect = _state_defect(jax.tree_util.tree_map(np.asarray, y0), xp=np)
+        defect = _state_defect(jax.tree_util.tree_map(np.asarray, jax.device_get(y0)), xp=np)
         if not float(defect) < _STATE_TOL:
             raise ValueError(_STATE_MESSAGE)
         return y0
