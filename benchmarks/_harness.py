@@ -41,20 +41,6 @@ def cpu() -> dict:
     return dict(name=name, cores=os.cpu_count() or 1, ghz=mhz / 1e3, flags=flags)
 
 
-def peak_flops() -> tuple[float, str]:
-    """The cores' float64 peak (flop/s) and how it was counted."""
-    c = cpu()
-    per_cycle, why = (
-        (16, "AVX2 + FMA")
-        if {"avx2", "fma"} <= c["flags"]
-        else (8, "AVX")
-        if "avx" in c["flags"]
-        else (4, "SSE2")
-    )
-    peak = c["cores"] * c["ghz"] * 1e9 * per_cycle
-    return peak, f"{c['cores']} cores x {c['ghz']:.2f} GHz x {per_cycle} flop/cycle ({why})"
-
-
 def machine_line() -> str:
     """One line: processor, versions, JAX devices."""
     import diffrax
@@ -178,10 +164,14 @@ def random_top(rng):
 # --- tables, charts, RESULTS.md ----------------------------------------------------------------
 
 
-def table(headers, rows) -> str:
-    """A markdown table; `headers` and each row a list of cells or one string "a | b | c"."""
+def table(headers, rows, compact=False) -> str:
+    """A markdown table; `headers` and each row a list of cells or one string "a | b | c";
+    `compact`: no spaces around the cells' bars."""
 
     def line(cells):
+        if compact:  # cells split at unescaped bars; no spaces around them
+            cells = re.split(r"(?<!\\)\|", cells) if isinstance(cells, str) else cells
+            return "|" + "|".join(str(x).strip() for x in cells) + "|"
         return (
             "| " + (cells if isinstance(cells, str) else " | ".join(str(x) for x in cells)) + " |"
         )

@@ -27,7 +27,6 @@ import fit_records as fr  # noqa: E402
 
 import tippejax as tj  # noqa: E402
 
-RATE_BINS = ((20, 60), (60, 150), (150, 500.1))
 ROWS = fr.CACHE_ROOT / "fitting_rows.json"
 LAW_ROWS = fr.CACHE_ROOT / "fit_laws_rows-v1.json"
 MAX_SE_REL, MAX_ATTEMPTS, COMMON = 0.005, 6, ("eps", "spin")
@@ -147,12 +146,9 @@ def summary(rows) -> str:
 
     subsets = {g: [r for r in main if r["group"] == g] for g in fr.GROUPS}
     subsets["upright launches"] = [r for r in main if r["upright"]]
-    subsets |= {
-        f"{lo:g}-{hi:.0f} Hz": [r for r in main if lo <= r["rate"] < hi] for lo, hi in RATE_BINS
-    }
     body = [line("all", main)] + [line(k, v) for k, v in subsets.items() if v]
     head = "records | success from truth | truth within 3 SE | success from 30% off | failures flagged | unflagged failures | SE / CRB | \\|error\\| / SE < 2 | median s / fit"
-    out = [h.table(head, body)]
+    out = [h.table(head, body, compact=True)]
     others = [r for r in rows if r["strategy"] != "global"]
     idx, cand = {r["index"] for r in others}, []
     for s in dict.fromkeys(["global"] + [r["strategy"] for r in others]) if others else ():
@@ -166,7 +162,9 @@ def summary(rows) -> str:
             f"From 30% off, first {len(idx)} records (scipy: least_squares over `tj.simulate`):",
             "",
         ]
-        out += [h.table("strategy | success | flagged of failures | median s / fit", cand)]
+        out += [
+            h.table("strategy | success | flagged of failures | median s / fit", cand, compact=True)
+        ]
     fails = [r for r in main if not succeeded(r)]
     out += ["", "Fits that did not succeed:" if fails else "Every fit succeeded."]
     out += [
@@ -433,24 +431,17 @@ def law_summary(rows) -> str:
         right = [part(r, r["law"]) for r in sub]
         truth_ok = sum(succeeded(r["from_truth"]) for r in sub)
         s, flagged, unflagged = counts(right).split(" | ")
-        weak = sum(r["from_truth"]["weak"] for r in sub)
         fit_rows.append(
-            f"{name} | {len(sub)} | {truth_ok}/{len(sub)} | {s} | {flagged} | {unflagged} | {weak}"
+            f"{name} | {len(sub)} | {truth_ok}/{len(sub)} | {s} | {flagged} | {unflagged}"
         )
-    pair_rows, total = [], [0, 0, 0]
+    total = [0, 0, 0]
     for kind in fr.LAWS:
-        cells = []
         for other in (k for k in fr.LAWS if k != kind):
             parts = [part(r, other) for r in rows if r["law"] == kind]
             differ = [x for x in parts if x["differs"] > 1.0]
-            rejected = sum(x["ruled_out"] for x in differ)
-            total[0] += rejected
+            total[0] += sum(x["ruled_out"] for x in differ)
             total[1] += len(differ)
             total[2] += sum(x["ruled_out"] for x in parts if x["differs"] <= 1.0)
-            alike = len(parts) - len(differ)
-            cells.append(f"{rejected}/{len(differ)}" + (f" (+{alike} alike)" if alike else ""))
-        cells.insert(fr.LAWS.index(kind), "-")
-        pair_rows.append(f"{NAMES[kind]} | " + " | ".join(cells))
     rate = total[0] / total[1] if total[1] else float("nan")
     choice_rows = []
     for name, sub in subsets():
@@ -461,27 +452,25 @@ def law_summary(rows) -> str:
             sum(r["preferred"] == r["law"] for r in sub),
             sum(r["preferred"] == r["law"] for r in distinct),
         )
-        none, wall = sum(r["preferred"] is None for r in sub), np.median([r["wall"] for r in sub])
-        choice_rows.append(
-            f"{name} | {chosen}/{len(sub)} | {right}/{len(distinct)} | {none} | {wall:.0f}"
-        )
+        none = sum(r["preferred"] is None for r in sub)
+        choice_rows.append(f"{name} | {chosen}/{len(sub)} | {right}/{len(distinct)} | {none}")
     lines = [
         "With the right law (success: within 2% of the truth and 3 SE):",
         "",
         h.table(
-            "law | records | success from truth | success from 30% off | failures flagged | unflagged failures | records above the 0.5% cut",
+            "law | records | success from truth | success from 30% off | failures flagged | unflagged failures",
             fit_rows,
+            compact=True,
         ),
         "",
-        f"The wrong law ruled out where its best fit is further than the noise (rms) from the clean signal: {total[0]}/{total[1]} ({rate:.1%}); where it is not (alike): {total[2]}. Rows: the record's law; columns: the law fitted.",
-        "",
-        h.table("record's law | " + " | ".join(NAMES[k] for k in fr.LAWS), pair_rows),
+        f"The wrong law ruled out where its best fit is further than the noise (rms) from the clean signal: {total[0]}/{total[1]} ({rate:.1%}); where it is not (alike): {total[2]}.",
         "",
         "The law chosen (`preferred`: the lowest BIC among the laws not ruled out):",
         "",
         h.table(
-            "record's law | chosen right | right where every other law differs | none chosen | median s / record (one fit per law)",
+            "record's law | chosen right | right where every other law differs | none chosen",
             choice_rows,
+            compact=True,
         ),
     ]
     wrong = [r for r in rows if r["preferred"] != r["law"]]
@@ -525,7 +514,7 @@ def laws(args):
         "fitting.py --laws",
         "Which law does a record obey?",
         f"""
-{size} (seed {args.seed}; {mix}). Targets: with the right law >= 95% succeed from 30% off, every failure flagged; the wrong law ruled out on >= 95% of the records where the laws differ by more than the noise; the law chosen right on >= 95%.
+{size} (seed {args.seed}; {mix}).
 
 {law_summary(rows)}
 """,
@@ -551,9 +540,7 @@ def mujoco(args):
             f"{n} = {float(v):.4g}" for n, v in zip(res.free, np.asarray(res.values))
         )
         rms, noise = float(res.rms), float(res.noise)
-        rows.append(
-            f"{name} | {fitted} | {rms:.4g} | {noise:.3g} | {rms / noise:.2f} | {res.message()[:40] or 'converged'}"
-        )
+        rows.append(f"{name} | {fitted} | {rms:.4g} | {noise:.3g} | {rms / noise:.2f}")
     # One yardstick for every law: each fit estimates the noise from its own residuals, which a
     # fit distorted everywhere inflates, so the lowest of the estimates is the record's noise.
     rms = [float(f.rms) for f in cmp.fits]
@@ -567,7 +554,7 @@ def mujoco(args):
         f"""
 {ts[-1]:.0f} s at 200 Hz, `tj.compare_laws` without sigma ({wall:.0f} s). Target: rms at most 1.5x the noise with the best law.
 
-{h.table("law | fitted | rms (rad) | noise (rad) | rms / noise | message", rows)}
+{h.table("law | fitted | rms (rad) | noise (rad) | rms / noise", rows, compact=True)}
 
 Best (the lowest rms): {cmp.names[best]}, {ratio:.2f}x the lowest noise level the fits estimate ({floor:.4g} rad): target {h.verdict(ratio <= 1.5)}; {cmp.names[0]} {rms[0] / floor:.2f}x. The comparison's verdict: {cmp.preferred_name or "no law consistent"}{ruled_out}.
 """,

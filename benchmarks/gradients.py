@@ -119,11 +119,11 @@ def cost(args):
         f"""
 Timing at rtol 1e-8 ({n} interleaved rounds), correctness at rtol 1e-12; x solve: wall / CPU time against the forward solve.
 
-{h.table("run | " + " | ".join(f"{q}: x solve, compile s" for q in columns), rows)}
+{h.table("run | " + " | ".join(f"{q}: x solve, compile s" for q in columns), rows, compact=True)}
 
-{h.table("target | measured | verdict", targets)}
+{h.table("target | measured | verdict", targets, compact=True)}
 
-{plain_script(n)} {tangent_scan(n, args.smoke)}
+{plain_script(n)}
 """,
         args,
     )
@@ -157,35 +157,6 @@ def plain_script(n):
         + ", ".join(
             f"{k} {t.wall / base.wall:.2f}x ({t.cpu / base.cpu:.2f}x CPU, compile {t.compile:.1f} s)"
             for k, (t, _) in list(timed.items())[1:]
-        )
-        + "."
-    )
-
-
-def tangent_scan(n, smoke):
-    """`jax.jacfwd` of sum(theta) in the first k fields: one thread or two, per program."""
-    top = tj.default_top()
-    fns = {0: functools.partial(eqx.filter_jit(sum_theta), top, 1e-8, 1e-10)}
-    for k in (1,) if smoke else range(1, 8):
-
-        def of(v, fields=FIELDS[:k]):
-            return sum_theta(
-                eqx.tree_at(lambda t: tuple(getattr(t, f) for f in fields), top, tuple(v)),
-                1e-8,
-                1e-10,
-            )
-
-        fns[k] = functools.partial(
-            eqx.filter_jit(jax.jacfwd(of)), tuple(getattr(top, f) for f in FIELDS[:k])
-        )
-    timed = h.interleaved(fns, n)
-    base = timed[0][0]
-    return (
-        "`jax.jacfwd` of sum(theta) in the first k fields, x solve (wall / CPU; CPU near 2x wall: on two threads): "
-        + ", ".join(
-            f"k = {k} {t.wall / base.wall:.2f} / {t.cpu / base.cpu:.2f}"
-            for k, (t, _) in timed.items()
-            if k
         )
         + "."
     )
@@ -301,7 +272,7 @@ def first_call(args):
         f"""
 The first call less the second (s) in a new process; off: `TIPPEJAX_COMPILATION_CACHE=0`, cold: an empty cache, warm: a second process with it.
 
-{h.table("case | off | cold | warm", rows)}
+{h.table("case | off | cold | warm", rows, compact=True)}
 
 Warm, per level: {warm} (targets: the first `simulate` < 1 s, <= 2 s per level){fit}. A save grid of a new length in a warm process: {s["first_s"]:.2f} s in a compiled bucket (120 after 100), {s["other_s"]:.2f} s for a new bucket (300), {s["second_s"]:.2f} s for the run itself.
 """,

@@ -147,7 +147,7 @@ def measured_block(name, table_, nested):
         for reg in m
     ]
     head = [*(["group"] if nested else []), "regime", *LEVELS]
-    return f"`{name}`, worst error (rad) / highest cost per level:\n\n{h.table(head, rows)}"
+    return f"`{name}`, worst error (rad) / highest cost per level:\n\n{h.table(head, rows, compact=True)}"
 
 
 def read_block(name):
@@ -204,26 +204,10 @@ def scenes_mode(args):
     rows = [scene_row(*sc, **size) for sc in scenes]
     measured = per_regime(rows)
 
-    def cell(x):
-        return (
-            "refused"
-            if x["model"] == "refused"
-            else f"{fmt(x['err'])} / {fmt(x['dt'])} / {fmt(x['cost'], '.2f')}"
-        )
-
-    body = [
-        f"{r['scene']} | {r['regime']} | {r['t_invert']:.4f} | {cell(r['so3'])} | {fmt(r['routhian']['cost'], '.2f')} | {cell(r['gyroscopic'])} | {r['gyroscopic']['model']}"
-        for r in rows
-    ]
-    same = all(r["so3"]["err"] == r["routhian"]["err"] for r in rows)
     h.write(
         "levels.py --scenes",
         "The levels on scenes of the standard top (group IIb)",
         f"""
-{size["n_save"]} saves; err / dt / cost: max |theta_level - theta_full| (rad) / |t_invert_level - t_invert_full| (s) / wall time relative to the full model. {"The Routhian level errs as the SO(3) level in every scene." if same else ""}
-
-{h.table("scene | regime | t_invert full (s) | so3 err / dt / cost | routhian cost | gyro err / dt / cost | gyro ran", body)}
-
 {measured_block("MEASURED_IIB_SCENES", measured, nested=False)}
 """,
         args,
@@ -313,7 +297,7 @@ def spun_mode(args):
         loss = float(sol.t_contact_loss)
         return f"contact lost {loss:.2f} s" if np.isfinite(loss) else pct(float(sol.t_invert), so3)
 
-    top, rows, errs, others = tj.default_top(), [], [], []
+    top, rows, errs = tj.default_top(), [], []
     spins_ = (
         (100.0, 150.0) if args.smoke else (100.0, 125.0, 150.0, 175.0, 200.0, 225.0, 250.0, 300.0)
     )
@@ -328,28 +312,15 @@ def spun_mode(args):
         )
         errs.append(abs(slow - so3) / so3)
     fitted = rate(spins_, errs)
-    for label, a_c, e_r, theta0 in (
-        ()
-        if args.smoke
-        else (
-            ("IIb", 0.9, 0.3, 0.05),
-            ("IIb", 0.9, 0.3, 0.2),
-            ("III", 1.5, 0.2, 0.1),
-            ("IIa", 0.8, 0.3, 0.1),
-        )
-    ):
-        t = tj.TippeTop.from_ratios(a_c, e_r)
-        cells = [pct(*launch(t, theta0, n0)[:0:-1]) for n0 in (100.0, 150.0, 225.0, 300.0)]
-        others.append(f"{label} ({a_c}, {e_r}) theta0 {theta0:g}: {' / '.join(cells)}")
     h.write(
         "levels.py --spun",
         "Spun launches: the launch projection",
         f"""
 t_invert of the slow flow alone (Dopri5, rtol 1e-8) against SO(3) (rtol 1e-10), omega = n a launches. Targets: at most 0.5% at 150 rad/s, 0.4% at 225, 0.3% at 300.
 
-{h.table("n0 (rad/s) | SO(3) t_invert (s) | slow flow | full - SO(3) | model='gyroscopic'", rows)}
+{h.table("n0 (rad/s) | SO(3) t_invert (s) | slow flow | full - SO(3) | model='gyroscopic'", rows, compact=True)}
 
-Fitted rate of the slow flow's |error|: n0^{fitted:+.2f}. {"Other tops, slow flow at 100 / 150 / 225 / 300 rad/s: " + "; ".join(others) + "." if others else ""}
+Fitted rate of the slow flow's |error|: n0^{fitted:+.2f}.
 """,
         args,
     )
@@ -390,7 +361,7 @@ def wp_mode(args):
             " / ".join(
                 f"{res[m][i][1]:.1e}" for i in range(len(rtols)) if rtols[i] in (1e-6, 1e-8, 1e-10)
             )
-            for m in solvers
+            for m in ("so3", "gyroscopic")
         )
         body.append(
             f"{group} ({results[group][0]:.0f}) | {('t_invert', 'theta(t1)')[k]} | {errors} | {res['so3'][at][0] / res['full'][at][0]:.2f} / {res['gyroscopic'][at][0] / res['full'][at][0]:.2f}"
@@ -401,7 +372,7 @@ def wp_mode(args):
         f"""
 Error of t_invert where the full model inverts, else of theta(t1), against the full model at rtol 1e-12. Chart: `gyroscopic_work_precision.png`.
 
-{h.table("group (n0 rad/s) | quantity | full: error at rtol 1e-6 / 1e-8 / 1e-10 | so3 | gyroscopic | time vs full at 1e-8 (so3 / gyro)", body)}
+{h.table("group (n0 rad/s) | quantity | so3: error at rtol 1e-6 / 1e-8 / 1e-10 | gyroscopic | time vs full at 1e-8 (so3 / gyro)", body, compact=True)}
 """,
         args,
     )

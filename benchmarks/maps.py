@@ -100,7 +100,7 @@ def cost(args):
         f"""
 {theta0.size} x {spin.size} launches, t1 = {t1:g} s. The reference map (full, rtol 1e-6): {", ".join(f"{k} {v}" for k, v in ref.counts().items())}.
 
-{h.table("run | wall s | launches/s | vs outcome_map", rows)}
+{h.table("run | wall s | launches/s | vs outcome_map", rows, compact=True)}
 
 Outcomes that differ from the reference map: {agree}. Memory per launch: {sizes[256] / 1e6:.2f} MB for 256 launches, {sizes[1024] / 1e6:.2f} MB for 1024: **{(sizes[1024] - sizes[256]) / 768e3:.1f} kB per launch**, whatever t1.
 """,
@@ -233,9 +233,9 @@ def auto(args):
         f"""
 {theta0.size} x {spin.size} launches, t1 = {t1:g} s; missed / extra: contact losses of the full map the auto map lacks / adds. Shifted grid: {shifted[0].size} x {shifted[1].size} other launches.
 
-{h.table(["map", "full launches/s", "auto launches/s", "speed", "agreement", "missed losses", "extra losses", "shifted grid"], rows)}
+{h.table(["map", "full launches/s", "auto launches/s", "speed", "agreement", "missed losses", "extra losses", "shifted grid"], rows, compact=True)}
 
-{h.table(["map", "routes of the auto map", "solver steps auto / full", "outcomes changed"], route_rows)}
+{h.table(["map", "routes of the auto map", "solver steps auto / full", "outcomes changed"], route_rows, compact=True)}
 
 Targets: >= 99% agreement, 0 missed contact losses, >= 20x launches/s.
 """,
@@ -252,13 +252,6 @@ ADAPTIVE_TOPS = {
     "III": ((1.6, 0.2), (0.3, 7.0)),
     "Ib": ((0.65, 0.15), (0.5, 12.0)),  # contact loss at its fastest spins
 }
-
-
-def load_line() -> str:
-    return ", ".join(f"{x:.1f}" for x in os.getloadavg())
-
-
-LOAD = f"load average on {os.cpu_count()} cores (before; after)"
 
 
 def refine_for(n: int) -> int:
@@ -322,7 +315,6 @@ def adaptive_agreement(args):
         spin = np.sort(rng.uniform([lo * 0.8, hi * 0.8], [lo * 1.25, hi * 1.25])) * n_ref
         axes = dict(theta0=np.linspace(*theta, n), spin=np.linspace(*spin, n))
         tj.outcome_map(top, **axes, t1=0.01, refine=k)  # compiles the adaptive program
-        load0 = load_line()
         t_dense, _, dense = h.call(lambda top=top, axes=axes: tj.outcome_map(top, **axes, t1=t1))
         t_adapt, _, adaptive = h.call(
             lambda top=top, axes=axes: tj.outcome_map(top, **axes, t1=t1, refine=k)
@@ -333,19 +325,20 @@ def adaptive_agreement(args):
             f"{100 * c['agree']:.3f}% ({c['differ']}) | {c['worst']} | {100 * c['share']:.2f}% | {c['steps']:.3f} | {t_adapt / t_dense:.3f}"
         )
         notes.append(
-            f"- {group}: {boundary_cells(adaptive)}"
-            + (f"; refinement stopped in {adaptive.unresolved}" if adaptive.unresolved else "")
-            + f" ({load0})"
+            (
+                f"- {group}: {boundary_cells(adaptive)}"
+                + (f"; refinement stopped in {adaptive.unresolved}" if adaptive.unresolved else "")
+            ).rstrip()
         )
     h.write(
         "maps.py --adaptive-agreement",
         "Adaptive maps against dense maps",
         f"""
-refine = {k}, t1 = {t1:g} s; worst distance: cells from a disagreement to the nearest launch of another outcome in the dense map; steps and wall: adaptive over dense.
+refine = {k}, t1 = {t1:g} s.
 
-{h.table(["top", "grid", "theta0 (rad)", "spin (rad/s)", "agreement (cells differing)", "worst distance", "simulated", "steps", "wall"], rows)}
+{h.table(["top", "grid", "theta0 (rad)", "spin (rad/s)", "agreement (cells differing)", "worst distance", "simulated", "steps", "wall"], rows, compact=True)}
 
-Boundaries of the adaptive maps (cells: map cells holding both outcomes; D: box-counting dimension; distance in cells (median, max) from the linear theory's curve):
+Boundaries of the adaptive maps:
 
 {chr(10).join(notes)}
 
@@ -375,7 +368,6 @@ def adaptive_speed(args):
     for n in sizes:
         k = refine_for(n)
         tj.outcome_map(top, **standard_axes(n), t1=0.01, refine=k)  # compiles its program
-        load0 = load_line()
         t_dense, _, dense = h.call(lambda n=n: tj.outcome_map(top, **standard_axes(n), t1=t1))
         t_adapt, _, adaptive = h.call(
             lambda n=n, k=k: tj.outcome_map(top, **standard_axes(n), t1=t1, refine=k)
@@ -384,7 +376,7 @@ def adaptive_speed(args):
         simulated = f"{int(np.sum(np.asarray(adaptive.simulated)))} ({100 * c['share']:.2f}%)"
         rows.append(
             f"{n} x {n} | {k} | {t_dense:.0f} | {t_adapt:.1f} | {simulated} | **1/{1 / c['share']:.0f}** | **1/{t_dense / t_adapt:.0f}** | "
-            f"{100 * c['agree']:.3f}% ({c['differ']}, worst {c['worst']}) | {load0}; {load_line()}"
+            f"{100 * c['agree']:.3f}% ({c['differ']}, worst {c['worst']})"
         )
         dimension = boundary_cells(adaptive)
     big_rows = []
@@ -392,13 +384,12 @@ def adaptive_speed(args):
     for n in big:
         k = refine_for(n)
         tj.outcome_map(top, **standard_axes(n), t1=0.01, refine=k)  # compiles its program
-        load0 = load_line()
         wall, cpu, om = h.call(
             lambda n=n, k=k: tj.outcome_map(top, **standard_axes(n), t1=t1, refine=k)
         )
         simulated = f"{int(np.sum(np.asarray(om.simulated)))} ({100 * om.share_simulated:.3f}%)"
         big_rows.append(
-            f"{n} x {n} | {k} | {wall:.1f} | {cpu:.0f} | {simulated} | {len(om.levels)} | {len(om.unresolved)} | {load0}; {load_line()}"
+            f"{n} x {n} | {k} | {wall:.1f} | {cpu:.0f} | {simulated} | {len(om.levels)} | {len(om.unresolved)}"
         )
         report(args, t1, sizes, big[: len(big_rows)], rows, big_rows, dimension)
 
@@ -411,13 +402,11 @@ def report(args, t1, sizes, big, rows, big_rows, dimension):
         "maps.py --adaptive-speed",
         "Adaptive maps: cost against the dense map",
         f"""
-refine = round(log2((n - 1) / 32)); one run of each map after a compiling call; wall clock on a shared machine.
+{h.table(["grid", "refine", "dense wall s", "adaptive wall s", "launches simulated", "simulations", "wall time", "agreement (differing, worst distance)"], rows, compact=True)}
 
-{h.table(["grid", "refine", "dense wall s", "adaptive wall s", "launches simulated", "simulations", "wall time", "agreement (differing, worst distance)", LOAD], rows)}
+Targets: at most 1/{limits[512]} of the dense map's simulations and wall time at 512^2, 1/{limits[1024]} at 1024^2. Boundaries of the {sizes[-1]}^2 adaptive map: {dimension}.
 
-Targets: at most 1/{limits[512]} of the dense map's simulations and wall time at 512^2, 1/{limits[1024]} at 1024^2. Boundaries of the {sizes[-1]}^2 adaptive map (D: box-counting dimension; distance in cells from the linear theory's curve): {dimension}.
-
-{h.table(["adaptive map", "refine", "wall s", "CPU s", "launches simulated", "batched calls", "regions not refined", LOAD], big_rows) if big_rows else "No adaptive map of the large sizes was run."}
+{h.table(["adaptive map", "refine", "wall s", "CPU s", "launches simulated", "batched calls", "regions not refined"], big_rows, compact=True) if big_rows else "No adaptive map of the large sizes was run."}
 
 Targets: 1000^2 within 60 s and 4096^2 within 600 s on 2 CPU cores.{f" **Not run in this run: {', '.join(f'{n}^2' for n in not_run)}** (`--sizes`, `--big`)." if not_run else ""}
 """,

@@ -191,7 +191,7 @@ def peers(args):
     rows = []
 
     def row(name, wall, ev, err, steps=""):
-        touch = f"{f(ev['t_half'], 6)} | {f(ev['t_stem'], 6)} | {f(ev['theta_stem'])}"
+        touch = f"{f(ev['t_half'], 6)} | {f(ev['t_stem'], 6)}"
         rows.append(f"{name} | {g(wall)} | {g(err)} | {touch} | {steps}")
         return wall, err
 
@@ -225,15 +225,6 @@ def peers(args):
             )
         )
         row(f"cardillo MoreauClassical, dt {dt:g}", c["wall"], c, c["err"], c["steps"])
-    if len(cards) >= 2:
-        fine = sorted(cards)[:2]
-        ext = [
-            f(extrapolated(cards, k), d)
-            for k, d in (("t_half", 6), ("t_stem", 6), ("theta_stem", 4))
-        ]
-        rows.append(
-            f"cardillo, dt -> 0 (from dt {fine[1]:g} and {fine[0]:g}) |  |  | {' | '.join(ext)} | "
-        )
     verdict = ""
     if cards:
         finest = cards[min(cards)]
@@ -245,11 +236,11 @@ def peers(args):
                 f"({g(finest['wall'])} s, max d theta {g(finest['err'])}) against tippejax's cheapest run at least as accurate: "
                 f"{g(ratio)} of its time (1/{1 / ratio:.0f}), {h.verdict(ratio <= 1e-3)}."
             )
-    head = "run | wall s | max d theta before touch (rad) | theta = pi/2 s | stem touch s | theta at touch | steps / f-evals"
+    head = "run | wall s | max d theta before touch (rad) | theta = pi/2 s | stem touch s | steps / f-evals"
     h.write(
         f"{SUITE} --peers",
         "Leine & Glocker's top with its stem: tippejax, scipy, cardillo",
-        f"Ellipse law, slip scale {DELTA:g} m/s, {t1:g} s; stem touch {f(ev_truth['t_stem'], 6)} s; numba {'on' if rr.HAVE_NUMBA else 'off'}.\n\n{h.table(head, rows)}{verdict}",
+        f"Ellipse law, slip scale {DELTA:g} m/s, {t1:g} s; stem touch {f(ev_truth['t_stem'], 6)} s; numba {'on' if rr.HAVE_NUMBA else 'off'}.\n\n{h.table(head, rows, compact=True)}{verdict}",
         args,
     )
 
@@ -283,7 +274,7 @@ def batch(args):
         f"""
 {n} seeded launches, {t1:g} s, `simulate_batch(..., grid=(), summary=True)`.
 
-{h.table(head, rows)}
+{h.table(head, rows, compact=True)}
 
 Target, per top at most 3x the viscous law's cost on the same scene: ellipse {r["ellipse"]:.2f}x, hertz {r["hertz"]:.2f}x, {h.verdict(max(r.values()) <= 3.0)}.
 """,
@@ -330,7 +321,7 @@ def work_precision(args):
         f"""
 Error against Dopri8 at rtol 1e-12; atol = rtol / 100. Chart: `real_tops_wp.png`.
 
-{h.table("scene | solver | rtol | wall s | compile s | steps | rejected | max d theta", rows)}
+{h.table("scene | solver | rtol | wall s | compile s | steps | rejected | max d theta", rows, compact=True)}
 """,
         args,
     )
@@ -374,13 +365,13 @@ def slip(args):
                 rr.LEINE_GLOCKER, name, THETA0, SPIN, 30.0, stop_at_half=True, dt_sample=1e-2, **kw
             )
             rows.append(
-                f"{name} | {g(delta)} | {f(t, 7)} | {f(r['t_half'], 7)} | {g(abs(t - r['t_half']), 2)} | {g(t * delta)} | {'yes' if warned else 'no'} | {g(wall)}"
+                f"{name} | {g(delta)} | {f(t, 7)} | {f(r['t_half'], 7)} | {g(abs(t - r['t_half']), 2)} | {'yes' if warned else 'no'} | {g(wall)}"
             )
-    head = "law | slip scale m/s | tippejax pi/2 s | reference pi/2 s | difference s | t x delta (m) | UserWarning | tippejax wall s"
+    head = "law | slip scale m/s | tippejax pi/2 s | reference pi/2 s | difference s | UserWarning | tippejax wall s"
     h.write(
         f"{SUITE} --slip",
         "The first pi/2 crossing against the slip scale",
-        f"No stem; `tj.inversion_time` (rtol 1e-8, first call) against the reference (rtol 1e-9).\n\n{h.table(head, rows)}",
+        f"No stem; `tj.inversion_time` (rtol 1e-8, first call) against the reference (rtol 1e-9).\n\n{h.table(head, rows, compact=True)}",
         args,
     )
 
@@ -444,7 +435,7 @@ def contact(args):
     h.write(
         f"{SUITE} --contact",
         "Sensitivity to the contact parameters after the touch",
-        f"Ellipse law, {t1:g} s, rtol 1e-8, 10 ms saves.\n\n{h.table(head, rows)}",
+        f"Ellipse law, {t1:g} s, rtol 1e-8, 10 ms saves.\n\n{h.table(head, rows, compact=True)}",
         args,
     )
 
@@ -485,13 +476,13 @@ def lg(args):
         f"{SUITE} --lg",
         "Leine & Glocker's figures",
         f"""
-Slip scale {DELTA:g} m/s; their published touch is later than both integrations here (`/work/shared/paper/FRICTION.md`).
+Slip scale {DELTA:g} m/s.
 
-{h.table("run | theta = pi/2 s | stem touch s | theta at touch", rows)}
+{h.table("run | theta = pi/2 s | stem touch s | theta at touch", rows, compact=True)}
 
 Their figure 15: theta at 0.5 s against the contact radius (Tsit5, rtol 1e-9).
 
-{h.table("rho mm | tippejax hertz | reference hertz | tippejax ellipse | reference ellipse", fig15)}
+{h.table("rho mm | tippejax hertz | reference hertz | tippejax ellipse | reference ellipse", fig15, compact=True)}
 """,
         args,
     )
