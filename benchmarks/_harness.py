@@ -164,17 +164,13 @@ def random_top(rng):
 # --- tables, charts, RESULTS.md ----------------------------------------------------------------
 
 
-def table(headers, rows, compact=False) -> str:
-    """A markdown table; `headers` and each row a list of cells or one string "a | b | c";
-    `compact`: no spaces around the cells' bars."""
+def table(headers, rows) -> str:
+    """A markdown table; `headers` and each row a list of cells or one string "a | b | c"
+    (no spaces around the cells' bars in the table written)."""
 
-    def line(cells):
-        if compact:  # cells split at unescaped bars; no spaces around them
-            cells = re.split(r"(?<!\\)\|", cells) if isinstance(cells, str) else cells
-            return "|" + "|".join(str(x).strip() for x in cells) + "|"
-        return (
-            "| " + (cells if isinstance(cells, str) else " | ".join(str(x) for x in cells)) + " |"
-        )
+    def line(cells):  # cells split at unescaped bars
+        cells = re.split(r"(?<!\\)\|", cells) if isinstance(cells, str) else cells
+        return "|" + "|".join(str(x).strip() for x in cells) + "|"
 
     n = len(headers.split(" | ")) if isinstance(headers, str) else len(headers)
     return "\n".join([line(headers), "|" + "---|" * n, *map(line, rows)])

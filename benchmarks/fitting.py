@@ -148,7 +148,7 @@ def summary(rows) -> str:
     subsets["upright launches"] = [r for r in main if r["upright"]]
     body = [line("all", main)] + [line(k, v) for k, v in subsets.items() if v]
     head = "records | success from truth | truth within 3 SE | success from 30% off | failures flagged | unflagged failures | SE / CRB | \\|error\\| / SE < 2 | median s / fit"
-    out = [h.table(head, body, compact=True)]
+    out = [h.table(head, body)]
     others = [r for r in rows if r["strategy"] != "global"]
     idx, cand = {r["index"] for r in others}, []
     for s in dict.fromkeys(["global"] + [r["strategy"] for r in others]) if others else ():
@@ -162,9 +162,7 @@ def summary(rows) -> str:
             f"From 30% off, first {len(idx)} records (scipy: least_squares over `tj.simulate`):",
             "",
         ]
-        out += [
-            h.table("strategy | success | flagged of failures | median s / fit", cand, compact=True)
-        ]
+        out += [h.table("strategy | success | flagged of failures | median s / fit", cand)]
     fails = [r for r in main if not succeeded(r)]
     out += ["", "Fits that did not succeed:" if fails else "Every fit succeeded."]
     out += [
@@ -460,7 +458,6 @@ def law_summary(rows) -> str:
         h.table(
             "law | records | success from truth | success from 30% off | failures flagged | unflagged failures",
             fit_rows,
-            compact=True,
         ),
         "",
         f"The wrong law ruled out where its best fit is further than the noise (rms) from the clean signal: {total[0]}/{total[1]} ({rate:.1%}); where it is not (alike): {total[2]}.",
@@ -470,7 +467,6 @@ def law_summary(rows) -> str:
         h.table(
             "record's law | chosen right | right where every other law differs | none chosen",
             choice_rows,
-            compact=True,
         ),
     ]
     wrong = [r for r in rows if r["preferred"] != r["law"]]
@@ -554,7 +550,7 @@ def mujoco(args):
         f"""
 {ts[-1]:.0f} s at 200 Hz, `tj.compare_laws` without sigma ({wall:.0f} s). Target: rms at most 1.5x the noise with the best law.
 
-{h.table("law | fitted | rms (rad) | noise (rad) | rms / noise", rows, compact=True)}
+{h.table("law | fitted | rms (rad) | noise (rad) | rms / noise", rows)}
 
 Best (the lowest rms): {cmp.names[best]}, {ratio:.2f}x the lowest noise level the fits estimate ({floor:.4g} rad): target {h.verdict(ratio <= 1.5)}; {cmp.names[0]} {rms[0] / floor:.2f}x. The comparison's verdict: {cmp.preferred_name or "no law consistent"}{ruled_out}.
 """,

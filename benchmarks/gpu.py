@@ -162,7 +162,7 @@ def report_from(info, args):
         f"""
 {info["elapsed"]:.0f} s. Error: the largest over {REF_MEMBERS} members against the plain script at rtol 1e-12; GFLOP/s: a lower bound ({info["flops"]:.0f} flop per member-step){f", the card's float64 peak {peak / 1e12:.0f} TFLOP/s" if peak else ""}. Goal, 1e6 tops x 20 s in float64 within 20 s on one H100: {goal_text}.
 
-{h.table("N | run | s | x plain vmap | first call s | compile s | steps (max) | error | GFLOP/s | contact lost", rows, compact=True)}
+{h.table("N | run | s | x plain vmap | first call s | compile s | steps (max) | error | GFLOP/s | contact lost", rows)}
 {"".join(f"{chr(10)}{k.capitalize()}: " + "; ".join(info[k]) for k in ("skipped", "errors") if info[k])}
 """,
         args,

@@ -119,9 +119,9 @@ def cost(args):
         f"""
 Timing at rtol 1e-8 ({n} interleaved rounds), correctness at rtol 1e-12; x solve: wall / CPU time against the forward solve.
 
-{h.table("run | " + " | ".join(f"{q}: x solve, compile s" for q in columns), rows, compact=True)}
+{h.table("run | " + " | ".join(f"{q}: x solve, compile s" for q in columns), rows)}
 
-{h.table("target | measured | verdict", targets, compact=True)}
+{h.table("target | measured | verdict", targets)}
 
 {plain_script(n)}
 """,
@@ -272,7 +272,7 @@ def first_call(args):
         f"""
 The first call less the second (s) in a new process; off: `TIPPEJAX_COMPILATION_CACHE=0`, cold: an empty cache, warm: a second process with it.
 
-{h.table("case | off | cold | warm", rows, compact=True)}
+{h.table("case | off | cold | warm", rows)}
 
 Warm, per level: {warm} (targets: the first `simulate` < 1 s, <= 2 s per level){fit}. A save grid of a new length in a warm process: {s["first_s"]:.2f} s in a compiled bucket (120 after 100), {s["other_s"]:.2f} s for a new bucket (300), {s["second_s"]:.2f} s for the run itself.
 """,

@@ -147,7 +147,7 @@ def measured_block(name, table_, nested):
         for reg in m
     ]
     head = [*(["group"] if nested else []), "regime", *LEVELS]
-    return f"`{name}`, worst error (rad) / highest cost per level:\n\n{h.table(head, rows, compact=True)}"
+    return f"`{name}`, worst error (rad) / highest cost per level:\n\n{h.table(head, rows)}"
 
 
 def read_block(name):
@@ -318,7 +318,7 @@ def spun_mode(args):
         f"""
 t_invert of the slow flow alone (Dopri5, rtol 1e-8) against SO(3) (rtol 1e-10), omega = n a launches. Targets: at most 0.5% at 150 rad/s, 0.4% at 225, 0.3% at 300.
 
-{h.table("n0 (rad/s) | SO(3) t_invert (s) | slow flow | full - SO(3) | model='gyroscopic'", rows, compact=True)}
+{h.table("n0 (rad/s) | SO(3) t_invert (s) | slow flow | full - SO(3) | model='gyroscopic'", rows)}
 
 Fitted rate of the slow flow's |error|: n0^{fitted:+.2f}.
 """,
@@ -372,7 +372,7 @@ def wp_mode(args):
         f"""
 Error of t_invert where the full model inverts, else of theta(t1), against the full model at rtol 1e-12. Chart: `gyroscopic_work_precision.png`.
 
-{h.table("group (n0 rad/s) | quantity | so3: error at rtol 1e-6 / 1e-8 / 1e-10 | gyroscopic | time vs full at 1e-8 (so3 / gyro)", body, compact=True)}
+{h.table("group (n0 rad/s) | quantity | so3: error at rtol 1e-6 / 1e-8 / 1e-10 | gyroscopic | time vs full at 1e-8 (so3 / gyro)", body)}
 """,
         args,
     )

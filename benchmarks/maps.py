@@ -100,7 +100,7 @@ def cost(args):
         f"""
 {theta0.size} x {spin.size} launches, t1 = {t1:g} s. The reference map (full, rtol 1e-6): {", ".join(f"{k} {v}" for k, v in ref.counts().items())}.
 
-{h.table("run | wall s | launches/s | vs outcome_map", rows, compact=True)}
+{h.table("run | wall s | launches/s | vs outcome_map", rows)}
 
 Outcomes that differ from the reference map: {agree}. Memory per launch: {sizes[256] / 1e6:.2f} MB for 256 launches, {sizes[1024] / 1e6:.2f} MB for 1024: **{(sizes[1024] - sizes[256]) / 768e3:.1f} kB per launch**, whatever t1.
 """,
@@ -233,9 +233,9 @@ def auto(args):
         f"""
 {theta0.size} x {spin.size} launches, t1 = {t1:g} s; missed / extra: contact losses of the full map the auto map lacks / adds. Shifted grid: {shifted[0].size} x {shifted[1].size} other launches.
 
-{h.table(["map", "full launches/s", "auto launches/s", "speed", "agreement", "missed losses", "extra losses", "shifted grid"], rows, compact=True)}
+{h.table(["map", "full launches/s", "auto launches/s", "speed", "agreement", "missed losses", "extra losses", "shifted grid"], rows)}
 
-{h.table(["map", "routes of the auto map", "solver steps auto / full", "outcomes changed"], route_rows, compact=True)}
+{h.table(["map", "routes of the auto map", "solver steps auto / full", "outcomes changed"], route_rows)}
 
 Targets: >= 99% agreement, 0 missed contact losses, >= 20x launches/s.
 """,
@@ -336,7 +336,7 @@ def adaptive_agreement(args):
         f"""
 refine = {k}, t1 = {t1:g} s.
 
-{h.table(["top", "grid", "theta0 (rad)", "spin (rad/s)", "agreement (cells differing)", "worst distance", "simulated", "steps", "wall"], rows, compact=True)}
+{h.table(["top", "grid", "theta0 (rad)", "spin (rad/s)", "agreement (cells differing)", "worst distance", "simulated", "steps", "wall"], rows)}
 
 Boundaries of the adaptive maps:
 
@@ -402,11 +402,11 @@ def report(args, t1, sizes, big, rows, big_rows, dimension):
         "maps.py --adaptive-speed",
         "Adaptive maps: cost against the dense map",
         f"""
-{h.table(["grid", "refine", "dense wall s", "adaptive wall s", "launches simulated", "simulations", "wall time", "agreement (differing, worst distance)"], rows, compact=True)}
+{h.table(["grid", "refine", "dense wall s", "adaptive wall s", "launches simulated", "simulations", "wall time", "agreement (differing, worst distance)"], rows)}
 
 Targets: at most 1/{limits[512]} of the dense map's simulations and wall time at 512^2, 1/{limits[1024]} at 1024^2. Boundaries of the {sizes[-1]}^2 adaptive map: {dimension}.
 
-{h.table(["adaptive map", "refine", "wall s", "CPU s", "launches simulated", "batched calls", "regions not refined"], big_rows, compact=True) if big_rows else "No adaptive map of the large sizes was run."}
+{h.table(["adaptive map", "refine", "wall s", "CPU s", "launches simulated", "batched calls", "regions not refined"], big_rows) if big_rows else "No adaptive map of the large sizes was run."}
 
 Targets: 1000^2 within 60 s and 4096^2 within 600 s on 2 CPU cores.{f" **Not run in this run: {', '.join(f'{n}^2' for n in not_run)}** (`--sizes`, `--big`)." if not_run else ""}
 """,

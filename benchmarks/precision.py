@@ -62,7 +62,7 @@ def precision(args):
         f"""
 Standard top, theta0 0.1, spin 100 rad/s, {T1:g} s, {N} saves; reference float64 Dopri8 at rtol 1e-12 (t_invert {t_ref:.9f} s). Medians of {1 if args.smoke else 5} interleaved runs. Chart: `float32.png`.
 
-{h.table("solver | dtype | rtol | median wall s | steps | max d theta (rad) | d t_invert (s) | ok", rows, compact=True)}
+{h.table("solver | dtype | rtol | median wall s | steps | max d theta (rad) | d t_invert (s) | ok", rows)}
 
 float32's floor on this scene: {best:.1e} rad in theta over {T1:g} s.
 """,

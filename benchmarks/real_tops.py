@@ -240,7 +240,7 @@ def peers(args):
     h.write(
         f"{SUITE} --peers",
         "Leine & Glocker's top with its stem: tippejax, scipy, cardillo",
-        f"Ellipse law, slip scale {DELTA:g} m/s, {t1:g} s; stem touch {f(ev_truth['t_stem'], 6)} s; numba {'on' if rr.HAVE_NUMBA else 'off'}.\n\n{h.table(head, rows, compact=True)}{verdict}",
+        f"Ellipse law, slip scale {DELTA:g} m/s, {t1:g} s; stem touch {f(ev_truth['t_stem'], 6)} s; numba {'on' if rr.HAVE_NUMBA else 'off'}.\n\n{h.table(head, rows)}{verdict}",
         args,
     )
 
@@ -274,7 +274,7 @@ def batch(args):
         f"""
 {n} seeded launches, {t1:g} s, `simulate_batch(..., grid=(), summary=True)`.
 
-{h.table(head, rows, compact=True)}
+{h.table(head, rows)}
 
 Target, per top at most 3x the viscous law's cost on the same scene: ellipse {r["ellipse"]:.2f}x, hertz {r["hertz"]:.2f}x, {h.verdict(max(r.values()) <= 3.0)}.
 """,
@@ -321,7 +321,7 @@ def work_precision(args):
         f"""
 Error against Dopri8 at rtol 1e-12; atol = rtol / 100. Chart: `real_tops_wp.png`.
 
-{h.table("scene | solver | rtol | wall s | compile s | steps | rejected | max d theta", rows, compact=True)}
+{h.table("scene | solver | rtol | wall s | compile s | steps | rejected | max d theta", rows)}
 """,
         args,
     )
@@ -371,7 +371,7 @@ def slip(args):
     h.write(
         f"{SUITE} --slip",
         "The first pi/2 crossing against the slip scale",
-        f"No stem; `tj.inversion_time` (rtol 1e-8, first call) against the reference (rtol 1e-9).\n\n{h.table(head, rows, compact=True)}",
+        f"No stem; `tj.inversion_time` (rtol 1e-8, first call) against the reference (rtol 1e-9).\n\n{h.table(head, rows)}",
         args,
     )
 
@@ -435,7 +435,7 @@ def contact(args):
     h.write(
         f"{SUITE} --contact",
         "Sensitivity to the contact parameters after the touch",
-        f"Ellipse law, {t1:g} s, rtol 1e-8, 10 ms saves.\n\n{h.table(head, rows, compact=True)}",
+        f"Ellipse law, {t1:g} s, rtol 1e-8, 10 ms saves.\n\n{h.table(head, rows)}",
         args,
     )
 
@@ -478,11 +478,11 @@ def lg(args):
         f"""
 Slip scale {DELTA:g} m/s.
 
-{h.table("run | theta = pi/2 s | stem touch s | theta at touch", rows, compact=True)}
+{h.table("run | theta = pi/2 s | stem touch s | theta at touch", rows)}
 
 Their figure 15: theta at 0.5 s against the contact radius (Tsit5, rtol 1e-9).
 
-{h.table("rho mm | tippejax hertz | reference hertz | tippejax ellipse | reference ellipse", fig15, compact=True)}
+{h.table("rho mm | tippejax hertz | reference hertz | tippejax ellipse | reference ellipse", fig15)}
 """,
         args,
     )

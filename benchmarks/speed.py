@@ -173,7 +173,7 @@ def one_top(args):
         f"""
 Equal error {target:.2e} (the plain script's at rtol {TARGET:g}); {rounds(args, 21)} interleaved rounds; numba, scipy and the gyroscopic level (at rtol 1e-8; its model error {eq[GYRO]["error"]:.1e}) from the ladders. Chart: `peers.png`.
 
-{h.table("peer | rtol | steps | vs plain steps | ms | vs plain | compile s", body, compact=True)}
+{h.table("peer | rtol | steps | vs plain steps | ms | vs plain | compile s", body)}
 
 Targets: steps at equal error <= 1.05x the plain script: {steps:.2f}x, {h.verdict(steps <= 1.05)}; one top <= 1.2x (so3): {so3["ratio"]:.2f}x, {h.verdict(so3["ratio"] <= 1.2)}; full <= 1.3x so3: {full["ratio"] / so3["ratio"]:.2f}x, {h.verdict(full["ratio"] <= 1.3 * so3["ratio"])}.
 """,
@@ -266,7 +266,6 @@ def batch(args):
             h.table(
                 f"run | steps median | 1 device ms | vs plain | {cores} devices ms | vs plain | us per member-step (1 device)",
                 rows,
-                compact=True,
             ),
             "",
         ]
@@ -299,7 +298,7 @@ def batch(args):
 Equal-error rtols (error {target:.2e}): {", ".join(f"{k} {v:.2e}" for k, v in eq.items())}; {rounds(args, 5)} interleaved rounds; every core: {cores} host devices. scipy DOP853, a loop over the tops: {scipy_ms:.0f} ms per top.
 
 {chr(10).join(text)}
-{h.table("target | measured | verdict", targets, compact=True)}
+{h.table("target | measured | verdict", targets)}
 """,
         args,
     )
@@ -345,7 +344,7 @@ def numba_goal(args):
         f"""
 Batch of {n}, summary, equal error {target:.2e} (numba rtol {rn:.2e}, tippejax so3 {r3:.2e}), {rounds(args, 9)} interleaved rounds, {cores} host devices. Goal: at or below numba on the same cores (median of the paired ratios, quartiles).
 
-{h.table("run | ms per top | error | / numba on the same cores", rows, compact=True)}
+{h.table("run | ms per top | error | / numba on the same cores", rows)}
 """,
         args,
     )
@@ -413,9 +412,9 @@ def wp(args):
         f"""
 Errors against tippejax Dopri8 at rtol 1e-13 of the same model; 'scipy / tippejax': scipy DOP853's time at tippejax's error over tippejax's. Chart: `work_precision.png`.
 
-{h.table("model | solver | rtol | ms | steps | max d theta | d t_invert | scipy / tippejax", body, compact=True)}
+{h.table("model | solver | rtol | ms | steps | max d theta | d t_invert | scipy / tippejax", body)}
 
-{h.table("event | measured | verdict", events, compact=True)}
+{h.table("event | measured | verdict", events)}
 """,
         args,
     )
@@ -467,7 +466,7 @@ def stiff(args):
         f"""
 {rounds(args, 2)} interleaved rounds. Wall s / steps / max d theta:
 
-{h.table("mu (s/m) | friction rate (1/s) | Tsit5 | Dopri8 | Kvaerno5 | default picks", rows, compact=True)}
+{h.table("mu (s/m) | friction rate (1/s) | Tsit5 | Dopri8 | Kvaerno5 | default picks", rows)}
 """,
         args,
     )
@@ -511,7 +510,7 @@ def grid(args):
 
 Spread batch (spin 20-400), `buckets=k`, {rounds(args, 2)} interleaved rounds:
 
-{h.table("t1 | buckets | wall s | vs 1 bucket | steps max | steps median", rows, compact=True)}
+{h.table("t1 | buckets | wall s | vs 1 bucket | steps max | steps median", rows)}
 """,
         args,
     )
