@@ -147,20 +147,6 @@ def fresh_process(code: str, *args: str, env: dict | None = None) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-def random_top(rng):
-    """A seeded random top nobody tuned on: A/C in [0.6, 1.7], eps/R in [0.03, 0.4], mu
-    log-uniform in [0.05, 1] s/m (m 20 g, R 25 mm). Returns (top, A/C, eps/R, mu, n_ref), n_ref
-    its n1 (n2 in group I, where n1 is undefined): the scale of its spins."""
-    import tippejax as tj
-
-    a_c, e_r = rng.uniform(0.6, 1.7), rng.uniform(0.03, 0.4)
-    mu = float(np.exp(rng.uniform(np.log(0.05), np.log(1.0))))
-    top = tj.TippeTop.from_ratios(a_c, e_r, m=0.02, R=0.025, mu=mu)
-    th = tj.thresholds(top)
-    n_ref = float(th.n1) if np.isfinite(float(th.n1)) else float(th.n2)
-    return top, a_c, e_r, mu, n_ref
-
-
 # --- tables, charts, RESULTS.md ----------------------------------------------------------------
 
 

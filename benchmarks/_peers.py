@@ -2,7 +2,7 @@
 script, compiled numba DOP853 (CyRK) and scipy's DOP853 on the vector-form model in numpy.
 
 The scene: the standard top `tj.default_top()`, theta0 = 0.1, spin 150 rad/s for one top and
-spins linspace(140, 160, N) for a batch, 20 s, the final state (or 6 save times)."""
+spins linspace(140, 160, N) for a batch, 20 s, the final state."""
 
 from __future__ import annotations
 
@@ -20,7 +20,6 @@ import tippejax as tj
 TOP = tj.default_top()
 PARAMS = np.array([float(getattr(TOP, k)) for k in ("m", "R", "eps", "A", "C", "g", "mu")])
 THETA0, SPIN, T1 = 0.1, 150.0, 20.0
-TS = np.array([0.5, 1.0, 2.0, 5.0, 10.0, 20.0])
 PI = dict(pcoeff=0.4, icoeff=0.3)  # the PI controller tippejax uses (diffrax's suggestion)
 BLOCK = 128  # members per block of the plain script in blocks (simulate_batch's CPU layout)
 
@@ -61,11 +60,10 @@ def launch(spin):
     return jnp.concatenate([a, spin * a])
 
 
-def plain_solve(spin, rtol, atol, ts=None, *, controller=None, solver=None):
+def plain_solve(spin, rtol, atol, *, controller=None, solver=None):
     """One top: Dopri8, PIDController, no events. Returns (final state, steps)."""
-    saveat = diffrax.SaveAt(t1=True) if ts is None else diffrax.SaveAt(ts=ts)
     pid = diffrax.PIDController(rtol=rtol, atol=atol, **(controller or {}))
-    kw = dict(saveat=saveat, stepsize_controller=pid, max_steps=100_000)
+    kw = dict(saveat=diffrax.SaveAt(t1=True), stepsize_controller=pid, max_steps=100_000)
     term, y0 = diffrax.ODETerm(so3_field), launch(spin)
     sol = diffrax.diffeqsolve(
         term, solver or diffrax.Dopri8(), 0.0, T1, None, y0, tuple(PARAMS), **kw
@@ -113,16 +111,11 @@ def over_devices(fn, n_args: int, devices=None, compiler_options=None):
 @functools.cache
 def plain(kind: str = "vmap", n_devices: int | None = None):
     """The plain script over a batch, `run(spins, rtol, atol) -> (finals, steps)`:
-    "vmap" (`jax.vmap`), "saves" (vmap, 6 saves), "pi" (vmap, PI controller), "blocks" (vmap in
-    blocks, compiled with `tj.compiler_options()`: the strongest JAX script we know on a CPU),
-    "shared" (one solve for the batch); on every device unless `n_devices`."""
+    "vmap" (`jax.vmap`), "blocks" (vmap in blocks, compiled with `tj.compiler_options()`: the
+    strongest JAX script we know on a CPU), "shared" (one solve for the batch); on every device
+    unless `n_devices`."""
     devices = jax.devices()[: n_devices or None]
-    one = {
-        "vmap": plain_solve,
-        "pi": functools.partial(plain_solve, controller=PI),
-        "saves": lambda s, r, a: plain_solve(s, r, a, jnp.asarray(TS)),
-    }.get(kind, plain_solve)
-    batched = plain_shared if kind == "shared" else jax.vmap(one, in_axes=(0, None, None))
+    batched = plain_shared if kind == "shared" else jax.vmap(plain_solve, in_axes=(0, None, None))
     if kind == "blocks":
         return over_devices(in_blocks(batched), 3, devices, tj.compiler_options())
     return over_devices(batched, 3, devices)
@@ -131,15 +124,6 @@ def plain(kind: str = "vmap", n_devices: int | None = None):
 @functools.cache
 def plain_single(kind: str = "vmap"):
     return jax.jit(functools.partial(plain_solve, controller=PI if kind == "pi" else None))
-
-
-def flops_per_member_step() -> float:
-    """A lower bound on one Dopri8 step of the plain script per member: XLA's cost analysis of
-    its vmapped field x 13 evaluations, plus the Runge-Kutta combinations (controller left out)."""
-    y = jax.vmap(launch)(jnp.asarray(spins(1000)))
-    field = jax.jit(jax.vmap(lambda z: so3_field(0.0, z, tuple(PARAMS))))
-    cost = field.lower(y).compile().cost_analysis()
-    return 13 * float(cost.get("flops", math.nan)) / 1000 + 2 * sum(range(14)) * 6
 
 
 # --- numba: CyRK's compiled DOP853 on the same equations ---------------------------------------
@@ -217,7 +201,7 @@ class VectorModel:
         self.p = tuple(float(x) for x in params)
 
     def dynamics(self, a, w, v):
-        """(R_n, omega_dot, horizontal slip velocity, denominator of R_n)."""
+        """(R_n, omega_dot, horizontal slip velocity)."""
         m, R, eps, A, C, g, mu = self.p
         (ax, ay, az), (wx, wy, wz) = a, w
         n = wx * ax + wy * ay + wz * az
@@ -230,10 +214,9 @@ class VectorModel:
         at = (1.0 / C - 1.0 / A) * (ax * tx + ay * ty + az * tz)
         o1 = (tx / A + at * ax, ty / A + at * ay, tz / A + at * az)
         h0 = -eps * (k0 * (dx * ay - dy * ax) + (wx * dy - wy * dx))
-        den = 1.0 / m + eps * (o1[0] * ay - o1[1] * ax)
-        rn = (g + h0) / den
+        rn = (g + h0) / (1.0 / m + eps * (o1[0] * ay - o1[1] * ax))
         wdot = (k0 * dx + rn * o1[0], k0 * dy + rn * o1[1], k0 * dz + rn * o1[2])
-        return rn, wdot, (vqx, vqy), den
+        return rn, wdot, (vqx, vqy)
 
     def split(self, y):
         y = y.tolist()
@@ -241,7 +224,7 @@ class VectorModel:
 
     def rhs(self, t, y):
         a, w, v = self.split(y)
-        rn, wdot, vq, _ = self.dynamics(a, w, v)
+        rn, wdot, vq = self.dynamics(a, w, v)
         adot = (w[1] * a[2] - w[2] * a[1], w[2] * a[0] - w[0] * a[2], w[0] * a[1] - w[1] * a[0])
         if self.full:
             k = -self.p[6] * rn / self.p[0]
@@ -254,10 +237,9 @@ class VectorModel:
         w = np.array([0.0, 0.0, phi_dot]) + (spin - phi_dot * math.cos(theta0)) * a
         return np.concatenate([np.zeros(4), a, w]) if self.full else np.concatenate([a, w])
 
-    def solve(self, y0, t1, *, rtol, atol, t_eval=None, stop_at_contact=False):
-        """solve_ivp(DOP853) with the inversion (a_z through 0) and, if asked, the contact loss
-        (R_n D through 0, terminal). Returns theta at t_eval (or the final state), t_invert,
-        t_contact_loss, steps."""
+    def solve(self, y0, t1, *, rtol, atol, t_eval=None):
+        """solve_ivp(DOP853) with the inversion (a_z through 0). Returns theta at t_eval (or the
+        final state), t_invert, steps."""
         from scipy.integrate import solve_ivp
 
         k = 6 if self.full else 2
@@ -265,18 +247,12 @@ class VectorModel:
         def upright(t, y):
             return y[k]
 
-        def contact(t, y):
-            rn, _, _, den = self.dynamics(*self.split(y))
-            return rn * den
-
-        upright.direction = contact.direction = -1
-        contact.terminal = True
-        events = (upright, contact) if stop_at_contact else upright
-        kw = dict(method="DOP853", rtol=rtol, atol=atol, t_eval=t_eval, events=events)
+        upright.direction = -1
+        kw = dict(method="DOP853", rtol=rtol, atol=atol, t_eval=t_eval, events=upright)
         sol = solve_ivp(self.rhs, (0.0, t1), y0, **kw)
         if not sol.success:
             raise RuntimeError(sol.message)
         a = sol.y[k - 2 : k + 1]
-        first = [float(e[0]) if len(e) else math.nan for e in sol.t_events] + [math.nan]
+        t_invert = float(sol.t_events[0][0]) if len(sol.t_events[0]) else math.nan
         out = np.arctan2(np.hypot(a[0], a[1]), a[2]) if t_eval is not None else sol.y[:, -1]
-        return out, first[0], first[1], (sol.nfev - 1) // 12
+        return out, t_invert, (sol.nfev - 1) // 12

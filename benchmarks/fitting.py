@@ -4,7 +4,7 @@
 A fit succeeds when every free parameter is within 2% of the truth and 3 standard errors; one that
 does not must be flagged (`converged=False`). Rows are cached beside the records (`--resume`).
 
-    python benchmarks/fitting.py --table --n 60 --compare 8
+    python benchmarks/fitting.py --table --n 60
     python benchmarks/fitting.py --coverage --n 60 --copies 4
     python benchmarks/fitting.py --laws --n 48 --resume   # or --minutes M: stop after M minutes
     python benchmarks/fitting.py --quick                  # every mode, tiny, writes nothing
@@ -71,53 +71,18 @@ def start_of(record, start, index):
     return top, y0
 
 
-def row_of(record, index, start, strategy, wall, values, converged, se=None, **extra):
-    free = list(record["free"])
-    out = dict(index=index, start=start, strategy=strategy, group=str(record["group"]))
-    out.update(upright=bool(record["upright"]), rate=float(record["rate_hz"]), free=free)
-    out.update(score(values, se, [record["truth"][k] for k in free]), **extra)
-    out.update(converged=bool(converged), wall=wall)
-    if se is not None:
-        out["se_over_crb"] = (se / np.array([record["crb"][k] for k in free])).tolist()
-    return out
-
-
-def fit_row(record, index, start, strategy="global", max_steps=100):
+def fit_row(record, index, start, max_steps=100):
     top, y0 = start_of(record, start, index)
-    kw = dict(free=record["free"], strategy=strategy, max_steps=max_steps)
+    kw = dict(free=record["free"], max_steps=max_steps)
     wall, _, res = h.call(lambda: tj.fit(top, y0, record["ts"], record["theta_obs"], **kw))
     values, se = np.asarray(res.values, float), np.asarray(res.std_errors, float)
-    return row_of(
-        record, index, start, strategy, wall, values, res.converged, se, message=res.message()[:40]
-    )
-
-
-def scipy_row(record, index, max_nfev=200):
-    """scipy.optimize.least_squares over `tj.simulate`: the simplest alternative a user has."""
-    from scipy.optimize import least_squares
-
-    top0, y00 = start_of(record, "off", index)
-    ts, obs, la = record["ts"], record["theta_obs"], record["launch"]
-    mask, spin = np.isfinite(obs), float(np.asarray(y00.omega) @ np.asarray(y00.axis))
-    upright = "theta_dot" in record["free"]
-    x0 = np.array(
-        [float(top0.mu), float(top0.eps), spin] + [float(tj.euler_rates(y00)[0])] * upright
-    )
-
-    def residuals(x):
-        try:
-            top = top0.replace(mu=x[0], eps=x[1])
-            theta_dot = x[3] if len(x) > 3 else la["theta_dot"]
-            y0 = tj.initial_state(top, la["theta0"], x[2], theta_dot=theta_dot)
-            theta = np.asarray(tj.simulate(top, y0, float(ts[-1]), saveat=ts, throw=False).theta)
-            return np.where(np.isfinite(theta), theta, np.pi)[mask] - obs[mask]
-        except ValueError:  # an invalid trial top (eps >= R, ...)
-            return np.full(mask.sum(), np.pi)
-
-    wall, _, out = h.call(
-        lambda: least_squares(residuals, x0, x_scale=np.abs(x0), max_nfev=max_nfev)
-    )
-    return row_of(record, index, "off", "scipy", wall, out.x, out.success, nfev=int(out.nfev))
+    free = list(record["free"])
+    out = dict(index=index, start=start, strategy="global", group=str(record["group"]))
+    out.update(upright=bool(record["upright"]), rate=float(record["rate_hz"]), free=free)
+    out.update(score(values, se, [record["truth"][k] for k in free]))
+    out.update(converged=bool(res.converged), wall=wall)
+    out["se_over_crb"] = (se / np.array([record["crb"][k] for k in free])).tolist()
+    return out
 
 
 def counts(rows) -> str:
@@ -148,29 +113,7 @@ def summary(rows) -> str:
     subsets["upright launches"] = [r for r in main if r["upright"]]
     body = [line("all", main)] + [line(k, v) for k, v in subsets.items() if v]
     head = "records | success from truth | truth within 3 SE | success from 30% off | failures flagged | unflagged failures | SE / CRB | \\|error\\| / SE < 2 | median s / fit"
-    out = [h.table(head, body)]
-    others = [r for r in rows if r["strategy"] != "global"]
-    idx, cand = {r["index"] for r in others}, []
-    for s in dict.fromkeys(["global"] + [r["strategy"] for r in others]) if others else ():
-        sub = [r for r in rows if r["strategy"] == s and r["start"] == "off" and r["index"] in idx]
-        cand.append(
-            f"{s} | {counts(sub).rsplit(' | ', 1)[0]} | {np.median([r['wall'] for r in sub]):.1f}"
-        )
-    if cand:
-        out += [
-            "",
-            f"From 30% off, first {len(idx)} records (scipy: least_squares over `tj.simulate`):",
-            "",
-        ]
-        out += [h.table("strategy | success | flagged of failures | median s / fit", cand)]
-    fails = [r for r in main if not succeeded(r)]
-    out += ["", "Fits that did not succeed:" if fails else "Every fit succeeded."]
-    out += [
-        f"- record {r['index']} ({r['group']}, {r['rate']:.0f} Hz) from {r['start']}: rel. errors {np.round(r['rel_error'], 4).tolist()}, "
-        f"{'flagged' if not r['converged'] else 'NOT flagged'}, {r['message']!r}"
-        for r in fails
-    ]
-    return "\n".join(out)
+    return h.table(head, body)
 
 
 def cached_rows(path, args):
@@ -184,30 +127,16 @@ def keep(path, rows, args):
 
 
 def table(args):
-    """Every record from the truth and from 30% off (`--compare K`: the first K records also with
-    the other strategies and scipy); the chart fitting.png."""
-    n, compare, steps = (1, 1, 3) if args.smoke else (args.n, args.compare, 100)
-    others = ("plain", "scipy") if args.smoke else ("search", "levels", "windows", "plain", "scipy")
+    """Every record from the truth and from 30% off; the chart fitting.png."""
+    n, steps = (1, 3) if args.smoke else (args.n, 100)
     records, rows = fr.draw_records(n, args.seed), cached_rows(ROWS, args)
     done = {(r["index"], r["start"], r["strategy"]) for r in rows}
     for i, rec in enumerate(records):
         jax.clear_caches()  # each record brings new shapes: keep the process's memory maps bounded
         gc.collect()
-        runs = [("truth", "global"), ("off", "global")] + [("off", x) for x in others] * (
-            i < compare
-        )
-        for start, strategy in (x for x in runs if (i, *x) not in done):
-            scipy = strategy == "scipy"
-            row = (
-                scipy_row(rec, i, 3 if args.smoke else 200)
-                if scipy
-                else fit_row(rec, i, start, strategy, steps)
-            )
-            rows.append(row)
-            print(
-                f"record {i} {start} {strategy}: {'ok' if succeeded(row) else 'FAIL'} {row['wall']:.1f} s",
-                flush=True,
-            )
+        for start in (x for x in ("truth", "off") if (i, x, "global") not in done):
+            rows.append(fit_row(rec, i, start, steps))
+            print(f"record {i} {start}: {'ok' if succeeded(rows[-1]) else 'FAIL'}", flush=True)
             keep(ROWS, rows, args)
     h.write(
         "fitting.py --table",
@@ -246,7 +175,7 @@ def coverage(args):
     """The coverage of the standard errors over repeated noise: each record's clean signal with
     fresh noise draws at its own sigma and gap, fitted from the truth in one batched call."""
     n, copies = (1, 2) if args.smoke else (args.n, args.copies)
-    z_all, conv, per_group, wall = [], [], {}, 0.0
+    z_all, conv, wall = [], [], 0.0
     for rec in fr.draw_records(n, args.seed):
         jax.clear_caches()
         top, y0 = start_of(rec, "truth", rec["index"])
@@ -263,11 +192,7 @@ def coverage(args):
         z = (np.asarray(fits.values, float) - truth) / np.asarray(fits.std_errors, float)
         z_all.append(z.ravel())
         conv.append(np.repeat(np.asarray(fits.converged), z.shape[1]))
-        per_group.setdefault(str(rec["group"]), []).append(z.ravel())
     z, conv = np.concatenate(z_all), np.concatenate(conv)
-    groups = "; ".join(
-        f"{g} {np.mean(np.abs(np.concatenate(v)) < 2):.1%}" for g, v in per_group.items()
-    )
     sd = z.std(ddof=1) if z.size > 1 else np.nan
     h.write(
         "fitting.py --coverage",
@@ -275,43 +200,7 @@ def coverage(args):
         f"""
 The first {n} records (seed {args.seed}) x {copies} noise draws, from the truth ({wall:.0f} s of fits). Honest error bars: |z| < 2 for 95.4%.
 
-Over {z.size} parameter estimates ({np.mean(conv):.0%} of fits converged): |z| < 2 for **{np.mean(np.abs(z) < 2):.1%}** (+-{np.sqrt(0.954 * 0.046 / z.size):.1%} if independent), |z| < 3 for {np.mean(np.abs(z) < 3):.1%}; mean z {z.mean():+.3f}, sd {sd:.3f}; over the converged fits {np.mean(np.abs(z[conv]) < 2):.1%}. Per group: {groups}.
-""",
-        args,
-    )
-
-
-def speed(args):
-    """A 10 s record at 100 Hz: the first fit (compilation included), a second on other noise,
-    a third from another guess, and scipy's least_squares over `tj.simulate`, in one process."""
-    import vector_reference as vr
-
-    top = tj.TippeTop.from_ratios(1.2, 0.2, m=0.03, R=0.02, mu=0.4)
-    spin = 3.0 * float(tj.thresholds(top).n1)
-    ts = np.arange(0.0, 2.0 if args.smoke else 10.0, 0.01)
-    clean = np.asarray(vr.solve(vr.params_of(top), 0.1, spin, ts)["theta"])
-    rec = dict(
-        params={k: float(getattr(top, k)) for k in ("m", "R", "eps", "A", "C", "g", "mu")},
-        launch=dict(theta0=0.1, spin=spin, theta_dot=0.0, phi_dot=0.0),
-        ts=ts,
-        free=("mu", "eps", "spin"),
-        truth=dict(mu=float(top.mu), eps=float(top.eps), spin=spin),
-        crb=dict(mu=1.0, eps=1.0, spin=1.0),
-        group=tj.classify(top),
-        upright=False,
-        rate_hz=100.0,
-    )
-    rows, steps = [], 3 if args.smoke else 100
-    for seed, start in ((0, 0), (1, 0), (1, 1)):
-        rec["theta_obs"] = clean + 0.01 * np.random.default_rng(seed).standard_normal(ts.size)
-        rows.append(fit_row(rec, start, "off", max_steps=steps))
-    rows.append(scipy_row(rec, 0, 3 if args.smoke else 200))
-    ok = ["ok" if succeeded(r) else "failed" for r in rows]
-    h.write(
-        "fitting.py --speed",
-        "The time of a fit",
-        f"""
-{ts[-1] + 0.01:.0f} s at 100 Hz ({rec["group"]} top, noise 0.01), from 30% off, one process: the first call {rows[0]["wall"]:.1f} s, a second call on other noise {rows[1]["wall"]:.1f} s ({ok[1]}), from other signs of the 30% {rows[2]["wall"]:.1f} s ({ok[2]}). scipy least_squares over tj.simulate: {rows[3]["wall"]:.1f} s ({rows[3]["nfev"]} evaluations, {ok[3]}). Targets: the first call <= 20 s, a later one <= 10 s.
+Over {z.size} parameter estimates ({np.mean(conv):.0%} of fits converged): |z| < 2 for **{np.mean(np.abs(z) < 2):.1%}** (+-{np.sqrt(0.954 * 0.046 / z.size):.1%} if independent), |z| < 3 for {np.mean(np.abs(z) < 3):.1%}; mean z {z.mean():+.3f}, sd {sd:.3f}; over the converged fits {np.mean(np.abs(z[conv]) < 2):.1%}.
 """,
         args,
     )
@@ -562,18 +451,16 @@ def options(prs):
     prs.add_argument("--quick", dest="smoke", action="store_true", help="the same as --smoke")
     prs.add_argument("--n", type=int, default=60, help="records")
     prs.add_argument("--seed", type=int, default=0)
-    prs.add_argument("--compare", type=int, default=8, help="records also fitted the other ways")
     prs.add_argument("--copies", type=int, default=4, help="--coverage: noise draws per record")
     prs.add_argument("--resume", action="store_true", help="--table, --laws: keep the fits made")
     prs.add_argument("--minutes", type=float, default=None, help="--laws: stop after M minutes")
 
 
 MODES = {
-    "table": (table, "every record from the truth and 30% off; strategies; fitting.png"),
+    "table": (table, "every record from the truth and 30% off; fitting.png"),
     "laws": (laws, "records of every friction law: which law a record obeys"),
     "mujoco": (mujoco, "MuJoCo's own top, the whole record with every law"),
     "coverage": (coverage, "the coverage of the error bars over repeated noise"),
-    "speed": (speed, "the time of a fit: first call, later calls, scipy"),
 }
 
 if __name__ == "__main__":

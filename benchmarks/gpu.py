@@ -32,7 +32,6 @@ COMPILE_EVENTS = (
     "/jax/core/compile/jaxpr_to_mlir_module_duration",
     "/jax/core/compile/backend_compile_duration",
 )
-FP64_PEAK = {"H100": 34e12, "H200": 34e12}  # vector (non-tensor) float64, vendor datasheets
 
 
 def runs():
@@ -84,7 +83,6 @@ def ladder(args):
     start, device = time.perf_counter(), jax.devices()[0]
     info = dict(device=str(getattr(device, "device_kind", device.platform)), rows=[], skipped=[])
     info.update(machine=h.machine_line(), command=h.command(args), errors=[])
-    info["flops"] = p.flops_per_member_step()
     compiling = []
     jax.monitoring.register_event_duration_secs_listener(
         lambda event, secs, **_: compiling.append(secs) if event in COMPILE_EVENTS else None
@@ -128,7 +126,6 @@ def ladder(args):
                 )
             if "full" not in name:
                 row["error"] = p.state_error(final[idx], ref)
-            row["gflops"] = info["flops"] * row["steps_max"] * n / statistics.median(times) / 1e9
             info["rows"].append(row)
             print(json.dumps(row), flush=True)
             save()
@@ -138,7 +135,6 @@ def ladder(args):
 
 
 def report_from(info, args):
-    peak = next((v for k, v in FP64_PEAK.items() if k in info["device"]), None)
     by, rows = {(r["n"], r["name"]): r for r in info["rows"]}, []
     top_n = max((n for n, _ in by), default=0)  # the largest batch run: the goal's size
     for (n, name), r in sorted(by.items(), key=lambda kv: (kv[0][0], ORDER.index(kv[0][1]))):
@@ -148,7 +144,7 @@ def report_from(info, args):
         vs = f"{t / statistics.median(plain['times']):.2f}" if plain else ""
         err = f"{r['error']:.1e}" if "error" in r else ""
         rows.append(
-            f"{n:,} | {name} | {t:.2f} | {vs} | {r['first']:.1f} | {r['compile']:.1f} | {r['steps_max']} | {err} | {r['gflops']:.0f} | {r.get('contact_lost', '')}"
+            f"{n:,} | {name} | {t:.2f} | {vs} | {r['first']:.1f} | {r['compile']:.1f} | {r['steps_max']} | {err} | {r.get('contact_lost', '')}"
         )
     goal = by.get((10**6, "tippejax so3, shared"))
     goal_text = (
@@ -160,9 +156,9 @@ def report_from(info, args):
         "gpu.py",
         f"The batch on one GPU ({info['device']})",
         f"""
-{info["elapsed"]:.0f} s. Error: the largest over {REF_MEMBERS} members against the plain script at rtol 1e-12; GFLOP/s: a lower bound ({info["flops"]:.0f} flop per member-step){f", the card's float64 peak {peak / 1e12:.0f} TFLOP/s" if peak else ""}. Goal, 1e6 tops x 20 s in float64 within 20 s on one H100: {goal_text}.
+{info["elapsed"]:.0f} s. Error: the largest over {REF_MEMBERS} members against the plain script at rtol 1e-12. Goal, 1e6 tops x 20 s in float64 within 20 s on one H100: {goal_text}.
 
-{h.table("N | run | s | x plain vmap | first call s | compile s | steps (max) | error | GFLOP/s | contact lost", rows)}
+{h.table("N | run | s | x plain vmap | first call s | compile s | steps (max) | error | contact lost", rows)}
 {"".join(f"{chr(10)}{k.capitalize()}: " + "; ".join(info[k]) for k in ("skipped", "errors") if info[k])}
 """,
         args,

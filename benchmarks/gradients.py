@@ -16,7 +16,6 @@ import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 import tippejax as tj
 
@@ -81,11 +80,6 @@ def cost(args):
             "forward mode (jax.jacfwd)": eqx.filter_jit(jax.jacfwd(fn)),
             "forward mode, 1 tangent (jax.jvp)": eqx.filter_jit(jvp_mu),
             THROUGH: eqx.filter_jit(through),
-            # eager: the solve's Jacobian is then a program of its own, with tippejax's options
-            "eager jax.grad (no jax.jit)": jax.grad(fn),
-            "jax.grad with tj.compiler_options()": eqx.filter_jit(
-                jax.grad(fn), compiler_options=tj.compiler_options()
-            ),
         }
         if args.smoke:  # the routes the checks below read
             runs = {k: runs[k] for k in list(runs)[:3] + [THROUGH]}
@@ -162,49 +156,6 @@ def plain_script(n):
     )
 
 
-def check(args):
-    """The default adjoint against reverse mode through the solve, and eager against jitted, on
-    seeded random tops of every group and random launches."""
-    rng, n = np.random.default_rng(0), 2 if args.smoke else args.tops
-
-    def outputs(top, launch, adjoint=None):
-        kw = dict(summary=True, throw=False, adjoint=adjoint, rtol=1e-10, atol=1e-12)
-        sol = tj.simulate(top, tj.initial_state(top, launch[0], launch[1]), 8.0, **kw)
-        return jnp.stack([sol.theta[0], sol.theta_dot[0], sol.energy[0], sol.t_invert])
-
-    def jacobian(adjoint):
-        return jax.jacrev(lambda top, launch: outputs(top, launch, adjoint), argnums=(0, 1))
-
-    default, through = (
-        jax.jit(jacobian(None)),
-        jax.jit(jacobian(diffrax.RecursiveCheckpointAdjoint())),
-    )
-    rows, worst, worst_eager = [], 0.0, 0.0
-    for i in range(n):
-        top, a_c, e_r, mu, n_ref = h.random_top(rng)
-        launch = jnp.asarray([rng.uniform(0.05, 0.5), n_ref * rng.uniform(1.5, 4.0)])
-        live = np.isfinite(np.asarray(jax.jit(outputs)(top, launch)))  # t_invert: nan if none
-
-        def matrix(jac):
-            cols = [np.asarray(getattr(jac[0], f)) for f in FIELDS] + [np.asarray(jac[1])]
-            return np.column_stack(cols)[live]
-
-        got, want, eager = (matrix(f(top, launch)) for f in (default, through, jacobian(None)))
-        scale = np.max(np.abs(want), axis=1, keepdims=True)
-        d, de = (float(np.max(np.abs(x - y) / scale)) for x, y in ((got, want), (eager, got)))
-        worst, worst_eager = max(worst, d), max(worst_eager, de)
-        label = f"{tj.classify(top)}, A/C {a_c:.2f}, eps/R {e_r:.3f}, mu {mu:.3f}, spin {float(launch[1]):.0f}"
-        rows.append((d, label))
-    h.write(
-        "gradients.py --check",
-        "Derivatives on seeded random tops",
-        f"""
-{n} random tops. Default adjoint == reverse mode through the solve within 1e-6: largest {worst:.1e}, {h.verdict(worst < 1e-6)}. Eager == jitted: largest {worst_eager:.1e}, {h.verdict(worst_eager < 1e-6)}. The top of the largest: {max(rows)[1]}.
-""",
-        args,
-    )
-
-
 FIRST_CALL = r"""
 import json, sys, time
 t = time.perf_counter()
@@ -221,21 +172,13 @@ elif "grad" in case:
     gradient = jax.grad(g) if case == "grad" else jax.jit(
         jax.grad(g), compiler_options=tj.compiler_options() if "options" in case else None)
     call = lambda: block(gradient(top))
-elif case == "fit":
+else:  # fit
     ts = np.linspace(0.0, 6.0, 120)
     obs = np.asarray(tj.simulate(top, tj.initial_state(top, 0.1, 120.0), 6.0, saveat=ts).theta)
     obs = obs + 0.002 * np.random.default_rng(0).normal(size=ts.size)
     guess = top.replace(mu=0.38, eps_over_R=0.24)
     call = lambda: block(tj.fit(guess, tj.initial_state(guess, 0.1, 100.0), ts, obs,
                                 free=("mu", "eps", "spin"), strategy="plain", max_steps=5).top.mu)
-else:  # saveat: lengths 100 then 120 (one bucket), 300 (a new one), 310 (compiled)
-    run = lambda n: block(tj.simulate(top, y0, 10.0, saveat=np.linspace(0, 10, n)).theta)
-    run(100)
-    times = []
-    for n in (120, 300, 310):
-        t = time.perf_counter(); run(n); times.append(time.perf_counter() - t)
-    print(json.dumps(dict(import_s=t_import, first_s=times[0], other_s=times[1], second_s=times[2])))
-    sys.exit(0)
 t = time.perf_counter(); call(); first = time.perf_counter() - t
 t = time.perf_counter(); call(); second = time.perf_counter() - t
 print(json.dumps(dict(import_s=t_import, first_s=first, second_s=second)))
@@ -261,9 +204,6 @@ def first_call(args):
             rows.append(
                 f"{case} | " + " | ".join(f"{res[(case, m)]:.2f}" for m in ("off", "cold", "warm"))
             )
-    with tempfile.TemporaryDirectory() as cache:
-        h.fresh_process(FIRST_CALL, "simulate", env=dict(env, TIPPEJAX_COMPILATION_CACHE=cache))
-        s = h.fresh_process(FIRST_CALL, "saveat", env=dict(env, TIPPEJAX_COMPILATION_CACHE=cache))
     warm = ", ".join(f"{c.partition(':')[2] or 'full'} {res[(c, 'warm')]:.2f} s" for c in levels)
     fit = f"; the first `fit` {res[('fit', 'warm')]:.2f} s (target < 3 s)" if "fit" in cases else ""
     h.write(
@@ -274,7 +214,7 @@ The first call less the second (s) in a new process; off: `TIPPEJAX_COMPILATION_
 
 {h.table("case | off | cold | warm", rows)}
 
-Warm, per level: {warm} (targets: the first `simulate` < 1 s, <= 2 s per level){fit}. A save grid of a new length in a warm process: {s["first_s"]:.2f} s in a compiled bucket (120 after 100), {s["other_s"]:.2f} s for a new bucket (300), {s["second_s"]:.2f} s for the run itself.
+Warm, per level: {warm} (targets: the first `simulate` < 1 s, <= 2 s per level){fit}.
 """,
         args,
     )
@@ -282,11 +222,8 @@ Warm, per level: {warm} (targets: the first `simulate` < 1 s, <= 2 s per level){
 
 MODES = {
     "cost": (cost, "derivatives against the solve; agreement with central differences"),
-    "check": (check, "default adjoint against reverse through the solve on random tops"),
     "first-call": (first_call, "the first call in a new process, cache off / cold / warm"),
 }
 
 if __name__ == "__main__":
-    h.run(
-        MODES, h.parse(__doc__, MODES, lambda prs: prs.add_argument("--tops", type=int, default=24))
-    )
+    h.run(MODES, h.parse(__doc__, MODES))

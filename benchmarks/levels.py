@@ -28,7 +28,6 @@ GROUP_TOPS = dict(
     Ia=(0.96, 0.02), Ib=(0.7, 0.2), IIa=(0.8, 0.3), IIb=(0.9, 0.3), IIc=(0.99, 0.02), III=(1.5, 0.2)
 )
 """(A/C, eps/R) of the top of each group (away from the groups' borders)."""
-TOLERANCES = (0.05, 0.1, 0.3)
 
 
 # --- past the public API, in this one place ------------------------------------------------
@@ -120,13 +119,6 @@ def per_regime(rows):
                 else (INF, INF)
             )
     return measured
-
-
-def rate(xs, errs) -> float:
-    """k of |error| ~ x^k, least squares in log-log over the finite, nonzero errors."""
-    xs, errs = np.asarray(xs, float), np.abs(np.asarray(errs, float))
-    ok = np.isfinite(errs) & (errs > 0)
-    return float(np.polyfit(np.log(xs[ok]), np.log(errs[ok]), 1)[0]) if ok.sum() > 1 else np.nan
 
 
 def fmt(x, spec=".3g"):
@@ -250,28 +242,11 @@ def groups_mode(args):
         old = merged.get(reg, m)
         merged[reg] = {lv: (max(old[lv][0], m[lv][0]), max(old[lv][1], m[lv][1])) for lv in LEVELS}
     measured["IIb"] = merged
-    picks = {
-        t: [
-            f"{g} {reg}: {rules.cheapest_level(m, t)} / {rules.cheapest_level(m, t, refused=('gyroscopic',))}"
-            for g, regs in measured.items()
-            for reg, m in regs.items()
-        ]
-        for t in TOLERANCES
-    }
-    text = "; ".join(
-        f"at {t:g} rad "
-        + (
-            "the full model everywhere"
-            if all(x.endswith("full / full") for x in c)
-            else ", ".join(x for x in c if not x.endswith("full / full")) + ", else the full model"
-        )
-        for t, c in picks.items()
-    )
     h.write(
         "levels.py --groups",
         'Every group: the table `model="auto"` reads',
         f"""
-{len(rows)} launches, {0.5 if args.smoke else 8:g} s; IIb merged with `--scenes`. Auto picks, for a launch the gyroscopic level accepts / does not: {text}.
+{len(rows)} launches, {0.5 if args.smoke else 8:g} s; IIb merged with `--scenes`.
 
 {measured_block("MEASURED", measured, nested=True)}
 """,
@@ -281,7 +256,7 @@ def groups_mode(args):
 
 def spun_mode(args):
     """omega = n a launches: t_invert of the slow flow alone (the launch projection's error)
-    and of `model="gyroscopic"` against SO(3), over the spin; the fitted rate."""
+    and of `model="gyroscopic"` against SO(3), over the spin."""
 
     def launch(top, theta0, n0):
         y0 = tj.initial_state(top, theta0, n0)
@@ -297,30 +272,24 @@ def spun_mode(args):
         loss = float(sol.t_contact_loss)
         return f"contact lost {loss:.2f} s" if np.isfinite(loss) else pct(float(sol.t_invert), so3)
 
-    top, rows, errs = tj.default_top(), [], []
+    top, rows = tj.default_top(), []
     spins_ = (
         (100.0, 150.0) if args.smoke else (100.0, 125.0, 150.0, 175.0, 200.0, 225.0, 250.0, 300.0)
     )
     for n0 in spins_:
         y0, so3, slow = launch(top, 0.1, n0)
         kw = dict(summary=True, throw=False, on_contact_loss="continue")
-        full, gyro = (tj.simulate(top, y0, 20.0, model=m, **kw) for m in ("full", "gyroscopic"))
+        gyro = tj.simulate(top, y0, 20.0, model="gyroscopic", **kw)
         switch = float(gyro.t_chart_switch)
         via = f"->full at {switch:.2f} s, " if np.isfinite(switch) else "gyroscopic, "
-        rows.append(
-            f"{n0:g} | {so3:.4f} | {pct(slow, so3)} | {ends(full, so3)} | {via}{ends(gyro, so3)}"
-        )
-        errs.append(abs(slow - so3) / so3)
-    fitted = rate(spins_, errs)
+        rows.append(f"{n0:g} | {so3:.4f} | {pct(slow, so3)} | {via}{ends(gyro, so3)}")
     h.write(
         "levels.py --spun",
         "Spun launches: the launch projection",
         f"""
 t_invert of the slow flow alone (Dopri5, rtol 1e-8) against SO(3) (rtol 1e-10), omega = n a launches. Targets: at most 0.5% at 150 rad/s, 0.4% at 225, 0.3% at 300.
 
-{h.table("n0 (rad/s) | SO(3) t_invert (s) | slow flow | full - SO(3) | model='gyroscopic'", rows)}
-
-Fitted rate of the slow flow's |error|: n0^{fitted:+.2f}.
+{h.table("n0 (rad/s) | SO(3) t_invert (s) | slow flow | model='gyroscopic'", rows)}
 """,
         args,
     )

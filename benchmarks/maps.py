@@ -1,5 +1,5 @@
-"""maps: outcome maps: launches per second, memory, cheaper levels and tolerances, 1e5 launches,
-two processes, `model="auto"`, adaptive maps against dense ones. Times: compiled calls.
+"""maps: outcome maps: launches per second, memory, cheaper levels and tolerances, adaptive maps
+against dense ones. Times: compiled calls.
 
     python benchmarks/maps.py --cost
     python benchmarks/maps.py --adaptive-agreement   # dense 256^2 maps of four tops: minutes
@@ -10,11 +10,6 @@ two processes, `model="auto"`, adaptive maps against dense ones. Times: compiled
 from __future__ import annotations
 
 import math
-import os
-import socket
-import subprocess
-import sys
-import time
 
 import _harness as h
 import jax
@@ -22,15 +17,6 @@ import jax.numpy as jnp
 import numpy as np
 
 import tippejax as tj
-
-
-def grid(args):
-    n_theta, n_spin = (3, 4) if args.smoke else (args.n_theta, args.n_spin)
-    return (
-        np.linspace(0.02, 1.5, n_theta),
-        np.linspace(10.0, 220.0, n_spin),
-        2.0 if args.smoke else args.t1,
-    )
 
 
 def second_call(fn):
@@ -49,9 +35,11 @@ def moves(ref, other) -> str:
 
 
 def cost(args):
-    """`outcome_map` against `simulate_batch` and a loop of `simulate`; other levels and
-    tolerances against the reference map; memory per launch."""
-    top, (theta0, spin, t1) = tj.default_top(), grid(args)
+    """`outcome_map` against a loop of `simulate`; other levels and tolerances against the
+    reference map; memory per launch."""
+    n_theta, n_spin = (3, 4) if args.smoke else (args.n_theta, args.n_spin)
+    theta0, spin = np.linspace(0.02, 1.5, n_theta), np.linspace(10.0, 220.0, n_spin)
+    top, t1 = tj.default_top(), 2.0 if args.smoke else args.t1
     n, kw = theta0.size * spin.size, dict(summary=True, throw=False, rtol=1e-6, atol=1e-9)
     maps = {
         label: second_call(lambda k=k: tj.outcome_map(top, theta0, spin, t1=t1, **k))
@@ -63,7 +51,6 @@ def cost(args):
         )
     }
     ref, t_map = maps["full, rtol 1e-6"]
-    _, t_batch = second_call(lambda: tj.simulate_batch(top, theta0, spin, t1, **kw))
 
     def one(a, b):
         return tj.simulate(top, tj.initial_state(top, a, b), t1, **kw).theta
@@ -74,10 +61,7 @@ def cost(args):
     loop = jax.jit(one)
     jax.block_until_ready(loop(0.1, 100.0))
     t_loop = sum(h.call(lambda a=a, b=b: loop(a, b))[0] for a, b in sample) / len(sample) * n
-    times = {
-        "tj.simulate_batch, summary (no classification)": t_batch,
-        f"loop of jitted tj.simulate ({len(sample)} launches, scaled)": t_loop,
-    }
+    times = {f"loop of jitted tj.simulate ({len(sample)} launches, scaled)": t_loop}
     times |= {f"tj.outcome_map ({label})": wall for label, (_, wall) in maps.items()}
     rows = [f"{k} | {w:.2f} | {n / w:.1f} | {w / t_map:.2f}" for k, w in times.items()]
     out_ref = np.asarray(ref.outcome)
@@ -98,146 +82,11 @@ def cost(args):
         "maps.py --cost",
         "Cost of a map, and what a cheaper level or another tolerance changes",
         f"""
-{theta0.size} x {spin.size} launches, t1 = {t1:g} s. The reference map (full, rtol 1e-6): {", ".join(f"{k} {v}" for k, v in ref.counts().items())}.
+{theta0.size} x {spin.size} launches, t1 = {t1:g} s.
 
 {h.table("run | wall s | launches/s | vs outcome_map", rows)}
 
 Outcomes that differ from the reference map: {agree}. Memory per launch: {sizes[256] / 1e6:.2f} MB for 256 launches, {sizes[1024] / 1e6:.2f} MB for 1024: **{(sizes[1024] - sizes[256]) / 768e3:.1f} kB per launch**, whatever t1.
-""",
-        args,
-    )
-
-
-SCALE = """
-import sys, time
-import numpy as np
-import tippejax as tj
-n, t1 = int(sys.argv[1]), float(sys.argv[2])
-def rss():  # peak RSS of this process (VmHWM)
-    with open("/proc/self/status") as f:
-        return next(int(x.split()[1]) for x in f if x.startswith("VmHWM")) / 1024
-side = int(round(n ** 0.5))
-th, sp = np.linspace(0.02, 1.5, side), np.linspace(10.0, 220.0, side)
-tj.outcome_map(tj.default_top(), th[:64], sp[:64], t1=t1, model="full")  # one chunk: compiles
-one, start = rss(), time.perf_counter()
-om = tj.outcome_map(tj.default_top(), th, sp, t1=t1, model="full")
-print('{"n": %d, "wall": %f, "rss_one": %f, "rss": %f, "failed": %d}'
-      % (side * side, time.perf_counter() - start, one, rss(), om.counts()["failed"]))
-"""
-
-
-def scale(args):
-    """A map of 1e5 launches in a fresh process: time, and peak memory after one chunk and at
-    the end."""
-    n, t1 = (400, 0.2) if args.smoke else (args.launches, 0.5)
-    r = h.fresh_process(SCALE, str(n), str(t1))
-    h.write(
-        "maps.py --scale",
-        "Many launches",
-        f"""
-{r["n"]} launches, t1 = {t1:g} s, in a fresh process: {r["wall"]:.1f} s ({r["n"] / r["wall"]:.0f} launches/s, {r["failed"]} failed). Peak RSS {r["rss_one"]:.0f} MB after one chunk (with compilation), {r["rss"]:.0f} MB at the end.
-""",
-        args,
-    )
-
-
-def processes(args):
-    """`examples/distributed_map.py` in two CPU processes (gloo collectives) against one."""
-    script = os.path.join(os.path.dirname(h.HERE), "examples", "distributed_map.py")
-    n_theta, n_spin, t1 = (2, 4, 1.0) if args.smoke else (8, 16, 12.0)
-    size = f"--n-theta {n_theta} --n-spin {n_spin} --t1 {t1:g}".split()
-    with socket.socket() as s:
-        s.bind(("localhost", 0))
-        port = s.getsockname()[1]
-    start, tmp = time.perf_counter(), os.environ.get("TMPDIR", "/tmp")
-    env = dict(os.environ, JAX_PLATFORMS="cpu", TIPPEJAX_HOST_DEVICES="1")
-    cmd = [sys.executable, script, "--coordinator", f"localhost:{port}", "--num-processes", "2"]
-    procs = [
-        subprocess.Popen(
-            [*cmd, "--process-id", str(i), "--out", os.path.join(tmp, f"map{i}.npz"), *size],
-            env=env,
-            stdout=subprocess.PIPE,
-            stderr=subprocess.STDOUT,
-            text=True,
-        )
-        for i in (0, 1)
-    ]
-    outs = [q.communicate()[0] for q in procs]
-    wall = time.perf_counter() - start
-    line = next((x for x in outs[0].splitlines() if "launches/s" in x), outs[0][-300:])
-    th, sp = np.linspace(0.05, 1.5, n_theta), np.linspace(15.0, 200.0, n_spin)
-    _, t_one = second_call(lambda: tj.outcome_map(tj.default_top(), th, sp, t1=t1, model="full"))
-    h.write(
-        "maps.py --processes",
-        "Two processes",
-        f"""
-`examples/distributed_map.py {" ".join(size)}`, two CPU processes with one device each: {line.strip()}; the whole command {wall:.1f} s. The same map in one process after compilation: {t_one:.2f} s ({th.size * sp.size / t_one:.1f} launches/s).
-""",
-        args,
-    )
-
-
-GROUP_TOPS = {"standard": None, "IIa": (0.69, 0.38), "III": (1.6, 0.2)}
-
-
-def compare(full, auto):
-    f, a = np.asarray(full.outcome), np.asarray(auto.outcome)
-    lost = tj.OUTCOMES.index("contact_lost")
-    return dict(
-        n=f.size,
-        agree=float(np.mean(f == a)),
-        moves=moves(f, a),
-        losses=int(np.sum(f == lost)),
-        missed=int(np.sum((f == lost) & (a != lost))),
-        extra=int(np.sum((f != lost) & (a == lost))),
-    )
-
-
-def auto(args):
-    """`outcome_map(model="auto")` against `model="full"` on the standard, IIa and III tops:
-    launches per second, agreement, missed contact losses; and on a shifted grid."""
-    theta0, spin, t1 = grid(args)
-    shifted = (
-        np.linspace(0.05, 1.45, max(2, theta0.size - 5)),
-        np.linspace(14.0, 215.0, max(2, spin.size - 5)),
-    )
-    rows, route_rows = [], []
-    for name, ratios in list(GROUP_TOPS.items())[: 1 if args.smoke else None]:
-        top = (
-            tj.default_top()
-            if ratios is None
-            else tj.TippeTop.from_ratios(*ratios, m=0.02, R=0.025, mu=0.3)
-        )
-        fns = {
-            m: lambda m=m: tj.outcome_map(top, theta0, spin, t1=t1, model=m)
-            for m in ("full", "auto")
-        }
-        timed = h.interleaved(fns, 1 if args.smoke else 3)
-        (tf, full), (ta, am) = timed["full"], timed["auto"]
-        c = compare(full, am)
-        sh = compare(*(tj.outcome_map(top, *shifted, t1=t1, model=m) for m in ("full", "auto")))
-        speed = f"**{tf.wall / ta.wall:.2f}x**"
-        shift = f"{100 * sh['agree']:.2f}%, missed {sh['missed']} of {sh['losses']}"
-        rows.append(
-            f"{name} ({tj.classify(top)}) | {c['n'] / tf.wall:.0f} | {c['n'] / ta.wall:.0f} | {speed} | {100 * c['agree']:.2f}% | {c['missed']} of {c['losses']} | {c['extra']} | {shift}"
-        )
-        index = np.asarray(am.model_index)
-        routes = {r: int(np.sum(index == k)) for k, r in enumerate(am.models)}
-        shares = sorted(routes.items(), key=lambda kv: -kv[1])
-        share = "; ".join(f"{k} {100 * v / index.size:.0f}%" for k, v in shares)
-        steps = np.sum(np.asarray(am.num_steps)) / np.sum(np.asarray(full.num_steps))
-        route_rows.append(f"{name} | {share} | {steps:.2f} | {c['moves']}")
-    h.write(
-        "maps.py --auto",
-        '`model="auto"` maps against full-model maps',
-        f"""
-{theta0.size} x {spin.size} launches, t1 = {t1:g} s; missed / extra: contact losses of the full map the auto map lacks / adds. Shifted grid: {shifted[0].size} x {shifted[1].size} other launches.
-
-{h.table(["map", "full launches/s", "auto launches/s", "speed", "agreement", "missed losses", "extra losses", "shifted grid"], rows)}
-
-{h.table(["map", "routes of the auto map", "solver steps auto / full", "outcomes changed"], route_rows)}
-
-Targets: >= 99% agreement, 0 missed contact losses, >= 20x launches/s.
 """,
         args,
     )
@@ -418,7 +267,6 @@ def options(prs):
     prs.add_argument("--n-theta", type=int, default=24)
     prs.add_argument("--n-spin", type=int, default=32)
     prs.add_argument("--t1", type=float, default=20.0)
-    prs.add_argument("--launches", type=int, default=100_000, help="--scale")
     prs.add_argument("--resolution", type=int, default=256, help="--adaptive-agreement")
     prs.add_argument(
         "--sizes",
@@ -437,10 +285,7 @@ def options(prs):
 
 
 MODES = {
-    "cost": (cost, "a map against simulate_batch and a loop; levels, tolerances; memory"),
-    "scale": (scale, "1e5 launches in a fresh process: time and peak memory"),
-    "processes": (processes, "two processes with jax.distributed"),
-    "auto": (auto, "model='auto' maps against full maps: speed, agreement, missed losses"),
+    "cost": (cost, "a map against a loop of simulate; levels, tolerances; memory"),
     "adaptive-agreement": (adaptive_agreement, "adaptive against dense maps of four tops"),
     "adaptive-speed": (adaptive_speed, "adaptive against dense maps: simulations, wall time"),
 }
