@@ -320,8 +320,11 @@ def draw_records(n: int, seed: int, *, max_crb_rel=MAX_CRB_REL, cache=True, verb
     return records
 
 
-def _draw_law(seed: int, index: int, attempt: int) -> dict | None:
-    """Attempt `attempt` at law record `index`; None if contact is lost before 2 s."""
+def law_draw(seed: int, index: int, attempt: int) -> dict:
+    """What attempt `attempt` at law record `index` draws, before any integration: the top,
+    its law, the launch, the sampling (`n` frames at `rate_hz`, the first one sample after the
+    launch) and the noise. A caller can judge the draw (its Cramer-Rao bound) before paying
+    for the record (`law_record`)."""
     rng = np.random.default_rng([seed, index, attempt, 58])
     law, group = LAWS[index % len(LAWS)], GROUPS[(index // len(LAWS)) % len(GROUPS)]
     params, n1 = _draw_top(rng, group)
@@ -342,14 +345,36 @@ def _draw_law(seed: int, index: int, attempt: int) -> dict | None:
     length = float(rng.uniform(2.0, 5.0))
     sigma = float(math.exp(rng.uniform(math.log(0.005), math.log(0.02))))
     noise_seed = int(rng.integers(2**31))
-    n = int(math.floor(length * rate))
+    return dict(
+        index=index,
+        seed=seed,
+        attempt=attempt,
+        law=law,
+        group=group,
+        params=params,
+        friction=friction,
+        n1=n1,
+        spin_over_n1=spin_factor,
+        launch=dict(theta0=theta0, spin=spin_factor * n1),
+        rate_hz=rate,
+        n=int(math.floor(length * rate)),
+        sigma=sigma,
+        noise_seed=noise_seed,
+    )
+
+
+def _draw_law(seed: int, index: int, attempt: int) -> dict | None:
+    """Attempt `attempt` at law record `index` (`law_draw`) integrated by the reference; None
+    if contact is lost before 2 s."""
+    d = law_draw(seed, index, attempt)
+    law, friction, n, rate, sigma = d["law"], d["friction"], d["n"], d["rate_hz"], d["sigma"]
     kw = dict(rho=friction.get("patch_radius", 5e-4), delta=friction.get("slip_scale", 1e-6))
     try:
         out = rr.solve(
-            params,
+            d["params"],
             law,
-            theta0,
-            spin_factor * n1,
+            d["launch"]["theta0"],
+            d["launch"]["spin"],
             (n + 0.5) / rate,
             mu=friction["mu"],
             stem=False,
@@ -366,18 +391,12 @@ def _draw_law(seed: int, index: int, attempt: int) -> dict | None:
     ts, clean = t[keep], theta[keep]
     if ts.size < 2 or ts[-1] < 2.0:
         return None  # contact lost too early
-    obs = clean + sigma * np.random.default_rng(noise_seed).standard_normal(ts.size)
+    obs = clean + sigma * np.random.default_rng(d["noise_seed"]).standard_normal(ts.size)
+    keys = ("index", "seed", "attempt", "law", "group", "params", "friction", "n1")
     return dict(
-        index=index,
-        seed=seed,
-        attempt=attempt,
-        law=law,
-        group=group,
-        params=params,
-        friction=friction,
-        n1=n1,
-        spin_over_n1=spin_factor,
-        launch=dict(theta0=theta0, spin=spin_factor * n1),
+        {k: d[k] for k in keys},
+        spin_over_n1=d["spin_over_n1"],
+        launch=d["launch"],
         ts=ts,
         theta_clean=clean,
         theta_obs=obs,
