@@ -251,8 +251,10 @@ def law_crb_rel(d) -> np.ndarray:
     rows = np.all(np.isfinite(jac), axis=1)
     if not rows.any() or float(ts[:n][rows][-1]) < 2.0:
         return np.full(len(free), np.inf)
-    fisher = jac[rows].T @ jac[rows]
-    return d["sigma"] * np.sqrt(np.abs(np.diag(np.linalg.pinv(fisher))))
+    try:
+        return fr.cramer_rao(jac, d["sigma"], rows)
+    except np.linalg.LinAlgError:  # a parameter the record does not see at all
+        return np.full(len(free), np.inf)
 
 
 def accepted(seed, index):
