@@ -8,6 +8,7 @@ first one's compilations.
 
 import math
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 import real_top_reference as rr
@@ -155,3 +156,59 @@ def test_bad_input(call, match):
     ts = np.arange(1, 51) / RATE
     with pytest.raises((ValueError, TypeError), match=match):
         call(ts, tj.initial_state(TOP, THETA0, SPIN))
+
+
+class _Stop(Exception):
+    pass
+
+
+def test_searches_simulate_a_contensou_law_at_the_search_slip_scale(monkeypatch):
+    """The fit's searches (ranking, scans) simulate a Coulomb-Contensou law with its slip scale
+    raised to `SEARCH_SLIP_SCALE`, whose motion is that of the law as given to well below the
+    noise (the motion converges as the slip scale goes to 0), at a fraction of the steps of a
+    top that stops drilling; the stages that fit simulate the law as given, and a law whose
+    motion depends on its slip scale (`Coulomb`) is never changed."""
+    import equinox as eqx
+
+    from tippejax._fit import problem, setup as fit_setup
+
+    floor = fit_setup.SEARCH_SLIP_SCALE
+    law = tj.CoulombContensou(MU_COULOMB, PATCH, SLIP)
+    assert float(law._with_slip_floor(floor).slip_scale) == floor
+    assert float(law._with_slip_floor(0.0).slip_scale) == SLIP
+    coarse = law.replace(slip_scale=3 * floor)
+    assert float(coarse._with_slip_floor(floor).slip_scale) == 3 * floor
+    for other in (tj.Coulomb(MU_COULOMB, SLIP), tj.Viscous(MU_VISCOUS)):
+        assert other._with_slip_floor(floor) is other
+
+    top = TOP.replace(friction=law)
+    ts = np.arange(1, 101) / RATE
+    y0 = tj.initial_state(top, THETA0, SPIN)
+    grabbed = {}
+
+    def grab(self, u0, data):
+        grabbed["setup"] = self
+        raise _Stop
+
+    monkeypatch.setattr(fit_setup.Setup, "optimise", grab)
+    with pytest.raises(_Stop):
+        tj.fit(top, y0, ts, np.full(ts.shape, THETA0), free=FREE, strategy="plain")
+    setup = grabbed["setup"]
+    values = {"spin": jnp.asarray(SPIN)}
+    run = eqx.filter_jit(lambda d: problem.simulated(values, d, setup.cfg).theta[: ts.size])
+    given, searched = run(setup.data(final=True)), run(setup.data(final=True, search=True))
+
+    def plain(slip):
+        sol = tj.simulate(
+            top.replace(friction=law.replace(slip_scale=slip)),
+            y0,
+            ts[-1],
+            saveat=ts,
+            rtol=setup.rtol,
+        )
+        return np.asarray(sol.theta)
+
+    theta_given, theta_floor = plain(SLIP), plain(floor)
+    np.testing.assert_allclose(given, theta_given, atol=1e-8)
+    np.testing.assert_allclose(searched, theta_floor, atol=1e-8)
+    assert 1e-6 < np.max(np.abs(theta_floor - theta_given)) < 0.1 * NOISE

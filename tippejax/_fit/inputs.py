@@ -380,6 +380,7 @@ def build_setup(
         level_weight=per_rec(0.0),
         rtol=per_rec(rtol),
         atol=per_rec(atol),
+        slip_floor=per_rec(0.0),
         tol=per_rec(tol),
         pinned=to_device(np.zeros((bsize, len(free))), dtype),
         steps=per_rec(float(max_steps)),

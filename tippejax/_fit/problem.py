@@ -78,6 +78,7 @@ class Data(eqx.Module):
     level_weight: Float[Array, ""]
     rtol: Float[Array, ""]
     atol: Float[Array, ""]
+    slip_floor: Float[Array, ""]  # m/s: the least slip scale of the law simulated (searches)
     tol: Float[Array, ""]  # the optimiser's tolerance in this stage
     pinned: Float[Array, " p"]  # 1 for a coordinate this stage holds where it is, else 0
     steps: Float[Array, ""]  # this optimisation's step budget (at most `Config.max_steps`)
@@ -102,6 +103,9 @@ def simulated(values, data: Data, cfg: Config) -> TiltRun:
     guess = {k: data.base.top[k] if k in data.base.top else data.base.launch[k] for k in values}
     safe = {k: jnp.where(finite, v, guess[k]) for k, v in values.items()}
     top, y0 = assemble(safe, data.base)
+    # (a search's law: the slip scale raised to `slip_floor` where the motion converges as it
+    # goes to 0; 0 outside the searches, the law as given)
+    top = eqx.tree_at(lambda t: t.friction, top, top.friction._with_slip_floor(data.slip_floor))
     saves = jnp.minimum(data.ts, data.t_end)
     t0 = data.t0
     if "t0" in safe:

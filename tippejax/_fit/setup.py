@@ -37,6 +37,7 @@ ENVELOPE_WEIGHT = NUM_LEVELS / 0.05**2
 STAGE_TOL = 1e-4  # optimiser tolerance of the intermediate stages (the last one uses `tol`)
 SEARCH_RTOL = 1e-6  # simulation tolerance of the global search (it ranks, it does not fit)
 STAGE_RTOL = 1e-7  # simulation tolerance of intermediate stages, unless `rtol` is looser
+SEARCH_SLIP_SCALE = 1e-3  # m/s: the least slip scale of a search's law (`data(search=True)`)
 CHUNK = 32  # points per batch of simulations in searches and scans (one compilation)
 
 
@@ -165,6 +166,7 @@ class Setup:
         final=False,
         pin=(),
         steps=None,
+        search=False,
     ) -> Data:
         """`Data` for one optimisation: tilt samples up to `window_end` (all if None; none if
         `theta` is False; a scalar or one per record) and the slow observables with weight
@@ -172,10 +174,23 @@ class Setup:
         window's end. It runs at `rtol` if given, else at the fit's own `rtol` when `final`,
         else at `STAGE_RTOL` (or the fit's, if looser). The free parameters named in `pin`
         are held where they are. `steps` caps the optimiser's steps (default: the fit's
-        `max_steps`)."""
+        `max_steps`). A `search` (the stages that rank and scan trial points, not those that
+        fit) simulates a law whose motion converges as its slip scale goes to 0 with a slip
+        scale of at least `SEARCH_SLIP_SCALE` (see `AbstractFriction._with_slip_floor`)."""
         key = tuple(
             None if a is None else (np.asarray(a).dtype.str, np.shape(a), np.asarray(a).tobytes())
-            for a in (window_end, theta, slow, tol, rtol, final, tuple(pin), steps, self.fitted)
+            for a in (
+                window_end,
+                theta,
+                slow,
+                tol,
+                rtol,
+                final,
+                tuple(pin),
+                steps,
+                search,
+                self.fitted,
+            )
         )
         if key not in self._data:
             if len(self._data) >= 8:  # (a Data holds the whole batch's arrays: keep a few)
@@ -189,10 +204,11 @@ class Setup:
                 final=final,
                 pin=pin,
                 steps=steps,
+                search=search,
             )
         return self._data[key]
 
-    def _make_data(self, *, window_end, theta, slow, tol, rtol, final, pin, steps) -> Data:
+    def _make_data(self, *, window_end, theta, slow, tol, rtol, final, pin, steps, search) -> Data:
         ts, bsize = self.ts, self.bsize
         use = self.mask & self.fitted
         t_end = np.full(bsize, ts[-1])
@@ -217,6 +233,7 @@ class Setup:
             envelope_weight=slow * ENVELOPE_WEIGHT,
             tol=np.full(bsize, max(tol, self.tol)),
             rtol=np.full(bsize, rtol),
+            slip_floor=np.full(bsize, SEARCH_SLIP_SCALE if search else 0.0),
             t_end=t_end,
             pinned=np.broadcast_to(
                 np.array([n in pin for n in self.cfg.free], float), (bsize, len(self.cfg.free))

@@ -22,6 +22,12 @@ loss's valley and scans along it, which is right where the early window is long 
 rising record) and the nutation is below the noise, so that a spin scanned alone would make up
 for the other parameters' error in the slow rise. Each start tries them in that order.
 
+The searches and scans (`GlobalSearch`, `PhaseScan`, `ValleyScan`) simulate a law whose motion
+converges as its slip scale goes to 0 (`CoulombContensou`) at a slip scale of at least
+`setup.SEARCH_SLIP_SCALE`: they rank and propose, and a trial top that stops drilling would
+otherwise cost of the order of 1/slip_scale steps. The `Windows` and `Final` stages, which fit,
+simulate the law as given.
+
 An attempt is `(search, chain)` or `(search, (chain, chain, ...))`: a chain is a tuple of
 stages; alternative chains are tried in turn from each start.
 """

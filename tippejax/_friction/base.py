@@ -159,6 +159,15 @@ class AbstractFriction(eqx.Module):
         (`CoulombContensou`) gives its coefficient at zero slip while the contact drills."""
         return self.zero_slip_coefficient()
 
+    def _with_slip_floor(self, floor) -> AbstractFriction:
+        r"""The law a fit's searches simulate, with slip scales of at least `floor` (m/s): the
+        law itself (default), for a law whose motion depends on its slip scale. A law whose
+        motion converges as its slip scale goes to 0 (`CoulombContensou`) raises it, so that a
+        search's trial tops cost thousands of steps, not the $\sim 1/\delta$ of a top that
+        stops drilling (the fit's later stages simulate the law as given)."""
+        del floor
+        return self
+
     def inversion_time_caveat(self) -> str | None:
         """Why the law's inversion times are not a property of the top, or None (default):
         `simulate` and `inversion_time` warn with it (`UserWarning`, concrete tops)."""

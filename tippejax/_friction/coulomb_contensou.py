@@ -203,6 +203,10 @@ class CoulombContensou(AbstractFriction):
         spin = jnp.sqrt((self.patch_radius * drilling_rate) ** 2 + delta**2)
         return self.mu * hertz_profiles(delta / spin)[0] / delta
 
+    def _with_slip_floor(self, floor):
+        # (the motion converges as delta -> 0: docs/friction.md)
+        return eqx.tree_at(lambda law: law.slip_scale, self, jnp.maximum(self.slip_scale, floor))
+
     def zero_slip_coefficient(self):
         r"""The slope at zero slip and zero drilling (s/m): $\tfrac{9\pi}{32}\mu/\delta$ for
         the Hertz law (there the regularised speeds are equal, $u = 1$), $\mu/\delta$ for the

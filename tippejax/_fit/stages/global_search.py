@@ -49,7 +49,9 @@ class GlobalSearch(AbstractSearch):
             )
             + u[None]
         )
-        losses = setup.losses(starts, setup.data(theta=False, slow=1.0, rtol=SEARCH_RTOL))
+        losses = setup.losses(
+            starts, setup.data(theta=False, slow=1.0, rtol=SEARCH_RTOL, search=True)
+        )
         order = np.argsort(losses, axis=0)[: self.keep]  # (keep, *batch)
         starts_np = np.asarray(starts)
         if u.ndim == 1:

@@ -141,11 +141,13 @@ class PhaseScan(AbstractStage):
             points[1:, :, others] = offsets[1:, None, others]  # around the guess (u = 0)
             losses = setup.losses(
                 points if batched else points[:, 0],
-                setup.data(theta=False, slow=1.0, rtol=SEARCH_RTOL),
+                setup.data(theta=False, slow=1.0, rtol=SEARCH_RTOL, search=True),
             )
             order = np.argsort(losses.reshape(points.shape[0], -1), axis=0)[: self.refine]
             starts = points[order, np.arange(bsize)[None, :]]  # (refine, bsize, p)
-            slow = setup.data(theta=False, slow=1.0, pin=("spin",), steps=self.refine_steps)
+            slow = setup.data(
+                theta=False, slow=1.0, pin=("spin",), steps=self.refine_steps, search=True
+            )
             ends, _ = setup.optimise_many(
                 jnp.asarray(starts if batched else starts[:, 0], u.dtype), slow
             )
@@ -177,7 +179,7 @@ class PhaseScan(AbstractStage):
         start = setup.ts[0]
         centre = np.zeros(u_np.shape[0])
         while True:
-            data = setup.data(window_end=window, rtol=SEARCH_RTOL)
+            data = setup.data(window_end=window, rtol=SEARCH_RTOL, search=True)
             cycles = np.maximum((window - start) * rate, 1.0)
             step = self.resolution / cycles
             count = int(max(np.max(np.ceil(2 * half / step)) + 1, 3))
@@ -203,7 +205,7 @@ def refine_candidates(u_np, offsets, directions, setup, batched, dtype, steps):
     refined on the whole record for at most `steps` steps; the lowest end wins. Returns the
     winners, shape `(bsize, p)`."""
     points = u_np[None] + offsets[:, :, None] * directions[None]  # (K, bsize, p)
-    full = setup.data(steps=steps)
+    full = setup.data(steps=steps, search=True)
     ends, _ = setup.optimise_many(jnp.asarray(points if batched else points[:, 0], dtype), full)
     ends = np.asarray(ends, float).reshape(points.shape)
     end_losses = setup.losses(ends if batched else ends[:, 0], full)
@@ -260,7 +262,7 @@ def _hessians(u_np, setup, batched, h):
     count = offsets.shape[0]
     points = u_np[None] + offsets[:, None, :]
     points = points if batched else points[:, 0]
-    data = setup.data(theta=False, slow=1.0, rtol=SEARCH_RTOL)
+    data = setup.data(theta=False, slow=1.0, rtol=SEARCH_RTOL, search=True)
     loss = setup.losses(points, data).reshape(count, -1)  # (count, bsize)
     out = np.zeros((loss.shape[1], p, p))
     for i in range(p):

@@ -84,7 +84,7 @@ class ValleyScan(AbstractStage):
         start, end = ts[0], ts[-1]
         histories, counts = [], []
         # 1. onto the valley: the slow loss, everything free
-        slow = setup.data(theta=False, slow=1.0, steps=self.refine_steps)
+        slow = setup.data(theta=False, slow=1.0, steps=self.refine_steps, search=True)
         u_v, history, k, _ = setup.optimise(u, slow)
         histories.append(history)
         counts.append(k)
@@ -99,7 +99,7 @@ class ValleyScan(AbstractStage):
         centre = np.zeros(bsize)
         half = np.full(bsize, self.span)
         while True:
-            data = setup.data(window_end=window, rtol=SEARCH_RTOL)
+            data = setup.data(window_end=window, rtol=SEARCH_RTOL, search=True)
             cycles = np.maximum((window - start) * rate, 1.0)
             step = self.resolution / cycles
             count = int(np.clip(np.max(np.ceil(2 * half / step)) + 1, 3, self.max_points))
@@ -119,7 +119,9 @@ class ValleyScan(AbstractStage):
             moved = clear & (np.abs(centre) > self.recentre)
             if moved.any():
                 shifted = u_np + np.where(moved, centre, 0.0)[:, None] * directions
-                held = setup.data(theta=False, slow=1.0, pin=("spin",), steps=self.recentre_steps)
+                held = setup.data(
+                    theta=False, slow=1.0, pin=("spin",), steps=self.recentre_steps, search=True
+                )
                 new, history, k, _ = setup.optimise(as_u(shifted), held)
                 histories.append(history)
                 counts.append(k)
