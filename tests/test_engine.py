@@ -677,6 +677,29 @@ def test_bernstein_polygon_is_the_quintic(pieces):
     assert fewer < 300  # the bound is not trivially loose
 
 
+def test_signs_within_a_conditions_rounding_do_not_count():
+    """`settled_signs`: coefficients inside a condition's rounding floor take the nearest
+    significant sign, so a condition at zero to rounding (signs flipping at random) shows no
+    hidden crossing and no fall, while a dip out of the band and back is still a hidden
+    crossing, and a condition with no significant coefficient changes no sign."""
+    from tippejax._engine.bernstein import fell, hidden_crossing, settled_signs
+
+    rng = np.random.default_rng(0)
+    floor = 1e-15
+    noise = floor * 0.1 * rng.standard_normal((11, 1))
+    leaving = np.concatenate([noise[:6], -np.linspace(1e-9, 1e-8, 5)[:, None]])  # 0, then down
+    dip = np.array([1e-9, 5e-10, -1e-10, -5e-10, -1e-10, 3e-10, 1e-9, 2e-9, 3e-9, 4e-9, 5e-9])
+    for coefficients, hidden in ((noise, False), (leaving, False), (dip[:, None], True)):
+        raw = jnp.asarray(coefficients > 0)
+        settled = settled_signs(raw, jnp.asarray(np.abs(coefficients) > floor))
+        assert bool(hidden_crossing(settled)) == hidden
+    assert bool(hidden_crossing(jnp.asarray(noise > 0)))  # (the raw signs of the noise do)
+    settled = settled_signs(jnp.asarray(noise > 0), jnp.asarray(np.abs(noise) > floor))
+    assert np.all(np.asarray(settled) == bool(noise[0, 0] > 0))  # nothing significant
+    leaving_settled = settled_signs(jnp.asarray(leaving > 0), jnp.asarray(np.abs(leaving) > floor))
+    assert not bool(fell(leaving_settled, [0])[0])  # from zero down is not a fall
+
+
 def test_a_dip_between_sample_points_is_seen():
     """A top of group IIa drawn at random (seed 0 of benchmarks' random tops) whose first
     contact loss, at 3.5387 s by a solve at rtol 1e-12, is a dip of R_n that fell between the

@@ -80,6 +80,15 @@ def bernstein_signs(previous, previous_rate, mid, mid_rate, end, end_rate, h, pi
     positive (`_bernstein_polygon`, on `pieces` parts of the step): shape
     `(5 * pieces + 1,) + end.shape` (the conditions on the last axis, any leading axes
     before). The first row is the sign at the start of the step, the last at its end."""
+    coefficients = bernstein_coefficients(
+        previous, previous_rate, mid, mid_rate, end, end_rate, h, pieces
+    )
+    return coefficients > 0
+
+
+def bernstein_coefficients(previous, previous_rate, mid, mid_rate, end, end_rate, h, pieces):
+    """The Bernstein coefficients of each condition's quintic over the step, shaped as
+    `bernstein_signs`' signs."""
     h = h.astype(end.dtype)
     data = (previous, h * previous_rate, mid, h * mid_rate, end, h * end_rate)
     weights = _bernstein_polygon(pieces).astype(np.dtype(end.dtype))
@@ -90,7 +99,25 @@ def bernstein_signs(previous, previous_rate, mid, mid_rate, end, end_rate, h, pi
     for row in weights:
         terms = [w * x for w, x in zip(row, data) if w != 0.0]
         rows.append(sum(terms[1:], terms[0]))
-    return jnp.stack(rows) > 0
+    return jnp.stack(rows)
+
+
+def settled_signs(positive, significant):
+    """`positive` (`bernstein_signs`) with each coefficient inside its condition's rounding
+    floor (`significant` False) given the sign of the nearest significant one before it (after
+    it, before the first): a condition at zero to rounding changes sign only where it leaves
+    that band. A condition with no significant coefficient stays at zero to rounding all
+    along the step: it keeps its first sign, and changes none."""
+    rows = positive.shape[0]
+    first = positive[rows - 1]  # the first significant sign, from the end backwards
+    for k in range(rows - 2, -1, -1):
+        first = jnp.where(significant[k], positive[k], first)
+    filled, last = [], first
+    for k in range(rows):
+        last = jnp.where(significant[k], positive[k], last)
+        filled.append(last)
+    held = jnp.broadcast_to(positive[0], positive.shape)
+    return jnp.where(jnp.any(significant, axis=0), jnp.stack(filled), held)
 
 
 def hidden_crossing(positive):

@@ -36,6 +36,14 @@ class Watch(eqx.Module):
         conditions = self.level.conditions(top, self.unravel(y))
         return as_event_dtype(jnp.stack([conditions.get(name) for name in self.names]))
 
+    def floors(self, top):
+        """Each watched condition's rounding floor (`AbstractLevel.condition_floors`; 0 for
+        the conditions it does not name), or None where the level gives none."""
+        given = self.level.condition_floors(top)
+        if given is None:
+            return None
+        return as_event_dtype(jnp.stack([jnp.asarray(given.get(n, 0.0)) for n in self.names]))
+
 
 STEP_CONTROL = dict(pcoeff=0.4, icoeff=0.3)
 """The step-size controller's coefficients (`diffrax.PIDController`): a PI controller, the

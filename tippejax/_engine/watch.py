@@ -14,7 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float, PyTree
 
-from .bernstein import bernstein_signs, fell, hidden_crossing
+from .bernstein import bernstein_coefficients, fell, hidden_crossing, settled_signs
 from .events import EventRecords
 from .unrolled import AbstractTableauSolver
 
@@ -218,7 +218,8 @@ class AbstractWatchedSolver(diffrax.AbstractWrappedSolver):
     def _watched_step(self, terms, t0, t1, y0, args, inner, previous, previous_rate, made_jump):
         """The inner solver's step, the watched conditions and their rates at its end, and
         the signs of every condition along it (`bernstein_signs`, from `previous` and
-        `previous_rate` at its start):
+        `previous_rate` at its start; within a condition's rounding floor, `Watch.floors`,
+        the nearest sign outside it, `settled_signs`):
         `(y1, y_error, dense_info, inner, result, end, end_rate, positive)`."""
         y1, y_error, dense_info, inner, result = self.solver.step(
             terms, t0, t1, y0, args, inner, made_jump
@@ -237,9 +238,13 @@ class AbstractWatchedSolver(diffrax.AbstractWrappedSolver):
             points, tangents
         )
         end, end_rate = values[1], rates[1]
-        positive = bernstein_signs(
+        coefficients = bernstein_coefficients(
             previous, previous_rate, values[0], rates[0], end, end_rate, h, self.pieces
         )
+        floors = self.watch.floors(args) if hasattr(self.watch, "floors") else None
+        positive = coefficients > 0
+        if floors is not None:  # (signs within a condition's rounding do not count)
+            positive = settled_signs(positive, jnp.abs(coefficients) > floors[None])
         return y1, y_error, dense_info, inner, result, end, end_rate, positive
 
 

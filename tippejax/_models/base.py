@@ -116,6 +116,15 @@ class AbstractLevel(eqx.Module):
     def conditions(self, top: TippeTop, y: PyTree) -> Conditions:
         """Event conditions of a single level state."""
 
+    def condition_floors(self, top: TippeTop) -> dict[str, Array] | None:
+        """The rounding level of each watched condition that can sit at zero (by name), below
+        which the watch does not count its sign changes; None (default): every sign counts.
+        A condition that stays within its rounding of zero (the ball's gap at a hand-over
+        where the normal force vanishes) would otherwise show a hidden crossing in every step,
+        however short, and stall the solve."""
+        del top
+        return None
+
     def takes_friction(self, friction: AbstractFriction) -> bool:
         """Whether the level's equations hold for this friction law (`friction_laws`)."""
         return isinstance(friction, self.friction_laws)

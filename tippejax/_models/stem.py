@@ -34,6 +34,10 @@ from ._spin_frame import body_of, spin_frame_rates
 from .base import AbstractLevel, Conditions
 
 HAND_OVER_DEFLECTIONS = 20.0
+GAP_ROUNDING = 64.0
+"""The watch's floor of the gap conditions, in ulp of the ball's radius (`condition_floors`):
+above the rounding of $z_O + a_2 a_Z - r_2$ and $z_O + \epsilon a_Z - R$, far below any gap
+the contacts resolve."""
 r"""The full level of a top with a stem hands over to the stem level when the stem's gap above
 the table falls to this many static deflections of the ball under the top's weight,
 $(m g/k_R)^{2/3}$ with $k_R = \tfrac43 E^*\sqrt R$ (5 um for Leine & Glocker's top): the
@@ -240,6 +244,11 @@ class StemLevel(AbstractLevel):
             frame=frame_dot,
             angle=angle_dot,
         )
+
+    def condition_floors(self, top):
+        # The gaps are differences of lengths of the ball's size: rounding of a few ulp of R.
+        floor = GAP_ROUNDING * jnp.finfo(jnp.result_type(top.R)).eps * top.R
+        return dict(stem_touch=floor, ball_return=floor)
 
     def conditions(self, top, y):
         one = jnp.ones_like(y.height)
