@@ -34,15 +34,16 @@ from ._spin_frame import body_of, spin_frame_rates
 from .base import AbstractLevel, Conditions
 
 HAND_OVER_DEFLECTIONS = 20.0
-GAP_ROUNDING = 64.0
-"""The watch's floor of the gap conditions, in ulp of the ball's radius (`condition_floors`):
-above the rounding of $z_O + a_2 a_Z - r_2$ and $z_O + \epsilon a_Z - R$, far below any gap
-the contacts resolve."""
 r"""The full level of a top with a stem hands over to the stem level when the stem's gap above
 the table falls to this many static deflections of the ball under the top's weight,
 $(m g/k_R)^{2/3}$ with $k_R = \tfrac43 E^*\sqrt R$ (5 um for Leine & Glocker's top): the
 compliant contacts then meet the stem's impact from its first contact on, and the ball's
 contact, rigid until there, is the same to its deflection."""
+
+GAP_ROUNDING = 64.0
+r"""The watch's floor of the gap conditions, in ulp of the ball's radius (`condition_floors`):
+above the rounding of $z_O + a_2 a_Z - r_2$ and $z_O + \epsilon a_Z - R$, far below any gap
+the contacts resolve."""
 
 
 def _spheres(top: TippeTop):
