@@ -5,6 +5,8 @@ All runs here share one save-grid length and the default tolerances, so each (mo
 summary) combination compiles once for the module.
 """
 
+from typing import ClassVar
+
 import diffrax
 import equinox as eqx
 import jax
@@ -698,6 +700,102 @@ def test_signs_within_a_conditions_rounding_do_not_count():
     assert np.all(np.asarray(settled) == bool(noise[0, 0] > 0))  # nothing significant
     leaving_settled = settled_signs(jnp.asarray(leaving > 0), jnp.asarray(np.abs(leaving) > floor))
     assert not bool(fell(leaving_settled, [0])[0])  # from zero down is not a fall
+
+
+def test_a_recorded_event_that_chatters_does_not_hold_the_steps_back():
+    """Once an observed event is recorded its later crossings are not split into steps of their
+    own (a compliant contact's chatter after the ball's return stalled a run at `max_steps`):
+    a condition that crosses zero every 3e-5 s is recorded at its first downward crossing,
+    after which the steps grow to the cap of 2 ms, while a second observed event, a dip later
+    in the run, is still found on a step of its own. Without the rule the run needs a step per
+    pair of crossings, tens of thousands."""
+    from tippejax._engine.watch import WatchedSolver
+
+    omega, centre, width = 1e5, 0.7, 4e-3
+
+    def watch(y, args):
+        dip = 1.0 - 2.0 * jnp.exp(-(((y[0] - centre) / width) ** 2))
+        return jnp.stack([jnp.cos(omega * y[0]), dip])
+
+    solver = WatchedSolver(diffrax.Tsit5(), watch, observed=(0, 1))
+    sol = diffrax.diffeqsolve(
+        diffrax.ODETerm(lambda t, y, args: jnp.ones_like(y)),
+        solver,
+        0.0,
+        1.0,
+        1e-3,
+        jnp.zeros(1),
+        stepsize_controller=diffrax.PIDController(rtol=1e-8, atol=1e-10, dtmax=2e-3),
+        saveat=diffrax.SaveAt(t1=True, solver_state=True),
+        max_steps=1000,
+        throw=False,
+    )
+    assert sol.result == diffrax.RESULTS.successful
+    records = sol.solver_state.records()
+    assert np.all(np.asarray(records.found))
+    first = (np.pi / 2) / omega  # y = t: cos(omega t) first falls through zero here
+    dip_start = centre - width * np.sqrt(np.log(2.0))
+    for k, when in enumerate((first, dip_start)):
+        assert float(records.step_t0[k]) <= when <= float(records.step_t1[k])
+        assert float(records.step_t1[k] - records.step_t0[k]) < width
+
+
+class _Overflowing(diffrax.AbstractAdaptiveSolver):
+    """Heun's method whose steps longer than 1 overflow (end at +inf with an infinite error),
+    as an explicit step of a stiff contact does when it presses the ball in too far."""
+
+    term_structure: ClassVar = diffrax.AbstractTerm
+    interpolation_cls: ClassVar = diffrax.LocalLinearInterpolation
+
+    def order(self, terms):
+        return 2
+
+    def error_order(self, terms):
+        return 2
+
+    def init(self, terms, t0, t1, y0, args):
+        return None
+
+    def func(self, terms, t0, y0, args):
+        return terms.vf(t0, y0, args)
+
+    def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+        h = t1 - t0
+        k1 = terms.vf(t0, y0, args)
+        k2 = terms.vf(t1, y0 + h * k1, args)
+        too_long = h > 1.0
+        y1 = jnp.where(too_long, jnp.inf, y0 + 0.5 * h * (k1 + k2))
+        y_error = jnp.where(too_long, jnp.inf, 0.5 * h * (k2 - k1))
+        return y1, y_error, dict(y0=y0, y1=y1), None, diffrax.RESULTS.successful
+
+
+def test_a_step_that_overflows_is_shrunk_not_stuck():
+    """A trial step whose stages overflow ends at an infinite state with an infinite error:
+    diffrax's controller scales it by `inf`, takes the nan for its next step size and rejects
+    every step after (a batch member of Leine & Glocker's top stalled so as its ball landed).
+    `overflow_safe` makes the norm infinite there, so the step shrinks and the run goes on."""
+    from tippejax._engine.packing import overflow_safe
+
+    def rms(x):
+        return jnp.sqrt(jnp.mean(x**2))
+
+    def solve(norm):
+        return diffrax.diffeqsolve(
+            diffrax.ODETerm(lambda t, y, args: -y),
+            _Overflowing(),
+            0.0,
+            3.0,
+            2.0,
+            jnp.ones(1),
+            stepsize_controller=diffrax.PIDController(rtol=1e-4, atol=1e-6, norm=norm),
+            max_steps=2000,
+            throw=False,
+        )
+
+    assert solve(rms).result == diffrax.RESULTS.max_steps_reached  # (the trap)
+    sol = solve(overflow_safe(rms))
+    assert sol.result == diffrax.RESULTS.successful
+    assert abs(float(sol.ys[-1, 0]) - np.exp(-3.0)) < 1e-3
 
 
 def test_a_dip_between_sample_points_is_seen():

@@ -120,11 +120,17 @@ def settled_signs(positive, significant):
     return jnp.where(jnp.any(significant, axis=0), jnp.stack(filled), held)
 
 
-def hidden_crossing(positive):
+def hidden_crossing(positive, watched=None):
     """Whether some condition's coefficients (`bernstein_signs`) change sign more than once:
-    the step may hide a crossing and its way back. Shape `positive.shape[1:-1]`."""
-    changes = jnp.sum(positive[1:] != positive[:-1], axis=0)
-    return jnp.any(changes > 1, axis=-1)
+    the step may hide a crossing and its way back. Shape `positive.shape[1:-1]`.
+
+    `watched`: which conditions count, broadcast against `positive.shape[1:]` (default all):
+    an observed event already recorded has no crossing left to find, and its later crossings,
+    however close (a compliant contact's chatter), must not hold the steps back."""
+    many = jnp.sum(positive[1:] != positive[:-1], axis=0) > 1
+    if watched is not None:
+        many = many & watched
+    return jnp.any(many, axis=-1)
 
 
 def fell(positive, columns):

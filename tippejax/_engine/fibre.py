@@ -19,6 +19,7 @@ from .._models.gyroscopic import (
 from .._models.so3 import SO3Level
 from .._state import State
 from .._top import TippeTop
+from .packing import overflow_safe
 
 SETTLE_RTOL, SETTLE_ATOL = 1e-7, 1e-10
 """Tolerances of the two short solves of the fibre projection."""
@@ -31,7 +32,7 @@ projection)."""
 def short_solve(vector_field, y0, t0, t1, norm, *, rtol, atol):
     """One short Tsit5 solve of `vector_field(t, y)` from `t0` to `t1` (either direction):
     the state at `t1` and whether the solve succeeded (it never raises)."""
-    controller = diffrax.PIDController(rtol=rtol, atol=atol, norm=norm)
+    controller = diffrax.PIDController(rtol=rtol, atol=atol, norm=overflow_safe(norm))
     sol = diffrax.diffeqsolve(
         diffrax.ODETerm(lambda t, y, args: vector_field(t, y)),
         diffrax.Tsit5(),

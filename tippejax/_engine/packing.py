@@ -104,6 +104,24 @@ def ravel_state(y: PyTree, width: int = PACK_WIDTH):
     return flat, unravel
 
 
+def overflow_safe(norm):
+    """`norm` of a scaled error, infinite where it is nan, so that the step is rejected and
+    shrunk.
+
+    `diffrax.PIDController` scales the error by `atol + rtol * max(|y0|, |y1|)`. A trial step
+    whose stages overflow (a stiff contact pressed far in by too long a step) can end at an
+    infinite `y1` with an infinite error: the scaled error is then `inf / inf`, nan, and the
+    controller takes nan for its next step size, so that every later step is rejected and the
+    run stays at that time until `max_steps` (diffrax replaces a nan `y1` by `y0` in the
+    scale, but not an infinite one)."""
+
+    def safe(scaled_error):
+        value = norm(scaled_error)
+        return jnp.where(jnp.isnan(value), jnp.inf, value)
+
+    return safe
+
+
 class FlatField(eqx.Module):
     """A level's vector field on its state flattened by `ravel_state` (one or two leaves)."""
 
@@ -115,4 +133,5 @@ class FlatField(eqx.Module):
         return ravel_state(self.level.vector_field(t, self.unravel(y), top), self.width)[0]
 
     def error_norm(self, scaled_error):
-        return self.level.error_norm(self.unravel(scaled_error))
+        """The level's norm of the scaled error, infinite where it is nan (`overflow_safe`)."""
+        return overflow_safe(self.level.error_norm)(self.unravel(scaled_error))

@@ -116,7 +116,8 @@ class SharedWatchedSolver(AbstractWatchedSolver):
         )
         frozen = solver_state.stopped
         running = ~frozen
-        hidden = hidden_crossing(positive) & running
+        watched = self._still_watched(solver_state.found, end.shape[-1])
+        hidden = hidden_crossing(positive, watched) & running
         new = fell(positive, self.observed) & ~solver_state.found & running[:, None]
         stops_now = jnp.zeros_like(running)
         if self.terminating:

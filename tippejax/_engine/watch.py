@@ -177,6 +177,21 @@ class AbstractWatchedSolver(diffrax.AbstractWrappedSolver):
     def scan_kind(self):
         return self.solver.scan_kind
 
+    def _still_watched(self, found, conditions: int):
+        """Which conditions the hidden-crossing test counts, given `found` (`(..., m)`, the
+        observed events recorded so far): every one but an observed event already recorded
+        (only its first crossing is kept, so its later ones, such as a compliant contact's
+        chatter after the ball's return, need not be split into steps of their own); a
+        terminating event always counts. Shape `found.shape[:-1] + (conditions,)`; None when
+        nothing is observed (every condition counts)."""
+        if not self.observed:
+            return None
+        watched = jnp.ones(found.shape[:-1] + (conditions,), bool)
+        watched = watched.at[..., jnp.array(self.observed)].set(~found)
+        if self.terminating:
+            watched = watched.at[..., jnp.array(self.terminating)].set(True)
+        return watched
+
     def _start(self, terms, t0, t1, y0, args):
         """`t0` in the times' dtype, the end of a dummy step for the events not yet found,
         and the watched conditions and their rates at `y0`."""
@@ -343,12 +358,13 @@ class WatchedSolver(AbstractWatchedSolver):
             solver_state.previous_rate,
             made_jump,
         )
-        hidden = hidden_crossing(positive)
-        if y_error is not None:
-            y_error = jax.tree_util.tree_map(lambda e: jnp.where(hidden, jnp.inf, e), y_error)
         layout, record = solver_state.layout, solver_state.record
         m, n = layout.events, layout.size
-        new = fell(positive, self.observed) & ~(record[:m] > 0.5)
+        found = record[:m] > 0.5
+        hidden = hidden_crossing(positive, self._still_watched(found, end.shape[-1]))
+        if y_error is not None:
+            y_error = jax.tree_util.tree_map(lambda e: jnp.where(hidden, jnp.inf, e), y_error)
+        new = fell(positive, self.observed) & ~found
         stopped = jnp.array(False)
         if self.terminating:
             stopped = jnp.any(fell(positive, self.terminating)) & (
