@@ -92,11 +92,13 @@ def widen(cand, idx, bsize, batched):
     )
 
 
-def flag(code, where, new):
+def flag(code, where, new, over=(FIT_RESULTS.successful,)):
     """`code` (a `FIT_RESULTS` item, one per record) set to `new` where `where` holds and the
-    code is `successful`; in numpy (no small programs to compile in a new process)."""
+    code is one of `over` (default: `successful` only); in numpy (no small programs to
+    compile in a new process)."""
     value = np.asarray(code._value)
-    hit = np.asarray(where, bool) & (value == np.asarray(FIT_RESULTS.successful._value))
+    replaceable = np.isin(value, np.asarray([item._value for item in over]))
+    hit = np.asarray(where, bool) & replaceable
     flagged = np.where(hit, np.asarray(new._value), value).astype(value.dtype)
     return eqx.tree_at(lambda c: c._value, code, to_device(flagged))
 

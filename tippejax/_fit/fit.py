@@ -332,10 +332,16 @@ def _result(best, setup, obs2, ends, batch, free, model, method, strategy, sigma
     code = out["result"]
 
     # a converged fit whose residuals are not noise: a launch time that is off, if freeing it
-    # would explain them, else a local minimum
+    # would explain them, else a local minimum. A fit that ran out of optimiser steps with
+    # residuals that are not noise is flagged so too: "may still be usable" would not hold.
     one = (lambda x: x) if batch is not None else (lambda x: x[0])  # noqa: E731
     code = flag(code, one(launch_time_suspects(setup, best, sigma)), FIT_RESULTS.launch_time)
-    code = flag(code, one(~passes), FIT_RESULTS.local_minimum)
+    code = flag(
+        code,
+        one(~passes),
+        FIT_RESULTS.local_minimum,
+        over=(FIT_RESULTS.successful, FIT_RESULTS.max_steps_reached),
+    )
     mask = setup.mask
     whole = np.where(mask, residuals, np.nan)
     rms = np.sqrt(np.nanmean(whole**2, axis=-1))
