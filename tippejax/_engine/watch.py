@@ -181,16 +181,14 @@ class AbstractWatchedSolver(diffrax.AbstractWrappedSolver):
         """Which conditions the hidden-crossing test counts, given `found` (`(..., m)`, the
         observed events recorded so far): every one but an observed event already recorded
         (only its first crossing is kept, so its later ones, such as a compliant contact's
-        chatter after the ball's return, need not be split into steps of their own); a
-        terminating event always counts. Shape `found.shape[:-1] + (conditions,)`; None when
-        nothing is observed (every condition counts)."""
+        chatter after the ball's return, need not be split into steps of their own; the
+        terminating events are not among the observed ones). Shape
+        `found.shape[:-1] + (conditions,)`; None when nothing is observed (every condition
+        counts)."""
         if not self.observed:
             return None
         watched = jnp.ones(found.shape[:-1] + (conditions,), bool)
-        watched = watched.at[..., jnp.array(self.observed)].set(~found)
-        if self.terminating:
-            watched = watched.at[..., jnp.array(self.terminating)].set(True)
-        return watched
+        return watched.at[..., jnp.array(self.observed)].set(~found)
 
     def _start(self, terms, t0, t1, y0, args):
         """`t0` in the times' dtype, the end of a dummy step for the events not yet found,
