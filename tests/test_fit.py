@@ -143,8 +143,9 @@ def test_misfit_record_is_flagged(fast_record):
     """After 4.5 s the tilt stops at 2.3 rad, as when a real top's stem lands. A fit of the
     whole record must not come back `converged`, and says its residuals are not noise."""
     obs, spin, guess, y0 = _landed(fast_record)
-    # One start (strategy="levels"): what is tested is the flag, not the search.
-    whole = tj.fit(guess, y0, TS_FAST, obs, free=FREE, strategy="levels")
+    # Growing windows from the guess alone (strategy="windows"): what is tested is the flag,
+    # not the search.
+    whole = tj.fit(guess, y0, TS_FAST, obs, free=FREE, strategy="windows")
     print(whole.table())
     assert not bool(whole.converged)
     assert whole.result == tj.FIT_RESULTS.local_minimum
