@@ -76,7 +76,7 @@ def _check_fit(res, truth):
     assert np.all(np.abs(values - truth) < 3 * errors), (values - truth) / errors
 
 
-@pytest.mark.slow  # (two full law comparisons: minutes on 2 cores)
+@pytest.mark.slow  # (two law comparisons: about two minutes on 2 cores)
 def test_viscous_record_keeps_the_viscous_law(viscous_record):
     """The record of the viscous law does not rule it out; the fit (launched at t = 0, a
     sample before the first frame) recovers its mu and spin."""
@@ -94,7 +94,7 @@ def test_viscous_record_keeps_the_viscous_law(viscous_record):
     assert int(cmp.dof[0]) == ts.size - 2
 
 
-@pytest.mark.slow  # (two full law comparisons: minutes on 2 cores)
+@pytest.mark.slow  # (two law comparisons: about two minutes on 2 cores)
 def test_contensou_record_rules_out_the_viscous_law(contensou_record):
     """A Coulomb-Contensou record, whose best viscous fit is much further than the noise from
     it, rules out the viscous law and prefers Coulomb-Contensou, whose mu (dimensionless) and
@@ -212,3 +212,67 @@ def test_searches_simulate_a_contensou_law_at_the_search_slip_scale(monkeypatch)
     np.testing.assert_allclose(given, theta_given, atol=1e-8)
     np.testing.assert_allclose(searched, theta_floor, atol=1e-8)
     assert 1e-6 < np.max(np.abs(theta_floor - theta_given)) < 0.1 * NOISE
+
+
+class _FakeFit:
+    """What `compare_laws` reads of a `FitResult`: residuals, the fitted top and launch."""
+
+    def __init__(self, top, y0, white, level, free):
+        n = int(LENGTH * RATE)
+        noise = NOISE * np.random.default_rng(len(free)).standard_normal(n)
+        # white noise, or a slow wave of `level` on top (not white)
+        self.residuals = noise if white else noise + level * np.sin(np.linspace(0, 3, n))
+        self.top, self.y0, self.free = top, y0, free
+        self.t0, self.converged = 0.0, True
+        self.values = self.std_errors = np.ones(len(free))
+
+
+@pytest.mark.parametrize("right_from_guess", [False, True])
+def test_shared_search_spends_the_search_on_one_law_and_restarts_the_others(
+    monkeypatch, right_from_guess
+):
+    """`search="shared"` (default): every law from its guess (strategy "windows"); while none
+    passes, the whole strategy on the law with the lowest residual sum of squares, then the
+    next; once one passes, every other law once more from that fit's top and launch, and not
+    searched. `search="every"`: the whole strategy on each law. (A stand-in for `fit` whose
+    right law, CoulombContensou, passes after its search, or from its guess, and whose wrong
+    law fits better than it from the guess but never passes.)"""
+    from tippejax._fit import compare
+
+    calls = []
+    warm = tj.initial_state(TOP, 0.2, SPIN)  # the passing fit's launch
+
+    def fake_fit(top, y0, ts, obs, *, free, strategy="global", **kw):
+        law = type(top.friction).__name__
+        calls.append((law, strategy, y0 is warm))
+        if law == "CoulombContensou":
+            white = strategy != "windows" or right_from_guess
+            return _FakeFit(top, warm, white, 0.05, free)
+        return _FakeFit(top, y0, False, 0.03, free)  # the wrong law: closer, never white
+
+    monkeypatch.setattr(compare, "fit", fake_fit)
+    ts = np.arange(1, int(LENGTH * RATE) + 1) / RATE
+    y0 = tj.initial_state(TOP, THETA0, SPIN)
+    cmp = tj.compare_laws(TOP, y0, ts, np.zeros_like(ts), _guesses(), free=FREE, sigma=NOISE)
+    cheap = [("Viscous", "windows", False), ("CoulombContensou", "windows", False)]
+    if right_from_guess:  # no search: the wrong law restarts from the right law's fit
+        assert calls == [*cheap, ("Viscous", "windows", True)]
+        assert not cmp.searched.any()
+    else:  # the wrong law (lower loss) is searched first, then the right one
+        assert calls == [
+            *cheap,
+            ("Viscous", "global", False),
+            ("CoulombContensou", "global", False),
+        ]
+        assert cmp.searched.all()
+    assert list(cmp.ruled_out) == [True, False] and cmp.preferred_index == 1
+    assert ("(not searched)" in str(cmp)) == right_from_guess
+
+    calls.clear()
+    cmp = tj.compare_laws(
+        TOP, y0, ts, np.zeros_like(ts), _guesses(), free=FREE, sigma=NOISE, search="every"
+    )
+    assert calls == [("Viscous", "global", False), ("CoulombContensou", "global", False)]
+    assert cmp.searched.all()
+    with pytest.raises(ValueError, match="search must be one of"):
+        tj.compare_laws(TOP, y0, ts, np.zeros_like(ts), _guesses(), search="some")
